@@ -1,0 +1,1 @@
+"""Finite elements of the BioTac skin, fluid and contact, written in warp-lang."""

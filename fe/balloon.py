@@ -1,0 +1,82 @@
+"""Closed spherical Neo-Hookean membrane inflated under volume control: the analytic check of fe/.
+
+Membrane theory: p = 2 mu t / R (1/lambda - 1/lambda^7), lambda = (V / V0)^(1/3), with a pressure maximum
+at lambda = 7^(1/6) ~ 1.38 that volume control passes through.
+"""
+
+from dataclasses import dataclass
+
+import numpy as np
+import trimesh
+
+from fe.newton import NewtonSettings, solve_equilibrium
+from fe.params import SkinParameters
+from fe.shell import ShellMesh, ShellSystem
+
+
+@dataclass(frozen=True)
+class BalloonPoint:
+    """One equilibrium: volume ratio V/V0, stretch, FE pressure (Pa) and membrane-theory pressure (Pa)."""
+
+    volume_ratio: float
+    stretch: float
+    pressure_pa: float
+    analytic_pressure_pa: float
+    converged: bool
+
+
+def analytic_balloon_pressure(stretch: np.ndarray | float, radius: float, thickness: float, mu: float) -> np.ndarray:
+    """p (Pa) of an incompressible Neo-Hookean spherical membrane at circumferential stretch lambda."""
+    lam = np.asarray(stretch, dtype=float)
+    return 2.0 * mu * thickness / radius * (1.0 / lam - 1.0 / lam**7)
+
+
+def sphere_mesh(radius: float, subdivisions: int) -> ShellMesh:
+    """Icosphere (m) with six coordinates held to remove rigid motions but not uniform inflation."""
+    sphere = trimesh.creation.icosphere(subdivisions=subdivisions, radius=radius)
+    v = np.asarray(sphere.vertices, dtype=np.float64)
+    fixed = np.zeros((len(v), 3), dtype=bool)
+    north, south = int(np.argmax(v[:, 2])), int(np.argmin(v[:, 2]))
+    equator = int(np.argmin(np.abs(v[:, 2]) + np.abs(v[:, 1]) - v[:, 0]))
+    fixed[north, :2] = fixed[south, :2] = True
+    fixed[equator, 1:] = True
+    return ShellMesh(v, np.asarray(sphere.faces, dtype=np.int32), fixed)
+
+
+def inflate_balloon(
+    radius: float,
+    thickness: float,
+    mu: float,
+    volume_ratios: list[float],
+    subdivisions: int = 3,
+    bending: bool = False,
+) -> list[BalloonPoint]:
+    """Inflate a closed sphere (radius m, thickness m, shear modulus Pa) to each volume ratio in turn."""
+    if radius <= 0 or thickness <= 0 or mu <= 0:
+        raise ValueError("radius, thickness and mu must be positive")
+    if any(r <= 0 for r in volume_ratios):
+        raise ValueError("volume ratios must be positive")
+    params = SkinParameters(thickness=thickness, mu_nh=mu, bending=bending)
+    system = ShellSystem(sphere_mesh(radius, subdivisions), params)
+    q = system.free_coordinates(system.x)
+    v0 = system.linearize(q, 0.0, want_matrix=False).volume
+    pressure, points = 0.0, []
+    # Walk in small volume steps so that Newton always starts near the solution.
+    for ratio in volume_ratios:
+        current = system.linearize(q, pressure, want_matrix=False).volume / v0
+        n_steps = max(1, int(np.ceil(abs(ratio - current) / 0.05)))
+        result = None
+        for target in np.linspace(current, ratio, n_steps + 1)[1:]:
+            result = solve_equilibrium(system, q, pressure, target * v0, NewtonSettings(force_tolerance=1e-10))
+            q, pressure = result.q, result.pressure
+        stretch = ratio ** (1.0 / 3.0)
+        points.append(
+            BalloonPoint(
+                volume_ratio=ratio,
+                stretch=stretch,
+                pressure_pa=pressure,
+                analytic_pressure_pa=float(analytic_balloon_pressure(stretch, radius, thickness, mu)),
+                converged=bool(result is None or result.converged),
+            )
+        )
+    return points

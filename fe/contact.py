@@ -1,0 +1,187 @@
+"""Contact energies per skin vertex, in warp: rigid core (frictionless) and rigid indenter (frictional).
+
+Normal contact is a one-sided quadratic penalty on the gap g (m) between the skin surface and the body:
+E_n = kappa A_v g^2 / 2 for g < 0, with A_v the vertex's lumped reference area (m^2) and kappa the
+penalty stiffness (Pa/m), so kappa |g| is the contact pressure. Friction is lagged Coulomb with IPC
+smoothing: E_f = mu lambda f0(|u_T|), lambda the normal force (N) and n the contact normal of the last
+lagging pass, u_T the slip over the increment projected on the plane normal to n, and f0 the C1
+smoothing of |u| over the slip length eps (m). The indenter moves rigidly; its SDF is evaluated in its
+own frame (tip at the origin, body along +z).
+"""
+
+import warp as wp
+
+from fe.indenter_sdf import indenter_sdf, indenter_sdf_grad
+
+_TINY = wp.constant(wp.float64(1e-30))
+
+
+@wp.func
+def closest_point_on_triangle(p: wp.vec3d, a: wp.vec3d, b: wp.vec3d, c: wp.vec3d) -> wp.vec3d:
+    """Closest point (m) to p on triangle abc, in double precision (Ericson's region test)."""
+    ab = b - a
+    ac = c - a
+    ap = p - a
+    d1 = wp.dot(ab, ap)
+    d2 = wp.dot(ac, ap)
+    zero = wp.float64(0.0)
+    if d1 <= zero and d2 <= zero:
+        return a
+    bp = p - b
+    d3 = wp.dot(ab, bp)
+    d4 = wp.dot(ac, bp)
+    if d3 >= zero and d4 <= d3:
+        return b
+    vc = d1 * d4 - d3 * d2
+    if vc <= zero and d1 >= zero and d3 <= zero:
+        return a + ab * (d1 / (d1 - d3))
+    cp = p - c
+    d5 = wp.dot(ab, cp)
+    d6 = wp.dot(ac, cp)
+    if d6 >= zero and d5 <= d6:
+        return c
+    vb = d5 * d2 - d1 * d6
+    if vb <= zero and d2 >= zero and d6 <= zero:
+        return a + ac * (d2 / (d2 - d6))
+    va = d3 * d6 - d5 * d4
+    if va <= zero and (d4 - d3) >= zero and (d5 - d6) >= zero:
+        return b + (c - b) * ((d4 - d3) / ((d4 - d3) + (d5 - d6)))
+    denom = wp.float64(1.0) / (va + vb + vc)
+    return a + ab * (vb * denom) + ac * (vc * denom)
+
+
+@wp.kernel
+def core_contact_kernel(
+    x: wp.array2d(dtype=wp.vec3d),
+    core: wp.uint64,
+    core_vertices: wp.array(dtype=wp.vec3d),
+    core_triangles: wp.array(dtype=wp.vec3i),
+    vertex_area: wp.array(dtype=wp.float64),
+    offset: wp.float64,
+    kappa: wp.float64,
+    energy: wp.array2d(dtype=wp.float64),
+    gradient: wp.array2d(dtype=wp.vec3d),
+    hessian: wp.array2d(dtype=wp.mat33d),
+    gap: wp.array2d(dtype=wp.float64),
+):
+    """Frictionless one-sided contact of skin vertex v (mid-surface, offset m inward) with the core mesh."""
+    b, v = wp.tid()
+    p = x[b, v]
+    q = wp.mesh_query_point_sign_normal(core, wp.vec3(p), wp.float32(1.0))
+    zero = wp.float64(0.0)
+    energy[b, v] = zero
+    hessian[b, v] = wp.mat33d()
+    gap[b, v] = wp.float64(1.0)
+    if not q.result:
+        return
+    tri = core_triangles[q.face]
+    cp = closest_point_on_triangle(p, core_vertices[tri[0]], core_vertices[tri[1]], core_vertices[tri[2]])
+    diff = p - cp
+    dist = wp.length(diff)
+    sign = wp.float64(q.sign)
+    if dist < _TINY:
+        return
+    n = diff * (sign / dist)
+    g = sign * dist - offset
+    gap[b, v] = g
+    if g >= zero:
+        return
+    ka = kappa * vertex_area[v]
+    energy[b, v] = wp.float64(0.5) * ka * g * g
+    wp.atomic_add(gradient, b, v, n * (ka * g))
+    hessian[b, v] = wp.outer(n, n) * ka
+
+
+@wp.func
+def _sdf_world(kind: int, dims: wp.vec4d, rotation: wp.mat33d, translation: wp.vec3d, p: wp.vec3d) -> wp.float64:
+    return indenter_sdf(kind, dims, wp.transpose(rotation) @ (p - translation))
+
+
+@wp.func
+def _sdf_grad_world(
+    kind: int, dims: wp.vec4d, rotation: wp.mat33d, translation: wp.vec3d, p: wp.vec3d
+) -> wp.vec3d:
+    return rotation @ indenter_sdf_grad(kind, dims, wp.transpose(rotation) @ (p - translation))
+
+
+@wp.kernel
+def indenter_contact_kernel(
+    x: wp.array2d(dtype=wp.vec3d),
+    x_start: wp.array2d(dtype=wp.vec3d),
+    vertex_area: wp.array(dtype=wp.float64),
+    kind: int,
+    dims: wp.vec4d,
+    rotation: wp.array(dtype=wp.mat33d),
+    translation: wp.array(dtype=wp.vec3d),
+    translation_start: wp.array(dtype=wp.vec3d),
+    offset: wp.array(dtype=wp.float64),
+    kappa: wp.float64,
+    friction: wp.array(dtype=wp.float64),
+    lagged_force: wp.array2d(dtype=wp.float64),
+    lagged_normal: wp.array2d(dtype=wp.vec3d),
+    slip_eps: wp.float64,
+    want_hessian: int,
+    energy: wp.array2d(dtype=wp.float64),
+    gradient: wp.array2d(dtype=wp.vec3d),
+    hessian: wp.array2d(dtype=wp.mat33d),
+    gap: wp.array2d(dtype=wp.float64),
+    normal: wp.array2d(dtype=wp.vec3d),
+):
+    """Penalty normal contact + lagged smoothed Coulomb friction of skin vertex v with the indenter of batch b."""
+    b, v = wp.tid()
+    p = x[b, v]
+    R = rotation[b]
+    t = translation[b]
+    zero = wp.float64(0.0)
+    g = _sdf_world(kind, dims, R, t, p) - offset[b]
+    n = _sdf_grad_world(kind, dims, R, t, p)
+    gap[b, v] = g
+    normal[b, v] = n
+    e = zero
+    grad = wp.vec3d()
+    H = wp.mat33d()
+    ka = kappa * vertex_area[v]
+    if g < zero:
+        e = wp.float64(0.5) * ka * g * g
+        grad = n * (ka * g)
+        if want_hessian != 0:
+            # d2g/dx2 by central differences of the analytic SDF gradient.
+            h = wp.float64(1e-8)
+            curv = wp.mat33d()
+            for j in range(3):
+                dp = wp.vec3d()
+                dp[j] = h
+                col = (_sdf_grad_world(kind, dims, R, t, p + dp) - _sdf_grad_world(kind, dims, R, t, p - dp)) / (
+                    wp.float64(2.0) * h
+                )
+                for i in range(3):
+                    curv[i, j] = col[i]
+            curv = wp.float64(0.5) * (curv + wp.transpose(curv))
+            H = ka * (wp.outer(n, n) + g * curv)
+    lam = lagged_force[b, v] * friction[b]
+    if lam > zero:
+        nl = lagged_normal[b, v]
+        u = (p - x_start[b, v]) - (t - translation_start[b])
+        ut = u - nl * wp.dot(u, nl)
+        y = wp.length(ut)
+        eps = slip_eps
+        one = wp.float64(1.0)
+        if y < eps:
+            e += lam * (-y * y * y / (wp.float64(3.0) * eps * eps) + y * y / eps + eps / wp.float64(3.0))
+            f1_over_y = wp.float64(2.0) / eps - y / (eps * eps)
+        else:
+            e += lam * y
+            f1_over_y = one / y
+        grad += ut * (lam * f1_over_y)
+        if want_hessian != 0:
+            proj = wp.identity(n=3, dtype=wp.float64) - wp.outer(nl, nl)
+            Hf = proj * f1_over_y
+            if y > _TINY:
+                if y < eps:
+                    Hf -= wp.outer(ut, ut) / (eps * eps * y)
+                else:
+                    Hf -= wp.outer(ut, ut) / (y * y * y)
+            H += lam * Hf
+    energy[b, v] = e
+    wp.atomic_add(gradient, b, v, grad)
+    hessian[b, v] = H

@@ -1,0 +1,57 @@
+"""Volume enclosed by an oriented triangle surface (and its derivatives), in warp.
+
+V = sum over triangles of (x0 - o) . ((x1 - o) x (x2 - o)) / 6 for a fixed origin o. For a skin whose
+boundary is anchored, the closing part of the cavity wall (core, anchors) never moves, so changes of V
+are exactly changes of the fluid volume. Lengths in metres, volume in m^3.
+"""
+
+import warp as wp
+
+from fe.wptypes import mat99d
+
+
+@wp.func
+def _skew(v: wp.vec3d) -> wp.mat33d:
+    zero = wp.float64(0.0)
+    return wp.mat33d(zero, -v[2], v[1], v[2], zero, -v[0], -v[1], v[0], zero)
+
+
+@wp.func
+def _put_block(H: mat99d, a: int, b: int, m: wp.mat33d) -> mat99d:
+    for i in range(3):
+        for j in range(3):
+            H[3 * a + i, 3 * b + j] = m[i, j]
+    return H
+
+
+@wp.kernel
+def volume_kernel(
+    x: wp.array2d(dtype=wp.vec3d),
+    triangles: wp.array(dtype=wp.vec3i),
+    origin: wp.vec3d,
+    want_hessian: int,
+    volume: wp.array2d(dtype=wp.float64),
+    gradient: wp.array2d(dtype=wp.vec3d),
+    hessian: wp.array2d(dtype=mat99d),
+):
+    """Per (batch, triangle): signed tetra volume to `origin`, its node gradients and 9x9 Hessian."""
+    b, t = wp.tid()
+    tri = triangles[t]
+    x0 = x[b, tri[0]] - origin
+    x1 = x[b, tri[1]] - origin
+    x2 = x[b, tri[2]] - origin
+    sixth = wp.float64(1.0) / wp.float64(6.0)
+    volume[b, t] = wp.dot(x0, wp.cross(x1, x2)) * sixth
+    wp.atomic_add(gradient, b, tri[0], wp.cross(x1, x2) * sixth)
+    wp.atomic_add(gradient, b, tri[1], wp.cross(x2, x0) * sixth)
+    wp.atomic_add(gradient, b, tri[2], wp.cross(x0, x1) * sixth)
+    if want_hessian != 0:
+        H = mat99d()
+        # d/dx1 of (x1 x x2) = -[x2]x, d/dx2 of (x1 x x2) = [x1]x, and cyclically.
+        H = _put_block(H, 0, 1, -_skew(x2) * sixth)
+        H = _put_block(H, 0, 2, _skew(x1) * sixth)
+        H = _put_block(H, 1, 2, -_skew(x0) * sixth)
+        H = _put_block(H, 1, 0, _skew(x2) * sixth)
+        H = _put_block(H, 2, 0, -_skew(x1) * sixth)
+        H = _put_block(H, 2, 1, _skew(x0) * sixth)
+        hessian[b, t] = H

@@ -1,0 +1,11 @@
+"""Double-precision warp types shared by the FE kernels (Newton needs float64 accuracy)."""
+
+import warp as wp
+
+wp.config.quiet = True
+
+mat32d = wp.types.matrix(shape=(3, 2), dtype=wp.float64)
+mat99d = wp.types.matrix(shape=(9, 9), dtype=wp.float64)
+mat1212d = wp.types.matrix(shape=(12, 12), dtype=wp.float64)
+vec9d = wp.types.vector(length=9, dtype=wp.float64)
+vec12d = wp.types.vector(length=12, dtype=wp.float64)
