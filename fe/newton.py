@@ -34,9 +34,14 @@ class EquilibriumProblem(Protocol):
 
 @dataclass(frozen=True)
 class NewtonSettings:
-    """Stopping rules: residual force (N, infinity norm), relative volume error, iteration cap."""
+    """Stopping rules: residual force (infinity norm), relative volume error, iteration cap.
 
-    force_tolerance: float = 1e-9
+    The residual must fall below max(force_tolerance (N), relative_force_tolerance x the largest nodal
+    load |grad E| or |p grad V|), i.e. a part-per-million balance of every node's forces by default.
+    """
+
+    force_tolerance: float = 1e-10
+    relative_force_tolerance: float = 1e-6
     volume_tolerance: float = 1e-10
     max_iterations: int = 60
     max_backtracks: int = 30
@@ -86,7 +91,9 @@ def solve_equilibrium(
             on_iteration(iteration, rnorm)
         if not np.isfinite(rnorm):
             return NewtonResult(q, pressure, False, iteration, rnorm, lin.volume, "non-finite residual")
-        if rnorm <= settings.force_tolerance and abs(c) <= settings.volume_tolerance * volume_scale:
+        load = max(np.max(np.abs(lin.gradient), initial=0.0), np.max(np.abs(pressure * lin.volume_gradient), initial=0.0))
+        tolerance = max(settings.force_tolerance, settings.relative_force_tolerance * load)
+        if rnorm <= tolerance and abs(c) <= settings.volume_tolerance * volume_scale:
             return NewtonResult(q, pressure, True, iteration, rnorm, lin.volume, "converged")
         if iteration == settings.max_iterations:
             break
@@ -121,10 +128,12 @@ def _newton_step(lin: Linearization, r: np.ndarray, c: float, constrained: bool)
     K = lin.matrix
     try:
         if not constrained:
-            return spla.splu(K.tocsc()).solve(-r), 0.0
+            lu = spla.splu(K.tocsc(), permc_spec="MMD_AT_PLUS_A", options={"SymmetricMode": True})
+            return lu.solve(-r), 0.0
         b = lin.volume_gradient[:, None]
         kkt = sp.bmat([[K, sp.csr_matrix(-b)], [sp.csr_matrix(-b.T), None]], format="csc")
-        sol = spla.splu(kkt).solve(np.concatenate([-r, [c]]))
+        lu = spla.splu(kkt, permc_spec="MMD_AT_PLUS_A", options={"SymmetricMode": True})
+        sol = lu.solve(np.concatenate([-r, [c]]))
     except RuntimeError:
         return None, 0.0
     if not np.all(np.isfinite(sol)):

@@ -1,0 +1,401 @@
+"""Axisymmetric reference solution for the inflated, indented hemispherical membrane ("Dome").
+
+Independent of the warp finite-element code: pure numpy/scipy, used to check the 3D shell model.
+
+Problem
+-------
+A hemispherical incompressible Neo-Hookean membrane (reference radius ``R``, thickness ``t``, shear
+modulus ``mu``; strain energy per unit reference area
+``W = (mu t / 2)(l1^2 + l2^2 + 1/(l1^2 l2^2) - 3)``) is pinned at its equator to the rigid plane
+``z = 0``.  The cavity is filled with incompressible fluid: it is first inflated to
+``V = volume_ratio * 2/3 pi R^3`` (uniform pressure ``p``), then, with ``V`` held, a rigid frictionless
+sphere of radius ``r_i`` is pushed coaxially onto the apex to depth ``d`` (``d = 0`` at first touch).
+
+Method
+------
+Lagrangian axisymmetric membrane equations in the reference arc length ``S`` measured from the apex
+(Yang & Feng 1970).  Lengths are scaled by ``R``, pressure by ``mu t / R``.  With the reference radius
+``R0(S) = sin S``, the state is ``y = (r, z, theta, l1, V, E)``: the deformed radius and height, the
+meridian tangent angle (``dr/dS = l1 cos theta``, ``dz/dS = -l1 sin theta``), the meridional stretch,
+the enclosed volume and the strain energy accumulated from the apex.  ``l2 = r / R0``.  With
+``W_i = dW/dl_i`` the tangential equilibrium ``d(R0 W_1)/dS = W_2 cos theta`` gives ``dl1/dS``; the
+normal equilibrium gives ``dtheta/dS = (p l1 l2 - W_2 sin theta / R0) / W_1`` on the free membrane,
+while in the contact zone the membrane lies on the sphere, ``dtheta/dS = -l1 / r_i`` (the contact
+pressure ``q = p + (T1 + T2) / r_i`` is whatever closes normal equilibrium; no shear traction).
+The membrane leaves the sphere tangentially (continuous theta), so the contact edge ``S_c`` is one more
+unknown.  Shooting from the apex (series start at ``S = 1e-5``; ``l1 = l2`` there) with unknowns
+``(apex stretch, S_c, p)`` and conditions ``r(pi/2) = 1``, ``V = V_target``, apex drop ``= d``, solved by
+Newton's method on vectorised DOP853 integrations, with continuation in volume and depth.
+
+The indenter force is the vertical equilibrium of the contact cap,
+``F = p pi a^2 + 2 pi R0(S_c) W_1 sin(psi_c)``, with ``a = r(S_c)`` and ``psi_c = -theta(S_c)`` the
+sphere's polar angle at the contact edge.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Sequence
+from dataclasses import dataclass
+
+import numpy as np
+from scipy.integrate import solve_ivp
+
+_S_APEX = 1.0e-5  # start of the integration, reference arc length / R
+_S_RIM = 0.5 * math.pi  # reference arc length of the equator / R
+_RTOL = 1.0e-11
+_ATOL = 1.0e-13
+_NEWTON_TOL = 1.0e-12
+_NEWTON_MAXITER = 30
+_FD_STEP = 1.0e-7
+_N_STATE = 6
+
+
+@dataclass(frozen=True)
+class DomeState:
+    """One equilibrium of the dome benchmark (SI units).
+
+    Attributes:
+        depth: indenter travel from first touch with the inflated apex (m).
+        force: axial force of the sphere on the membrane, positive pushing down (N).
+        pressure: fluid pressure (Pa).
+        volume: fluid volume enclosed by membrane and base (m^3).
+        contact_radius: radial extent of the contact zone (m).
+        strain_energy: elastic energy stored in the membrane (J).
+    """
+
+    depth: float
+    force: float
+    pressure: float
+    volume: float
+    contact_radius: float
+    strain_energy: float = 0.0
+
+
+@dataclass(frozen=True)
+class _Shot:
+    """Dimensionless end values of a batch of shootings (arrays over the batch)."""
+
+    rim_radius: np.ndarray
+    apex_height: np.ndarray
+    volume: np.ndarray
+    energy: np.ndarray
+    contact_radius: np.ndarray
+    force: np.ndarray
+    rim_angle: np.ndarray
+    rim_tension: np.ndarray
+
+
+def _rhs(s: np.ndarray, y: np.ndarray, p: np.ndarray, curvature: float | None) -> np.ndarray:
+    """Derivative d y / dS of the membrane state (dimensionless), batched over columns.
+
+    Args:
+        s: reference arc length per column.
+        y: state, shape (6, n): r, z, theta, l1, volume, energy.
+        p: pressure per column (units of mu t / R).
+        curvature: 1 / indenter radius (in 1/R) in the contact zone, ``None`` on the free membrane.
+    """
+    r, _, th, l1 = y[0], y[1], y[2], y[3]
+    r0 = np.sin(s)
+    dr0 = np.cos(s)
+    l2 = r / r0
+    inv = 1.0 / (l1 * l2)
+    w1 = l1 - inv * inv / l1
+    w2 = l2 - inv * inv / l2
+    w11 = 1.0 + 3.0 * inv * inv / (l1 * l1)
+    w12 = 2.0 * inv**3
+    c, sn = np.cos(th), np.sin(th)
+    d = np.empty_like(y)
+    d[0] = l1 * c
+    d[1] = -l1 * sn
+    if curvature is None:
+        d[2] = (p * l1 * l2 - w2 * sn / r0) / w1
+    else:
+        d[2] = -l1 * curvature
+    d[3] = (w2 * c - dr0 * w1 - w12 * (l1 * c - l2 * dr0)) / (r0 * w11)
+    d[4] = math.pi * r * r * l1 * sn
+    d[5] = math.pi * r0 * (l1 * l1 + l2 * l2 + inv * inv - 3.0)
+    return d
+
+
+def _phase(y0: np.ndarray, s0: np.ndarray, s1: np.ndarray, p: np.ndarray, curvature: float | None) -> np.ndarray:
+    """Integrate all columns of ``y0`` from ``S = s0`` to ``S = s1`` (per column); return the end state."""
+    n = y0.shape[1]
+    span = s1 - s0
+
+    def fun(tau: float, yflat: np.ndarray) -> np.ndarray:
+        y = yflat.reshape(_N_STATE, n)
+        return (_rhs(s0 + span * tau, y, p, curvature) * span).ravel()
+
+    sol = solve_ivp(fun, (0.0, 1.0), y0.ravel(), method="DOP853", rtol=_RTOL, atol=_ATOL)
+    if not sol.success:
+        raise RuntimeError(f"membrane integration failed: {sol.message}")
+    return sol.y[:, -1].reshape(_N_STATE, n)
+
+
+def _apex_state(stretch: np.ndarray, curvature: np.ndarray) -> np.ndarray:
+    """Series start at ``S = _S_APEX``: locally a spherical cap of the given curvature, isotropic stretch."""
+    arc = stretch * _S_APEX
+    angle = curvature * arc
+    small = np.abs(angle) < 1e-12
+    safe = np.where(small, 1.0, curvature)
+    y = np.zeros((_N_STATE, stretch.size))
+    y[0] = np.where(small, arc, np.sin(angle) / safe)
+    y[1] = np.where(small, 0.0, -(1.0 - np.cos(angle)) / safe)
+    y[2] = angle
+    y[3] = stretch
+    y[5] = 0.5 * math.pi * _S_APEX**2 * (2.0 * stretch**2 + stretch**-4 - 3.0)
+    return y
+
+
+def _shoot(stretch: np.ndarray, s_contact: np.ndarray, p: np.ndarray, curvature: float) -> _Shot:
+    """Shoot from the apex to the equator for a batch of (apex stretch, contact edge S_c, pressure).
+
+    ``S_c = 0`` for every column means no contact (inflation); otherwise every ``S_c > _S_APEX``.
+    """
+    if np.all(s_contact == 0.0):
+        w1 = stretch - stretch**-5
+        y = _apex_state(stretch, p * stretch / (2.0 * w1))
+        s_free = np.full_like(p, _S_APEX)
+    else:
+        y = _apex_state(stretch, np.full_like(p, -curvature))
+        y = _phase(y, np.full_like(p, _S_APEX), s_contact, p, curvature)
+        s_free = s_contact
+    r_c, th_c, l1_c = y[0].copy(), y[2].copy(), y[3].copy()
+    end = _phase(y, s_free, np.full_like(p, _S_RIM), p, None)
+    l2_c = r_c / np.sin(s_free)
+    w1_c = l1_c - 1.0 / (l1_c**3 * l2_c**2)
+    in_contact = s_contact > 0.0
+    force = np.where(in_contact, math.pi * p * r_c**2 - 2.0 * math.pi * np.sin(s_free) * w1_c * np.sin(th_c), 0.0)
+    l1_e, l2_e = end[3], end[0]
+    return _Shot(
+        rim_radius=end[0],
+        apex_height=-end[1],
+        volume=end[4],
+        energy=end[5],
+        contact_radius=np.where(in_contact, r_c, 0.0),
+        force=force,
+        rim_angle=end[2],
+        rim_tension=(l1_e - 1.0 / (l1_e**3 * l2_e**2)) / l2_e,
+    )
+
+
+def _newton(residual, x0: np.ndarray, scale: np.ndarray) -> np.ndarray:
+    """Damped Newton with a forward-difference Jacobian; ``residual`` maps a batch (n, k) to (n, k)."""
+    x = x0.astype(float).copy()
+    k = x.size
+    for _ in range(_NEWTON_MAXITER):
+        batch = np.repeat(x[:, None], k + 1, axis=1)
+        steps = _FD_STEP * scale
+        batch[np.arange(k), np.arange(1, k + 1)] += steps
+        res = residual(batch)
+        f0 = res[:, 0]
+        if not np.all(np.isfinite(f0)):
+            raise RuntimeError("non-finite residual in the shooting solve")
+        jac = (res[:, 1:] - f0[:, None]) / steps[None, :]
+        dx = np.linalg.solve(jac, -f0)
+        norm0 = np.max(np.abs(f0))
+        if norm0 < _NEWTON_TOL:
+            return x
+        alpha = 1.0
+        while alpha > 1e-3:
+            trial = x + alpha * dx
+            f_trial = residual(trial[:, None])[:, 0]
+            if np.all(np.isfinite(f_trial)) and np.max(np.abs(f_trial)) < norm0:
+                break
+            alpha *= 0.5
+        else:
+            raise RuntimeError("Newton line search failed in the shooting solve")
+        x = trial
+        if np.max(np.abs(f_trial)) < _NEWTON_TOL:
+            return x
+    raise RuntimeError("Newton did not converge in the shooting solve")
+
+
+def _safe_shoot(stretch: np.ndarray, s_contact: np.ndarray, p: np.ndarray, curvature: float) -> _Shot | None:
+    """``_shoot`` returning ``None`` when the trial leaves the physical range (it then is rejected)."""
+    if np.any(stretch <= 0.0) or np.any(s_contact < 0.0) or np.any(s_contact >= _S_RIM):
+        return None
+    with np.errstate(all="ignore"):
+        try:
+            return _shoot(stretch, s_contact, p, curvature)
+        except RuntimeError:
+            return None
+
+
+def _solve_inflation(volume: float) -> tuple[float, float, _Shot]:
+    """Dimensionless inflated state at the given volume: (apex stretch, pressure, shot)."""
+    v0 = 2.0 * math.pi / 3.0
+
+    def residual_at(target: float):
+        def residual(x: np.ndarray) -> np.ndarray:
+            shot = _safe_shoot(x[0], np.zeros(x.shape[1]), x[1], 0.0)
+            if shot is None:
+                return np.full(x.shape, np.nan)
+            return np.vstack([shot.rim_radius - 1.0, (shot.volume - target) / v0])
+
+        return residual
+
+    # Continuation in volume from a small inflation, where a uniform sphere is a fair guess.
+    ratios = np.linspace(1.0, volume / v0, 2 + int(math.ceil((volume / v0 - 1.0) / 0.05)))[1:]
+    lam = ratios[0] ** (1.0 / 3.0)
+    x = np.array([lam, 2.0 * (1.0 / lam - lam**-7)])
+    history: list[np.ndarray] = []
+    for ratio in ratios:
+        guess = x if len(history) < 2 else 2.0 * history[-1] - history[-2]
+        x = _newton(residual_at(ratio * v0), guess, np.array([1.0, 1.0]))
+        history.append(x)
+    shot = _shoot(x[:1], np.zeros(1), x[1:], 0.0)
+    return float(x[0]), float(x[1]), shot
+
+
+def _check_sizes(**sizes: float) -> None:
+    for name, value in sizes.items():
+        if not (math.isfinite(value) and value > 0.0):
+            raise ValueError(f"{name} must be a positive finite number, got {value!r}")
+
+
+def _check_ratio(volume_ratio: float) -> None:
+    if not (math.isfinite(volume_ratio) and volume_ratio > 1.0):
+        raise ValueError(f"volume_ratio must be a finite number > 1, got {volume_ratio!r}")
+
+
+def _state(depth: float, shot: _Shot, p: float, radius: float, mu_t: float) -> DomeState:
+    return DomeState(
+        depth=depth,
+        force=float(shot.force[0]) * mu_t * radius,
+        pressure=p * mu_t / radius,
+        volume=float(shot.volume[0]) * radius**3,
+        contact_radius=float(shot.contact_radius[0]) * radius,
+        strain_energy=float(shot.energy[0]) * mu_t * radius**2,
+    )
+
+
+def inflate_dome(radius: float, thickness: float, mu: float, volume_ratio: float) -> DomeState:
+    """Inflate the pinned hemispherical membrane to ``volume_ratio`` times its reference volume.
+
+    Args:
+        radius: reference radius R of the hemisphere (m).
+        thickness: membrane thickness t (m).
+        mu: shear modulus (Pa).
+        volume_ratio: V / V0 with V0 = 2/3 pi R^3 (dimensionless, > 1).
+
+    Returns:
+        The inflated state: depth 0 (m), force 0 (N), pressure (Pa), volume (m^3), contact radius 0 (m).
+    """
+    _check_sizes(radius=radius, thickness=thickness, mu=mu)
+    _check_ratio(volume_ratio)
+    _, p, shot = _solve_inflation(volume_ratio * 2.0 * math.pi / 3.0)
+    return _state(0.0, shot, p, radius, mu * thickness)
+
+
+def indent_dome(
+    radius: float,
+    thickness: float,
+    mu: float,
+    volume_ratio: float,
+    indenter_radius: float,
+    depths: Sequence[float],
+) -> list[DomeState]:
+    """Push a rigid frictionless sphere onto the apex of the inflated dome at constant fluid volume.
+
+    Args:
+        radius: reference radius R of the hemisphere (m).
+        thickness: membrane thickness t (m).
+        mu: shear modulus (Pa).
+        volume_ratio: inflation V / V0 with V0 = 2/3 pi R^3 (dimensionless, > 1), held during indentation.
+        indenter_radius: radius of the rigid sphere (m).
+        depths: indenter travels from first touch with the inflated apex (m, >= 0), any order.
+
+    Returns:
+        One ``DomeState`` per entry of ``depths`` (same order): force on the sphere (N, positive pushing
+        down), fluid pressure (Pa), volume (m^3) and contact radius (m).
+    """
+    _check_sizes(radius=radius, thickness=thickness, mu=mu, indenter_radius=indenter_radius)
+    _check_ratio(volume_ratio)
+    depth_list = [float(d) for d in depths]
+    for d in depth_list:
+        if not (math.isfinite(d) and d >= 0.0):
+            raise ValueError(f"depths must be finite and >= 0, got {d!r}")
+    mu_t = mu * thickness
+    v0 = 2.0 * math.pi / 3.0
+    target_volume = volume_ratio * v0
+    curvature = radius / indenter_radius
+    lam0, p0, shot0 = _solve_inflation(target_volume)
+    h0 = float(shot0.apex_height[0])
+    inflated = _state(0.0, shot0, p0, radius, mu_t)
+
+    def residual_at(depth: float):
+        def residual(x: np.ndarray) -> np.ndarray:
+            shot = _safe_shoot(x[0], x[1], x[2], curvature)
+            if shot is None:
+                return np.full(x.shape, np.nan)
+            return np.vstack([shot.rim_radius - 1.0, (shot.volume - target_volume) / v0, h0 - shot.apex_height - depth])
+
+        return residual
+
+    # Continuation in depth; unknowns (apex stretch, S_c, p), extrapolated in sqrt(depth) since S_c ~ sqrt(d).
+    scale = np.array([1.0, 1.0, 1.0])
+    solved: dict[float, DomeState] = {0.0: inflated}
+    path: list[tuple[float, np.ndarray]] = []
+    max_step = 0.01
+    for target in sorted({d / radius for d in depth_list if d > 0.0}):
+        current = path[-1][0] if path else 0.0
+        n_sub = max(1, int(math.ceil((target - current) / max_step)))
+        for sub in np.linspace(current, target, n_sub + 1)[1:]:
+            if not path:
+                guess = np.array([lam0, _first_contact_guess(sub, curvature, p0, lam0), p0])
+            elif len(path) == 1:
+                (d1, x1) = path[0]
+                guess = np.array([x1[0], x1[1] * math.sqrt(sub / d1), x1[2]])
+            else:
+                (da, xa), (db, xb) = path[-2], path[-1]
+                w = (math.sqrt(sub) - math.sqrt(db)) / (math.sqrt(db) - math.sqrt(da))
+                guess = xb + w * (xb - xa)
+            x = _newton(residual_at(sub), guess, scale)
+            path.append((sub, x))
+        shot = _shoot(x[:1], x[1:2], x[2:], curvature)
+        solved[target * radius] = _state(target * radius, shot, float(x[2]), radius, mu_t)
+    return [solved[0.0] if d == 0.0 else solved[(d / radius) * radius] for d in depth_list]
+
+
+def _first_contact_guess(depth: float, curvature: float, p: float, stretch: float) -> float:
+    """Guess of the contact edge S_c (reference arc length / R) at a small first depth (dimensionless).
+
+    Geometric overlap of the indenter with the apex cap of curvature ``p / (2 T)``, halved (the membrane
+    yields), mapped back to reference arc length by the apex stretch.
+    """
+    apex_curvature = p * stretch / (2.0 * (stretch - stretch**-5))
+    eff = 1.0 / (curvature + apex_curvature)
+    return 0.5 * math.sqrt(2.0 * depth * eff) / stretch
+
+
+def closed_sphere_pressure(radius: float, thickness: float, mu: float, stretch: float) -> float:
+    """Pressure (Pa) of a closed spherical membrane inflated to ``stretch``, found by shooting.
+
+    Uses the same membrane equations as the dome: shoots from the pole of a closed sphere of reference
+    radius ``radius`` (m) with apex stretch ``stretch`` and finds the pressure for which the meridian is
+    symmetric about the equator (tangent vertical at ``S = pi R / 2``).  The exact answer is
+    ``2 mu t / R (1/stretch - 1/stretch^7)``; this is a check of the ODE machinery.
+
+    Args:
+        radius: reference radius (m).
+        thickness: membrane thickness (m).
+        mu: shear modulus (Pa).
+        stretch: apex stretch (dimensionless, > 1).
+    """
+    _check_sizes(radius=radius, thickness=thickness, mu=mu)
+    if not (math.isfinite(stretch) and stretch > 1.0):
+        raise ValueError(f"stretch must be a finite number > 1, got {stretch!r}")
+    lam = np.full(1, stretch)
+
+    def residual(x: np.ndarray) -> np.ndarray:
+        shot = _safe_shoot(np.full(x.shape[1], stretch), np.zeros(x.shape[1]), x[0], 0.0)
+        if shot is None:
+            return np.full(x.shape, np.nan)
+        return (shot.rim_angle - 0.5 * math.pi)[None, :]
+
+    guess = 2.0 * (1.0 / stretch - stretch**-7) * 1.1
+    p = _newton(residual, np.array([guess]), np.array([1.0]))
+    del lam
+    return float(p[0]) * mu * thickness / radius

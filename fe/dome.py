@@ -1,0 +1,119 @@
+"""Dome benchmark: a hemispherical membrane pinned to a rigid base, fluid-filled, indented at the apex.
+
+Close to the BioTac's own situation (a fluid-backed skin anchored along its edge) yet simple enough
+for an independent axisymmetric solution (`fe.axisymmetric`). Lengths in metres, pressures in Pa.
+"""
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from assets.indenters import get_indenter
+from fe.indentation import IncrementResult, Trajectory, indent
+from fe.newton import NewtonSettings, solve_equilibrium
+from fe.params import ContactSettings, SkinParameters
+from fe.shell import ShellMesh, ShellSystem
+
+
+def _zip_rings(lower: np.ndarray, upper: np.ndarray, lower_angles: np.ndarray, upper_angles: np.ndarray) -> list:
+    """Triangulate the band between two closed vertex rings (indices, azimuths in [0, 2 pi))."""
+    tris, i, j, n, m = [], 0, 0, len(lower), len(upper)
+    while i < n or j < m:
+        next_lower = lower_angles[i + 1] if i + 1 < n else 2 * np.pi + lower_angles[0]
+        next_upper = upper_angles[j + 1] if j + 1 < m else 2 * np.pi + upper_angles[0]
+        if j >= m or (i < n and next_lower <= next_upper):
+            tris.append((lower[i % n], lower[(i + 1) % n], upper[j % m]))
+            i += 1
+        else:
+            tris.append((lower[i % n], upper[(j + 1) % m], upper[j % m]))
+            j += 1
+    return tris
+
+
+def hemisphere_mesh(radius: float, max_edge: float) -> ShellMesh:
+    """Hemisphere z >= 0 (m) from latitude rings, apex vertex first, rim ring at z = 0 held fixed.
+
+    Triangles are oriented with outward normals (away from the base centre).
+    """
+    if radius <= 0 or max_edge <= 0:
+        raise ValueError("radius and max_edge must be positive")
+    n_rings = max(2, int(np.ceil(0.5 * np.pi * radius / max_edge)))
+    vertices, rings, angles = [np.array([0.0, 0.0, radius])], [np.array([0])], [np.array([0.0])]
+    for k in range(1, n_rings + 1):
+        polar = 0.5 * np.pi * k / n_rings
+        count = max(6, int(np.ceil(2 * np.pi * radius * np.sin(polar) / max_edge)))
+        phase = 0.5 * (k % 2) * 2 * np.pi / count
+        az = (np.arange(count) * 2 * np.pi / count + phase) % (2 * np.pi)
+        order = np.argsort(az)
+        az = az[order]
+        ring_xyz = radius * np.column_stack([np.sin(polar) * np.cos(az), np.sin(polar) * np.sin(az), np.full(count, np.cos(polar))])
+        if k == n_rings:
+            ring_xyz[:, 2] = 0.0
+        start = sum(len(r) for r in rings)
+        rings.append(np.arange(start, start + count))
+        angles.append(az)
+        vertices.append(ring_xyz)
+    tris = []
+    for k in range(1, len(rings)):
+        # Outer ring k (larger polar angle) is "lower"; zip it with the ring above, apex fan included.
+        tris.extend(_zip_rings(rings[k], rings[k - 1], angles[k], angles[k - 1]))
+    v = np.vstack(vertices)
+    t = np.asarray([tri for tri in tris if len(set(tri)) == 3], dtype=np.int32)
+    normals = np.cross(v[t[:, 1]] - v[t[:, 0]], v[t[:, 2]] - v[t[:, 0]])
+    flip = np.einsum("ij,ij->i", normals, v[t].mean(axis=1)) < 0
+    t[flip] = t[flip][:, ::-1]
+    fixed = np.zeros(len(v), dtype=bool)
+    fixed[rings[-1]] = True
+    return ShellMesh(v, t, fixed)
+
+
+@dataclass(frozen=True)
+class DomeResult:
+    """Inflated state and indentation increments of the dome benchmark."""
+
+    reference_volume: float
+    inflated_volume: float
+    inflated_pressure: float
+    apex_height: float
+    increments: list[IncrementResult]
+
+
+def run_dome(
+    radius: float,
+    thickness: float,
+    mu: float,
+    volume_ratio: float,
+    bending: bool = False,
+    indenter_radius: float | None = None,
+    depths: np.ndarray | None = None,
+    max_edge: float | None = None,
+    contact: ContactSettings = ContactSettings(),
+) -> DomeResult:
+    """Inflate the dome to `volume_ratio` V0 with volume control, then optionally indent its apex.
+
+    The indenter is a frictionless rigid sphere touching the skin mid-surface; depth 0 is first touch.
+    """
+    if volume_ratio <= 0:
+        raise ValueError("volume_ratio must be positive")
+    mesh = hemisphere_mesh(radius, max_edge or radius / 12)
+    params = SkinParameters(thickness=thickness, mu_nh=mu, friction=0.0, bending=bending)
+    system = ShellSystem(mesh, params, contact)
+    q = system.free_coordinates(system.x)
+    v0 = system.linearize(q, 0.0, want_matrix=False).volume
+    pressure = 0.0
+    for target in np.linspace(1.0, volume_ratio, max(2, int(np.ceil(abs(volume_ratio - 1) / 0.05)) + 1))[1:]:
+        result = solve_equilibrium(system, q, pressure, target * v0, NewtonSettings())
+        if not result.converged:
+            raise RuntimeError(f"dome inflation did not converge at V/V0={target:.3f}: {result.message}")
+        q, pressure = result.q, result.pressure
+    x_ref = system.positions(q)
+    apex = x_ref[0].copy()
+    increments = []
+    if indenter_radius is not None and depths is not None:
+        sphere = get_indenter("sphere_medium")
+        dims = (indenter_radius, 0.0, 0.0, 0.0)
+        push = np.array([0.0, 0.0, -1.0])
+        # Indenter frame: body along +z, presses along -z; pushing down needs no rotation.
+        trajectory = Trajectory(apex, push, np.eye(3), np.asarray(depths, dtype=float))
+        increments = list(indent(system, x_ref, pressure, volume_ratio * v0, sphere.kind, dims, trajectory, 0.0))
+    return DomeResult(v0, volume_ratio * v0, pressure, float(apex[2]), increments)

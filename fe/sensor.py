@@ -1,0 +1,225 @@
+"""The BioTac finite-element model: inflate the skin to the sensor's thickness, then indent it.
+
+Frames: everything in the `biotac` frame of the product manual (x distal, -z ventral), metres.
+Inflation raises the fluid volume (volume control) until the sensor is 15.1 mm thick, or, in the
+paper's thermal parametrisation, by dV = beta_T (T_fl - T_ref) V_cavity.
+"""
+
+from collections.abc import Iterator
+from dataclasses import dataclass
+
+import numpy as np
+import trimesh
+
+from assets.biotac import BioTacGeometry
+from assets.indenters import Indenter, get_indenter
+from fe.indentation import IncrementResult, Trajectory, indent
+from fe.newton import NewtonSettings, solve_equilibrium
+from fe.params import ContactSettings, SkinParameters
+from fe.shell import RigidSurface, ShellMesh, ShellSystem, vertex_normals
+
+SENSOR_THICKNESS = 15.1e-3
+"""Manufacturer's total sensor thickness after pressurisation (m)."""
+MAX_PROJECTION_DISTANCE = 3e-3
+"""A requested indentation point may lie at most this far (m) from the inflated skin."""
+
+
+@dataclass(frozen=True)
+class InflationResult:
+    """Inflated state: added fluid volume (m^3), pressure (Pa), thickness (m), equivalent T_fl (C)."""
+
+    volume_change: float
+    pressure: float
+    thickness: float
+    equivalent_temperature: float
+    converged: bool
+    message: str
+
+
+class BioTacModel:
+    """Skin shell + fluid + rigid core of one BioTac, solved with warp kernels and Newton.
+
+    Use `inflate()` once, then `indent(...)` as often as needed; each trajectory starts from the
+    inflated reference state.
+    """
+
+    def __init__(
+        self,
+        geometry: BioTacGeometry,
+        params: SkinParameters = SkinParameters(),
+        contact: ContactSettings = ContactSettings(),
+        newton: NewtonSettings = NewtonSettings(),
+    ) -> None:
+        self.geometry = geometry
+        self.params = params
+        self.newton = newton
+        skin = geometry.skin
+        core = RigidSurface(geometry.core.vertices, geometry.core.triangles, geometry.core_gap)
+        self.system = ShellSystem(
+            ShellMesh(skin.vertices, skin.triangles, skin.anchored),
+            params,
+            contact,
+            core,
+            volume_origin=geometry.core.vertices.mean(axis=0),
+        )
+        self._q0 = self.system.free_coordinates(self.system.x)
+        self._volume0 = self.system.linearize(self._q0, 0.0, want_matrix=False).volume
+        self.reference: np.ndarray | None = None
+        self.pressure = 0.0
+        self.target_volume = self._volume0
+
+    # -- inflation ---------------------------------------------------------------------------
+    def thickness(self, x: np.ndarray) -> float:
+        """Sensor thickness (m): fixed dorsal top minus the lowest point of the outer skin surface."""
+        outer = x + 0.5 * self.params.thickness * vertex_normals(x, self.geometry.skin.triangles)
+        return float(self.geometry.dorsal_top_z - outer[:, 2].min())
+
+    def _solve_volume(self, q: np.ndarray, pressure: float, volume: float):
+        return solve_equilibrium(self.system, q, pressure, volume, self.newton)
+
+    def inflate(self, target_thickness: float | None = SENSOR_THICKNESS, volume_step: float = 0.02) -> InflationResult:
+        """Inflate to `target_thickness` (m), or by the thermal rule when it is None.
+
+        Volume steps are `volume_step` of the initial enclosed volume until the thickness is bracketed,
+        then secant refinement to 1 um.
+        """
+        beta_v = self.params.thermal_expansion * self.geometry.cavity_volume_reference
+        q, pressure, v = self._q0.copy(), 0.0, self._volume0
+        if target_thickness is None:
+            if beta_v <= 0:
+                raise ValueError("thermal inflation needs a geometry with a positive cavity_volume_reference")
+            dv_total = beta_v * (self.params.fluid_temperature - self.params.reference_temperature)
+            targets = np.linspace(v, v + dv_total, max(2, int(np.ceil(abs(dv_total) / (volume_step * abs(v)))) + 1))[1:]
+            result = None
+            for target in targets:
+                result = self._solve_volume(q, pressure, target)
+                if not result.converged:
+                    break
+                q, pressure = result.q, result.pressure
+            return self._finish(q, pressure, targets[-1], result.converged, result.message)
+        if target_thickness <= self.thickness(self.system.x):
+            raise ValueError(f"target thickness {target_thickness * 1e3:.2f} mm is below the unpressurised one")
+        lo_v, lo_t = v, self.thickness(self.system.x)
+        lo_state = (q, pressure)
+        for _ in range(200):
+            hi_v = lo_v + volume_step * abs(self._volume0)
+            result = self._solve_volume(*lo_state, hi_v)
+            if not result.converged:
+                return self._finish(*lo_state, lo_v, False, f"inflation stalled: {result.message}")
+            hi_t = self.thickness(self.system.positions(result.q))
+            if hi_t >= target_thickness:
+                break
+            lo_v, lo_t, lo_state = hi_v, hi_t, (result.q, result.pressure)
+        else:
+            return self._finish(*lo_state, lo_v, False, "target thickness not reached")
+        state = (result.q, result.pressure)
+        for _ in range(30):
+            v = lo_v + (target_thickness - lo_t) * (hi_v - lo_v) / (hi_t - lo_t)
+            result = self._solve_volume(*state, v)
+            if not result.converged:
+                return self._finish(*state, v, False, f"inflation refinement failed: {result.message}")
+            state = (result.q, result.pressure)
+            t_now = self.thickness(self.system.positions(result.q))
+            if abs(t_now - target_thickness) < 1e-6:
+                break
+            if t_now < target_thickness:
+                lo_v, lo_t = v, t_now
+            else:
+                hi_v, hi_t = v, t_now
+        return self._finish(*state, v, True, "converged")
+
+    def _finish(self, q: np.ndarray, pressure: float, volume: float, converged: bool, message: str) -> InflationResult:
+        self.reference = self.system.positions(q)
+        self.pressure = pressure
+        self.target_volume = volume
+        dv = volume - self._volume0
+        beta_v = self.params.thermal_expansion * self.geometry.cavity_volume_reference
+        t_eq = self.params.reference_temperature + dv / beta_v if beta_v > 0 else float("nan")
+        return InflationResult(dv, pressure, self.thickness(self.reference), t_eq, converged, message)
+
+    # -- indentation -------------------------------------------------------------------------
+    def outer_surface(self) -> trimesh.Trimesh:
+        """Inflated outer skin surface (m): mid-surface offset by t/2 along the vertex normals."""
+        x = self._require_reference()
+        tri = self.geometry.skin.triangles
+        return trimesh.Trimesh(x + 0.5 * self.params.thickness * vertex_normals(x, tri), tri, process=False)
+
+    def _require_reference(self) -> np.ndarray:
+        if self.reference is None:
+            raise RuntimeError("inflate() the model before indenting it")
+        return self.reference
+
+    def plan_trajectory(
+        self, indenter: Indenter, point: np.ndarray, angle_deg: float, azimuth_deg: float, depth: float, step: float
+    ) -> Trajectory:
+        """Straight trajectory to `point` (m, biotac frame), tilted `angle_deg` from the inward normal."""
+        if depth < 0 or step <= 0:
+            raise ValueError("depth must be >= 0 and step > 0")
+        if not 0.0 <= angle_deg < 90.0:
+            raise ValueError("angle must be in [0, 90) degrees")
+        surface = self.outer_surface()
+        closest, distance, face = trimesh.proximity.closest_point(surface, np.asarray(point, dtype=float)[None])
+        if distance[0] > MAX_PROJECTION_DISTANCE:
+            raise ValueError(
+                f"point {np.round(np.asarray(point) * 1e3, 2)} mm is {distance[0] * 1e3:.2f} mm from the skin "
+                f"(at most {MAX_PROJECTION_DISTANCE * 1e3:.0f} mm allowed)"
+            )
+        if self.geometry.skin.anchored[surface.faces[face[0]]].all():
+            raise ValueError("point lies on the anchored (dorsal/proximal) skin, which cannot be indented")
+        normal = surface.face_normals[face[0]]
+        distal = np.array([1.0, 0.0, 0.0]) - normal[0] * normal
+        t1 = distal / np.linalg.norm(distal) if np.linalg.norm(distal) > 1e-6 else np.cross(normal, [0.0, 1.0, 0.0])
+        t1 /= np.linalg.norm(t1)
+        t2 = np.cross(normal, t1)
+        a, az = np.radians(angle_deg), np.radians(azimuth_deg)
+        direction = -np.cos(a) * normal + np.sin(a) * (np.cos(az) * t1 + np.sin(az) * t2)
+        ez = -direction
+        ex = t1 - (t1 @ ez) * ez
+        ex /= np.linalg.norm(ex)
+        rotation = np.column_stack([ex, np.cross(ez, ex), ez])
+        touch = self._first_touch(indenter, rotation, closest[0], direction)
+        depths = np.arange(0, int(round(depth / step)) + 1) * step
+        return Trajectory(touch, direction, rotation, depths)
+
+    def _first_touch(self, indenter: Indenter, rotation: np.ndarray, point: np.ndarray, direction: np.ndarray) -> np.ndarray:
+        """Tip position (m) where the rigid indenter first touches the undeformed outer skin."""
+        x = self._require_reference()
+        half_t = 0.5 * self.params.thickness
+
+        def min_gap(s: float) -> float:
+            local = (x - (point + s * direction)) @ rotation
+            return float(indenter.sdf(local).min() - half_t)
+
+        lo, hi = -30e-3, 0.0
+        while min_gap(hi) > 0:
+            hi += 1e-3
+        if min_gap(lo) <= 0:
+            raise ValueError("indenter overlaps the skin even when retracted 30 mm")
+        for _ in range(60):
+            mid = 0.5 * (lo + hi)
+            lo, hi = (mid, hi) if min_gap(mid) > 0 else (lo, mid)
+        return point + lo * direction
+
+    def indent(
+        self,
+        indenter_name: str,
+        point: np.ndarray,
+        depth: float,
+        step: float = 1e-4,
+        angle_deg: float = 0.0,
+        azimuth_deg: float = 0.0,
+    ) -> Iterator[IncrementResult]:
+        """Indent from first touch to `depth` (m) past it in `step` (m) increments; yields each increment."""
+        indenter = get_indenter(indenter_name)
+        trajectory = self.plan_trajectory(indenter, point, angle_deg, azimuth_deg, depth, step)
+        yield from indent(
+            self.system,
+            self._require_reference(),
+            self.pressure,
+            self.target_volume,
+            indenter.kind,
+            indenter.dims,
+            trajectory,
+            0.5 * self.params.thickness,
+            self.newton,
+        )
