@@ -45,10 +45,11 @@ _S_APEX = 1.0e-5  # start of the integration, reference arc length / R
 _S_RIM = 0.5 * math.pi  # reference arc length of the equator / R
 _RTOL = 1.0e-11
 _ATOL = 1.0e-13
-_NEWTON_TOL = 1.0e-12
+_NEWTON_TOL = 1.0e-10  # residuals are dimensionless; the integration noise floor is ~1e-10
 _NEWTON_MAXITER = 30
 _FD_STEP = 1.0e-7
 _N_STATE = 6
+_INFLATION_STEP = 0.25  # continuation step in V / V0
 
 
 @dataclass(frozen=True)
@@ -181,34 +182,37 @@ def _shoot(stretch: np.ndarray, s_contact: np.ndarray, p: np.ndarray, curvature:
 
 
 def _newton(residual, x0: np.ndarray, scale: np.ndarray) -> np.ndarray:
-    """Damped Newton with a forward-difference Jacobian; ``residual`` maps a batch (n, k) to (n, k)."""
+    """Damped Newton with a forward-difference Jacobian; ``residual`` maps a batch (n, k) to (n, k).
+
+    Converged when the largest residual is below ``_NEWTON_TOL``, or when the Newton step is at the
+    integration noise floor (step below 1e-11 of ``scale``) with residuals below 1e-8.
+    """
     x = x0.astype(float).copy()
     k = x.size
+    steps = _FD_STEP * scale
     for _ in range(_NEWTON_MAXITER):
         batch = np.repeat(x[:, None], k + 1, axis=1)
-        steps = _FD_STEP * scale
         batch[np.arange(k), np.arange(1, k + 1)] += steps
         res = residual(batch)
         f0 = res[:, 0]
-        if not np.all(np.isfinite(f0)):
-            raise RuntimeError("non-finite residual in the shooting solve")
-        jac = (res[:, 1:] - f0[:, None]) / steps[None, :]
-        dx = np.linalg.solve(jac, -f0)
+        if not np.all(np.isfinite(res)):
+            raise RuntimeError("shooting failed at the Newton iterate")
         norm0 = np.max(np.abs(f0))
         if norm0 < _NEWTON_TOL:
             return x
+        dx = np.linalg.solve((res[:, 1:] - f0[:, None]) / steps[None, :], -f0)
+        if np.all(np.abs(dx) < 1e-11 * scale) and norm0 < 1e-8:
+            return x
         alpha = 1.0
-        while alpha > 1e-3:
+        while True:
             trial = x + alpha * dx
             f_trial = residual(trial[:, None])[:, 0]
             if np.all(np.isfinite(f_trial)) and np.max(np.abs(f_trial)) < norm0:
                 break
             alpha *= 0.5
-        else:
-            raise RuntimeError("Newton line search failed in the shooting solve")
+            if alpha < 1e-3:
+                raise RuntimeError("Newton line search failed in the shooting solve")
         x = trial
-        if np.max(np.abs(f_trial)) < _NEWTON_TOL:
-            return x
     raise RuntimeError("Newton did not converge in the shooting solve")
 
 
@@ -223,30 +227,38 @@ def _safe_shoot(stretch: np.ndarray, s_contact: np.ndarray, p: np.ndarray, curva
             return None
 
 
+def _sphere_pressure(stretch: np.ndarray | float) -> np.ndarray | float:
+    """Dimensionless pressure of a closed sphere inflated to ``stretch``: 2 (1/l - 1/l^7)."""
+    return 2.0 * (1.0 / stretch - stretch**-7)
+
+
 def _solve_inflation(volume: float) -> tuple[float, float, _Shot]:
-    """Dimensionless inflated state at the given volume: (apex stretch, pressure, shot)."""
+    """Dimensionless inflated state at the given volume: (apex stretch, pressure, shot).
+
+    Unknowns are the apex stretch and the pressure relative to that of a closed sphere at the apex stretch
+    (close to 1 and well conditioned as the strain goes to 0).  Continuation in volume from the linear
+    membrane solution (uniform strain (V/V0 - 1)/3) with linear extrapolation.
+    """
     v0 = 2.0 * math.pi / 3.0
 
     def residual_at(target: float):
         def residual(x: np.ndarray) -> np.ndarray:
-            shot = _safe_shoot(x[0], np.zeros(x.shape[1]), x[1], 0.0)
+            shot = _safe_shoot(x[0], np.zeros(x.shape[1]), x[1] * _sphere_pressure(x[0]), 0.0)
             if shot is None:
                 return np.full(x.shape, np.nan)
             return np.vstack([shot.rim_radius - 1.0, (shot.volume - target) / v0])
 
         return residual
 
-    # Continuation in volume from a small inflation, where a uniform sphere is a fair guess.
-    ratios = np.linspace(1.0, volume / v0, 2 + int(math.ceil((volume / v0 - 1.0) / 0.05)))[1:]
-    lam = ratios[0] ** (1.0 / 3.0)
-    x = np.array([lam, 2.0 * (1.0 / lam - lam**-7)])
-    history: list[np.ndarray] = []
+    ratio_end = volume / v0
+    ratios = np.linspace(1.0, ratio_end, 1 + int(math.ceil((ratio_end - 1.0) / _INFLATION_STEP)))[1:]
+    history = [np.array([1.0 + (ratios[0] - 1.0) / 3.0, 1.0])]
     for ratio in ratios:
-        guess = x if len(history) < 2 else 2.0 * history[-1] - history[-2]
-        x = _newton(residual_at(ratio * v0), guess, np.array([1.0, 1.0]))
-        history.append(x)
-    shot = _shoot(x[:1], np.zeros(1), x[1:], 0.0)
-    return float(x[0]), float(x[1]), shot
+        guess = history[-1] if len(history) < 2 else 2.0 * history[-1] - history[-2]
+        history.append(_newton(residual_at(ratio * v0), guess, np.array([1.0, 1.0])))
+    lam, rel = history[-1]
+    p = rel * _sphere_pressure(lam)
+    return float(lam), float(p), _shoot(np.array([lam]), np.zeros(1), np.array([p]), 0.0)
 
 
 def _check_sizes(**sizes: float) -> None:

@@ -50,8 +50,12 @@ def inflate_balloon(
     volume_ratios: list[float],
     subdivisions: int = 3,
     bending: bool = False,
+    max_volume_step: float = 0.1,
 ) -> list[BalloonPoint]:
-    """Inflate a closed sphere (radius m, thickness m, shear modulus Pa) to each volume ratio in turn."""
+    """Inflate a closed sphere (radius m, thickness m, shear modulus Pa) to each volume ratio in turn.
+
+    Between requested ratios the volume is raised in steps of at most `max_volume_step` V0.
+    """
     if radius <= 0 or thickness <= 0 or mu <= 0:
         raise ValueError("radius, thickness and mu must be positive")
     if any(r <= 0 for r in volume_ratios):
@@ -64,7 +68,7 @@ def inflate_balloon(
     # Walk in small volume steps so that Newton always starts near the solution.
     for ratio in volume_ratios:
         current = system.linearize(q, pressure, want_matrix=False).volume / v0
-        n_steps = max(1, int(np.ceil(abs(ratio - current) / 0.05)))
+        n_steps = max(1, int(np.ceil(abs(ratio - current) / max_volume_step)))
         result = None
         for target in np.linspace(current, ratio, n_steps + 1)[1:]:
             result = solve_equilibrium(system, q, pressure, target * v0, NewtonSettings(force_tolerance=1e-10))

@@ -50,6 +50,26 @@ def closest_point_on_triangle(p: wp.vec3d, a: wp.vec3d, b: wp.vec3d, c: wp.vec3d
     return a + ab * (vb * denom) + ac * (vc * denom)
 
 
+@wp.func
+def core_distance(
+    core: wp.uint64, core_vertices: wp.array(dtype=wp.vec3d), core_triangles: wp.array(dtype=wp.vec3i), p: wp.vec3d
+) -> wp.vec4d:
+    """(signed distance m, unit gradient) of p to the core mesh; the closest face is found in float32,
+    the closest point on it is recomputed in float64. Distance 1 m when the query fails."""
+    q = wp.mesh_query_point_sign_normal(core, wp.vec3(p), wp.float32(1.0))
+    if not q.result:
+        return wp.vec4d(wp.float64(1.0), wp.float64(0.0), wp.float64(0.0), wp.float64(0.0))
+    tri = core_triangles[q.face]
+    cp = closest_point_on_triangle(p, core_vertices[tri[0]], core_vertices[tri[1]], core_vertices[tri[2]])
+    diff = p - cp
+    dist = wp.length(diff)
+    if dist < _TINY:
+        return wp.vec4d(wp.float64(0.0), wp.float64(0.0), wp.float64(0.0), wp.float64(0.0))
+    sign = wp.float64(q.sign)
+    n = diff * (sign / dist)
+    return wp.vec4d(sign * dist, n[0], n[1], n[2])
+
+
 @wp.kernel
 def core_contact_kernel(
     x: wp.array2d(dtype=wp.vec3d),
@@ -64,32 +84,36 @@ def core_contact_kernel(
     hessian: wp.array2d(dtype=wp.mat33d),
     gap: wp.array2d(dtype=wp.float64),
 ):
-    """Frictionless one-sided contact of skin vertex v (mid-surface, offset m inward) with the core mesh."""
+    """Frictionless one-sided contact of skin vertex v (mid-surface, `offset` m outside) with the core mesh.
+
+    The Hessian includes the curvature of the distance field (non-zero where the closest point is on a
+    mesh edge or vertex) by central differences of its gradient.
+    """
     b, v = wp.tid()
     p = x[b, v]
-    q = wp.mesh_query_point_sign_normal(core, wp.vec3(p), wp.float32(1.0))
     zero = wp.float64(0.0)
     energy[b, v] = zero
     hessian[b, v] = wp.mat33d()
-    gap[b, v] = wp.float64(1.0)
-    if not q.result:
-        return
-    tri = core_triangles[q.face]
-    cp = closest_point_on_triangle(p, core_vertices[tri[0]], core_vertices[tri[1]], core_vertices[tri[2]])
-    diff = p - cp
-    dist = wp.length(diff)
-    sign = wp.float64(q.sign)
-    if dist < _TINY:
-        return
-    n = diff * (sign / dist)
-    g = sign * dist - offset
+    dn = core_distance(core, core_vertices, core_triangles, p)
+    g = dn[0] - offset
     gap[b, v] = g
     if g >= zero:
         return
+    n = wp.vec3d(dn[1], dn[2], dn[3])
     ka = kappa * vertex_area[v]
     energy[b, v] = wp.float64(0.5) * ka * g * g
     wp.atomic_add(gradient, b, v, n * (ka * g))
-    hessian[b, v] = wp.outer(n, n) * ka
+    h = wp.float64(1e-9)
+    curv = wp.mat33d()
+    for j in range(3):
+        dp = wp.vec3d()
+        dp[j] = h
+        plus = core_distance(core, core_vertices, core_triangles, p + dp)
+        minus = core_distance(core, core_vertices, core_triangles, p - dp)
+        for i in range(3):
+            curv[i, j] = (plus[i + 1] - minus[i + 1]) / (wp.float64(2.0) * h)
+    curv = wp.float64(0.5) * (curv + wp.transpose(curv))
+    hessian[b, v] = ka * (wp.outer(n, n) + g * curv)
 
 
 @wp.func
