@@ -79,7 +79,7 @@ class BioTacDimensions:
     core_radius: float = 5.08 * MM
     skin_outer_radius: float = 7.11 * MM
     axis_z: float = -0.97 * MM
-    tip_center_x: float = 1.81 * MM
+    tip_center_x: float = 1.79 * MM
     proximal_x: float = -14.0 * MM
     dorsal_anchor_z: float = 1.0 * MM
     dorsal_top_z: float = 5.33 * MM

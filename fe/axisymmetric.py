@@ -49,7 +49,9 @@ _NEWTON_TOL = 1.0e-10  # residuals are dimensionless; the integration noise floo
 _NEWTON_MAXITER = 30
 _FD_STEP = 1.0e-7
 _N_STATE = 6
+_INFLATION_START = 1.1  # first continuation point in V / V0 (smaller ones are ill-conditioned)
 _INFLATION_STEP = 0.25  # continuation step in V / V0
+_DEPTH_STEP = 0.01  # largest continuation step in depth / R
 
 
 @dataclass(frozen=True)
@@ -251,7 +253,9 @@ def _solve_inflation(volume: float) -> tuple[float, float, _Shot]:
         return residual
 
     ratio_end = volume / v0
-    ratios = np.linspace(1.0, ratio_end, 1 + int(math.ceil((ratio_end - 1.0) / _INFLATION_STEP)))[1:]
+    ratio_start = min(ratio_end, _INFLATION_START)
+    n_steps = int(math.ceil((ratio_end - ratio_start) / _INFLATION_STEP))
+    ratios = np.linspace(ratio_start, ratio_end, n_steps + 1)
     history = [np.array([1.0 + (ratios[0] - 1.0) / 3.0, 1.0])]
     for ratio in ratios:
         guess = history[-1] if len(history) < 2 else 2.0 * history[-1] - history[-2]
@@ -350,10 +354,9 @@ def indent_dome(
     scale = np.array([1.0, 1.0, 1.0])
     solved: dict[float, DomeState] = {0.0: inflated}
     path: list[tuple[float, np.ndarray]] = []
-    max_step = 0.01
     for target in sorted({d / radius for d in depth_list if d > 0.0}):
         current = path[-1][0] if path else 0.0
-        n_sub = max(1, int(math.ceil((target - current) / max_step)))
+        n_sub = max(1, int(math.ceil((target - current) / _DEPTH_STEP)))
         for sub in np.linspace(current, target, n_sub + 1)[1:]:
             if not path:
                 guess = np.array([lam0, _first_contact_guess(sub, curvature, p0, lam0), p0])
