@@ -49,15 +49,33 @@ def main() -> None:
     args = parser.parse_args()
     point = [float(v) for v in args.point_mm.split(",")]
     rows = [run(float(h), args.indenter, point, args.depth_mm, args.step_mm) for h in args.meshes_mm.split(",")]
-    table = Table("mesh (mm)", "nodes", "free", "inflate (s)", "p (kPa)", "s / increment", "Newton / incr.",
-                  "depth reached (mm)", "|F| (N)", "|dF| vs first")
+    table = Table(
+        "mesh (mm)",
+        "nodes",
+        "free",
+        "inflate (s)",
+        "p (kPa)",
+        "s / increment",
+        "Newton / incr.",
+        "depth reached (mm)",
+        "|F| (N)",
+        "|dF| vs first",
+    )
     reference = rows[0]["force"]
     for r in rows:
         change = np.linalg.norm(r["force"] - reference) / max(np.linalg.norm(reference), 1e-12)
-        table.add_row(f"{r['mesh_mm']:.2f}", str(r["nodes"]), str(r["free_nodes"]), f"{r['setup_s']:.1f}",
-                      f"{r['pressure_kpa']:.2f}", f"{r['s_per_increment']:.2f}", f"{r['newton_per_increment']:.1f}",
-                      f"{r['reached_mm']:.2f}{'' if r['converged'] else ' (stopped)'}",
-                      f"{np.linalg.norm(r['force']):.3f}", f"{change:.1%}")
+        table.add_row(
+            f"{r['mesh_mm']:.2f}",
+            str(r["nodes"]),
+            str(r["free_nodes"]),
+            f"{r['setup_s']:.1f}",
+            f"{r['pressure_kpa']:.2f}",
+            f"{r['s_per_increment']:.2f}",
+            f"{r['newton_per_increment']:.1f}",
+            f"{r['reached_mm']:.2f}{'' if r['converged'] else ' (stopped)'}",
+            f"{np.linalg.norm(r['force']):.3f}",
+            f"{change:.1%}",
+        )
     Console().print(table)
 
 

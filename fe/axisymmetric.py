@@ -186,19 +186,24 @@ def _shoot(stretch: np.ndarray, s_contact: np.ndarray, p: np.ndarray, curvature:
 def _newton(residual, x0: np.ndarray, scale: np.ndarray) -> np.ndarray:
     """Damped Newton with a forward-difference Jacobian; ``residual`` maps a batch (n, k) to (n, k).
 
-    Converged when the largest residual is below ``_NEWTON_TOL``, or when the Newton step is at the
-    integration noise floor (step below 1e-11 of ``scale``) with residuals below 1e-8.
+    Each iterate is evaluated together with its finite-difference neighbours in one batch.  Converged
+    when the largest residual is below ``_NEWTON_TOL``, or when the Newton step is at the integration
+    noise floor (below 1e-11 of ``scale``) with residuals below 1e-8.
     """
-    x = x0.astype(float).copy()
-    k = x.size
+    k = x0.size
     steps = _FD_STEP * scale
-    for _ in range(_NEWTON_MAXITER):
+
+    def evaluate(x: np.ndarray) -> np.ndarray:
         batch = np.repeat(x[:, None], k + 1, axis=1)
         batch[np.arange(k), np.arange(1, k + 1)] += steps
-        res = residual(batch)
+        return residual(batch)
+
+    x = x0.astype(float).copy()
+    res = evaluate(x)
+    if not np.all(np.isfinite(res)):
+        raise RuntimeError("shooting failed at the initial guess")
+    for _ in range(_NEWTON_MAXITER):
         f0 = res[:, 0]
-        if not np.all(np.isfinite(res)):
-            raise RuntimeError("shooting failed at the Newton iterate")
         norm0 = np.max(np.abs(f0))
         if norm0 < _NEWTON_TOL:
             return x
@@ -208,8 +213,8 @@ def _newton(residual, x0: np.ndarray, scale: np.ndarray) -> np.ndarray:
         alpha = 1.0
         while True:
             trial = x + alpha * dx
-            f_trial = residual(trial[:, None])[:, 0]
-            if np.all(np.isfinite(f_trial)) and np.max(np.abs(f_trial)) < norm0:
+            res = evaluate(trial)
+            if np.all(np.isfinite(res)) and np.max(np.abs(res[:, 0])) < norm0:
                 break
             alpha *= 0.5
             if alpha < 1e-3:

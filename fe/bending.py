@@ -115,15 +115,16 @@ def bending_kernel(
 
 
 def build_hinges(triangles: np.ndarray) -> np.ndarray:
-    """Interior edges as (v0, v1, v2, v3): edge v0-v1 ordered as in triangle (v0, v1, v2); (v1, v0, v3) is its neighbour."""
+    """Interior edges as (v0, v1, v2, v3).
+
+    Edge v0-v1 is ordered as in triangle (v0, v1, v2); (v1, v0, v3) is its neighbour.
+    """
     directed = {}
-    for t, tri in enumerate(triangles):
+    for tri in triangles:
         for k in range(3):
             a, b, c = tri[k], tri[(k + 1) % 3], tri[(k + 2) % 3]
             directed[(int(a), int(b))] = int(c)
-    hinges = [
-        (a, b, c, directed[(b, a)]) for (a, b), c in directed.items() if a < b and (b, a) in directed
-    ]
+    hinges = [(a, b, c, directed[(b, a)]) for (a, b), c in directed.items() if a < b and (b, a) in directed]
     return np.asarray(hinges, dtype=np.int32).reshape(-1, 4)
 
 

@@ -122,9 +122,7 @@ def _sdf_world(kind: int, dims: wp.vec4d, rotation: wp.mat33d, translation: wp.v
 
 
 @wp.func
-def _sdf_grad_world(
-    kind: int, dims: wp.vec4d, rotation: wp.mat33d, translation: wp.vec3d, p: wp.vec3d
-) -> wp.vec3d:
+def _sdf_grad_world(kind: int, dims: wp.vec4d, rotation: wp.mat33d, translation: wp.vec3d, p: wp.vec3d) -> wp.vec3d:
     return rotation @ indenter_sdf_grad(kind, dims, wp.transpose(rotation) @ (p - translation))
 
 

@@ -46,7 +46,9 @@ def hemisphere_mesh(radius: float, max_edge: float) -> ShellMesh:
         az = (np.arange(count) * 2 * np.pi / count + phase) % (2 * np.pi)
         order = np.argsort(az)
         az = az[order]
-        ring_xyz = radius * np.column_stack([np.sin(polar) * np.cos(az), np.sin(polar) * np.sin(az), np.full(count, np.cos(polar))])
+        ring_xyz = radius * np.column_stack(
+            [np.sin(polar) * np.cos(az), np.sin(polar) * np.sin(az), np.full(count, np.cos(polar))]
+        )
         if k == n_rings:
             ring_xyz[:, 2] = 0.0
         start = sum(len(r) for r in rings)

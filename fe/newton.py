@@ -91,7 +91,9 @@ def solve_equilibrium(
             on_iteration(iteration, rnorm)
         if not np.isfinite(rnorm):
             return NewtonResult(q, pressure, False, iteration, rnorm, lin.volume, "non-finite residual")
-        load = max(np.max(np.abs(lin.gradient), initial=0.0), np.max(np.abs(pressure * lin.volume_gradient), initial=0.0))
+        load = max(
+            np.max(np.abs(lin.gradient), initial=0.0), np.max(np.abs(pressure * lin.volume_gradient), initial=0.0)
+        )
         tolerance = max(settings.force_tolerance, settings.relative_force_tolerance * load)
         if rnorm <= tolerance and abs(c) <= settings.volume_tolerance * volume_scale:
             return NewtonResult(q, pressure, True, iteration, rnorm, lin.volume, "converged")

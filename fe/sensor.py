@@ -181,7 +181,9 @@ class BioTacModel:
         depths = np.arange(0, int(round(depth / step)) + 1) * step
         return Trajectory(touch, direction, rotation, depths)
 
-    def _first_touch(self, indenter: Indenter, rotation: np.ndarray, point: np.ndarray, direction: np.ndarray) -> np.ndarray:
+    def _first_touch(
+        self, indenter: Indenter, rotation: np.ndarray, point: np.ndarray, direction: np.ndarray
+    ) -> np.ndarray:
         """Tip position (m) where the rigid indenter first touches the undeformed outer skin."""
         x = self._require_reference()
         half_t = 0.5 * self.params.thickness

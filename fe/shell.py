@@ -146,7 +146,9 @@ class ShellSystem:
         e = wp.zeros((1, nt), dtype=wp.float64)
         h9 = wp.zeros((1, nt if want_hessian else 0), dtype=mat99d)
         mu_t = wp.array([self.params.membrane_modulus], dtype=wp.float64)
-        wp.launch(membrane.membrane_kernel, (1, nt), [xw, self._tri, self._dm_inv, self._rest_area, mu_t, flag, e, grad, h9])
+        wp.launch(
+            membrane.membrane_kernel, (1, nt), [xw, self._tri, self._dm_inv, self._rest_area, mu_t, flag, e, grad, h9]
+        )
         out["elastic_energy"] = float(e.numpy().sum())
         out["membrane_hessian"] = h9.numpy()[0] if want_hessian else None
 
@@ -187,8 +189,19 @@ class ShellSystem:
             wp.launch(
                 contact.core_contact_kernel,
                 (1, nv),
-                [xw, self._core_mesh.id, self._core_vertices, self._core_triangles, self._vertex_area,
-                 wp.float64(self.core.offset), kappa, core_e, core_grad, core_h, core_gap],
+                [
+                    xw,
+                    self._core_mesh.id,
+                    self._core_vertices,
+                    self._core_triangles,
+                    self._vertex_area,
+                    wp.float64(self.core.offset),
+                    kappa,
+                    core_e,
+                    core_grad,
+                    core_h,
+                    core_gap,
+                ],
             )
         terms["core_energy"] = float(core_e.numpy().sum())
         terms["core_gradient"] = core_grad.numpy()[0]
@@ -203,13 +216,28 @@ class ShellSystem:
             wp.launch(
                 contact.indenter_contact_kernel,
                 (1, nv),
-                [xw, wp.array(self.x_start[None], dtype=wp.vec3d), self._vertex_area, ind.kind, wp.vec4d(*ind.dims),
-                 wp.array([ind.rotation], dtype=wp.mat33d), wp.array([ind.translation], dtype=wp.vec3d),
-                 wp.array([ind.translation_start], dtype=wp.vec3d), wp.array([ind.offset], dtype=wp.float64),
-                 kappa, wp.array([self.params.friction], dtype=wp.float64),
-                 wp.array(self.lagged_force[None], dtype=wp.float64),
-                 wp.array(self.lagged_normal[None], dtype=wp.vec3d), wp.float64(self.contact_settings.slip_length),
-                 1 if want_hessian else 0, ind_e, ind_grad, ind_h, ind_gap, ind_n],
+                [
+                    xw,
+                    wp.array(self.x_start[None], dtype=wp.vec3d),
+                    self._vertex_area,
+                    ind.kind,
+                    wp.vec4d(*ind.dims),
+                    wp.array([ind.rotation], dtype=wp.mat33d),
+                    wp.array([ind.translation], dtype=wp.vec3d),
+                    wp.array([ind.translation_start], dtype=wp.vec3d),
+                    wp.array([ind.offset], dtype=wp.float64),
+                    kappa,
+                    wp.array([self.params.friction], dtype=wp.float64),
+                    wp.array(self.lagged_force[None], dtype=wp.float64),
+                    wp.array(self.lagged_normal[None], dtype=wp.vec3d),
+                    wp.float64(self.contact_settings.slip_length),
+                    1 if want_hessian else 0,
+                    ind_e,
+                    ind_grad,
+                    ind_h,
+                    ind_gap,
+                    ind_n,
+                ],
             )
         terms["indenter_energy"] = float(ind_e.numpy().sum())
         terms["indenter_gradient"] = ind_grad.numpy()[0]

@@ -35,7 +35,12 @@ def _system(with_contact: bool) -> tuple[ShellSystem, np.ndarray]:
         # Sphere pressing on the pole from below, penetrating a few vertices.
         bottom = x[np.argmin(x[:, 2])]
         system.indenter = IndenterState(
-            ind.kind, ind.dims, np.diag([1.0, -1.0, -1.0]), bottom + [0.0, 0.0, 2.0e-3], bottom + [3e-5, 0, 1.9e-3], 0.5e-3
+            ind.kind,
+            ind.dims,
+            np.diag([1.0, -1.0, -1.0]),
+            bottom + [0.0, 0.0, 2.0e-3],
+            bottom + [3e-5, 0, 1.9e-3],
+            0.5e-3,
         )
         system.x_start = x + rng.normal(scale=2e-5, size=x.shape)
         terms = system.evaluate(x, want_hessian=False)
