@@ -50,8 +50,10 @@ _NEWTON_MAXITER = 30
 _FD_STEP = 1.0e-7
 _N_STATE = 6
 _INFLATION_START = 1.1  # first continuation point in V / V0 (smaller ones are ill-conditioned)
-_INFLATION_STEP = 0.25  # continuation step in V / V0
-_DEPTH_STEP = 0.01  # largest continuation step in depth / R
+_INFLATION_STEP = 0.5  # continuation step in V / V0
+_DEPTH_STEP = 0.1  # largest continuation step in depth / R
+_DEPTH_STEP_MIN = 1.0e-4  # smallest continuation step in depth / R before giving up
+_FIRST_CONTACT_EDGE = 0.02  # contact edge (reference arc length / R) of the first contact solve
 
 
 @dataclass(frozen=True)
@@ -65,6 +67,8 @@ class DomeState:
         volume: fluid volume enclosed by membrane and base (m^3).
         contact_radius: radial extent of the contact zone (m).
         strain_energy: elastic energy stored in the membrane (J).
+        rim_force: axial force with which the membrane pulls up on the base along its rim (N);
+            vertical equilibrium requires ``rim_force = pressure * pi R^2 - force``.
     """
 
     depth: float
@@ -73,6 +77,7 @@ class DomeState:
     volume: float
     contact_radius: float
     strain_energy: float = 0.0
+    rim_force: float = 0.0
 
 
 @dataclass(frozen=True)
@@ -86,7 +91,7 @@ class _Shot:
     contact_radius: np.ndarray
     force: np.ndarray
     rim_angle: np.ndarray
-    rim_tension: np.ndarray
+    rim_force: np.ndarray
 
 
 def _rhs(s: np.ndarray, y: np.ndarray, p: np.ndarray, curvature: float | None) -> np.ndarray:
@@ -170,7 +175,7 @@ def _shoot(stretch: np.ndarray, s_contact: np.ndarray, p: np.ndarray, curvature:
     w1_c = l1_c - 1.0 / (l1_c**3 * l2_c**2)
     in_contact = s_contact > 0.0
     force = np.where(in_contact, math.pi * p * r_c**2 - 2.0 * math.pi * np.sin(s_free) * w1_c * np.sin(th_c), 0.0)
-    l1_e, l2_e = end[3], end[0]
+    l1_e, l2_e = end[3], end[0]  # at the rim R0 = 1, so l2 = r
     return _Shot(
         rim_radius=end[0],
         apex_height=-end[1],
@@ -179,7 +184,7 @@ def _shoot(stretch: np.ndarray, s_contact: np.ndarray, p: np.ndarray, curvature:
         contact_radius=np.where(in_contact, r_c, 0.0),
         force=force,
         rim_angle=end[2],
-        rim_tension=(l1_e - 1.0 / (l1_e**3 * l2_e**2)) / l2_e,
+        rim_force=2.0 * math.pi * (l1_e - 1.0 / (l1_e**3 * l2_e**2)) * np.sin(end[2]),
     )
 
 
@@ -289,6 +294,7 @@ def _state(depth: float, shot: _Shot, p: float, radius: float, mu_t: float) -> D
         volume=float(shot.volume[0]) * radius**3,
         contact_radius=float(shot.contact_radius[0]) * radius,
         strain_energy=float(shot.energy[0]) * mu_t * radius**2,
+        rim_force=float(shot.rim_force[0]) * mu_t * radius,
     )
 
 
@@ -330,7 +336,11 @@ def indent_dome(
 
     Returns:
         One ``DomeState`` per entry of ``depths`` (same order): force on the sphere (N, positive pushing
-        down), fluid pressure (Pa), volume (m^3) and contact radius (m).
+        down), fluid pressure (Pa), volume (m^3), contact radius (m), strain energy (J), rim force (N).
+
+    Raises:
+        ValueError: on non-positive sizes, ``volume_ratio <= 1`` or a negative depth.
+        RuntimeError: when the shooting solve fails (e.g. a depth far beyond ~40 % of R).
     """
     _check_sizes(radius=radius, thickness=thickness, mu=mu, indenter_radius=indenter_radius)
     _check_ratio(volume_ratio)
@@ -344,9 +354,8 @@ def indent_dome(
     curvature = radius / indenter_radius
     lam0, p0, shot0 = _solve_inflation(target_volume)
     h0 = float(shot0.apex_height[0])
-    inflated = _state(0.0, shot0, p0, radius, mu_t)
 
-    def residual_at(depth: float):
+    def depth_residual(depth: float):
         def residual(x: np.ndarray) -> np.ndarray:
             shot = _safe_shoot(x[0], x[1], x[2], curvature)
             if shot is None:
@@ -355,67 +364,74 @@ def indent_dome(
 
         return residual
 
-    # Continuation in depth; unknowns (apex stretch, S_c, p), extrapolated in sqrt(depth) since S_c ~ sqrt(d).
-    scale = np.array([1.0, 1.0, 1.0])
-    solved: dict[float, DomeState] = {0.0: inflated}
-    path: list[tuple[float, np.ndarray]] = []
-    for target in sorted({d / radius for d in depth_list if d > 0.0}):
-        current = path[-1][0] if path else 0.0
-        n_sub = max(1, int(math.ceil((target - current) / _DEPTH_STEP)))
-        for sub in np.linspace(current, target, n_sub + 1)[1:]:
-            if not path:
-                guess = np.array([lam0, _first_contact_guess(sub, curvature, p0, lam0), p0])
-            elif len(path) == 1:
-                (d1, x1) = path[0]
-                guess = np.array([x1[0], x1[1] * math.sqrt(sub / d1), x1[2]])
-            else:
-                (da, xa), (db, xb) = path[-2], path[-1]
-                w = (math.sqrt(sub) - math.sqrt(db)) / (math.sqrt(db) - math.sqrt(da))
-                guess = xb + w * (xb - xa)
-            x = _newton(residual_at(sub), guess, scale)
-            path.append((sub, x))
-        shot = _shoot(x[:1], x[1:2], x[2:], curvature)
-        solved[target * radius] = _state(target * radius, shot, float(x[2]), radius, mu_t)
-    return [solved[0.0] if d == 0.0 else solved[(d / radius) * radius] for d in depth_list]
+    def edge_residual(x: np.ndarray) -> np.ndarray:
+        s_c = np.full(x.shape[1], _FIRST_CONTACT_EDGE)
+        shot = _safe_shoot(x[0], s_c, x[1], curvature)
+        if shot is None:
+            return np.full(x.shape, np.nan)
+        return np.vstack([shot.rim_radius - 1.0, (shot.volume - target_volume) / v0])
 
+    # Solution path: (depth / R, unknowns (apex stretch, S_c, p)).  Its first contact point is solved at a
+    # prescribed small contact edge (well posed from the inflated state); then continuation in depth,
+    # interpolating linearly in sqrt(depth) (S_c ~ sqrt(depth)), halving the step on a failed solve.
+    lam1, p1 = _newton(edge_residual, np.array([lam0, p0]), np.ones(2))
+    x1 = np.array([lam1, _FIRST_CONTACT_EDGE, p1])
+    d1 = float(h0 - _shoot(x1[:1], x1[1:2], x1[2:], curvature).apex_height[0])
+    path = [(0.0, np.array([lam0, 0.0, p0])), (d1, x1)]
 
-def _first_contact_guess(depth: float, curvature: float, p: float, stretch: float) -> float:
-    """Guess of the contact edge S_c (reference arc length / R) at a small first depth (dimensionless).
+    def guess(depth: float) -> np.ndarray:
+        below = [item for item in path if item[0] <= depth]
+        (da, xa), (db, xb) = below[-2:] if len(below) >= 2 else path[:2]
+        w = (math.sqrt(depth) - math.sqrt(db)) / (math.sqrt(db) - math.sqrt(da))
+        return xb + w * (xb - xa)
 
-    Geometric overlap of the indenter with the apex cap of curvature ``p / (2 T)``, halved (the membrane
-    yields), mapped back to reference arc length by the apex stretch.
-    """
-    apex_curvature = p * stretch / (2.0 * (stretch - stretch**-5))
-    eff = 1.0 / (curvature + apex_curvature)
-    return 0.5 * math.sqrt(2.0 * depth * eff) / stretch
+    solved = {0.0: _state(0.0, shot0, p0, radius, mu_t)}
+    for depth in sorted({d for d in depth_list if d > 0.0}):
+        target = depth / radius
+        step = _DEPTH_STEP
+        while True:
+            last = max(d for d, _ in path if d <= target)
+            if last == target:
+                break
+            trial = min(target, last + step)
+            try:
+                x = _newton(depth_residual(trial), guess(trial), np.ones(3))
+            except RuntimeError:
+                step = 0.5 * (trial - last)
+                if step < _DEPTH_STEP_MIN:
+                    raise
+                continue
+            path.append((trial, x))
+            path.sort(key=lambda item: item[0])
+        x = next(x for d, x in path if d == target)
+        solved[depth] = _state(depth, _shoot(x[:1], x[1:2], x[2:], curvature), float(x[2]), radius, mu_t)
+    return [solved[d] for d in depth_list]
 
 
 def closed_sphere_pressure(radius: float, thickness: float, mu: float, stretch: float) -> float:
     """Pressure (Pa) of a closed spherical membrane inflated to ``stretch``, found by shooting.
 
-    Uses the same membrane equations as the dome: shoots from the pole of a closed sphere of reference
-    radius ``radius`` (m) with apex stretch ``stretch`` and finds the pressure for which the meridian is
-    symmetric about the equator (tangent vertical at ``S = pi R / 2``).  The exact answer is
-    ``2 mu t / R (1/stretch - 1/stretch^7)``; this is a check of the ODE machinery.
+    A check of the membrane equations used for the dome: shoots from the pole of a closed sphere of
+    reference radius ``radius`` with pole stretch ``stretch`` and finds the pressure for which the meridian
+    is symmetric about the equator (tangent vertical at ``S = pi R / 2``).  The exact answer is
+    ``2 mu t / R (1/stretch - 1/stretch^7)``.
 
     Args:
         radius: reference radius (m).
         thickness: membrane thickness (m).
         mu: shear modulus (Pa).
-        stretch: apex stretch (dimensionless, > 1).
+        stretch: pole stretch (dimensionless, > 1).
     """
     _check_sizes(radius=radius, thickness=thickness, mu=mu)
     if not (math.isfinite(stretch) and stretch > 1.0):
         raise ValueError(f"stretch must be a finite number > 1, got {stretch!r}")
-    lam = np.full(1, stretch)
 
     def residual(x: np.ndarray) -> np.ndarray:
-        shot = _safe_shoot(np.full(x.shape[1], stretch), np.zeros(x.shape[1]), x[0], 0.0)
+        n = x.shape[1]
+        shot = _safe_shoot(np.full(n, stretch), np.zeros(n), x[0] * _sphere_pressure(stretch), 0.0)
         if shot is None:
             return np.full(x.shape, np.nan)
         return (shot.rim_angle - 0.5 * math.pi)[None, :]
 
-    guess = 2.0 * (1.0 / stretch - stretch**-7) * 1.1
-    p = _newton(residual, np.array([guess]), np.array([1.0]))
-    del lam
-    return float(p[0]) * mu * thickness / radius
+    rel = _newton(residual, np.array([1.05]), np.ones(1))
+    return float(rel[0] * _sphere_pressure(stretch)) * mu * thickness / radius
