@@ -11,12 +11,12 @@ from dataclasses import dataclass
 import numpy as np
 import trimesh
 
-from assets.biotac import BioTacGeometry
+from assets.biotac import BioTacGeometry, vertex_normals
 from assets.indenters import Indenter, get_indenter
 from fe.indentation import IncrementResult, Trajectory, indent
 from fe.newton import NewtonSettings, solve_equilibrium
 from fe.params import ContactSettings, SkinParameters
-from fe.shell import RigidSurface, ShellMesh, ShellSystem, vertex_normals
+from fe.shell import RigidSurface, ShellMesh, ShellSystem
 
 SENSOR_THICKNESS = 15.1e-3
 """Manufacturer's total sensor thickness after pressurisation (m)."""

@@ -65,16 +65,6 @@ def lumped_areas(vertices: np.ndarray, triangles: np.ndarray) -> np.ndarray:
     return np.bincount(triangles.ravel(), weights=np.repeat(area / 3.0, 3), minlength=len(vertices))
 
 
-def vertex_normals(vertices: np.ndarray, triangles: np.ndarray) -> np.ndarray:
-    """Area-weighted unit vertex normals of an oriented triangle surface."""
-    p0, p1, p2 = (vertices[triangles[:, k]] for k in range(3))
-    n = np.cross(p1 - p0, p2 - p0)
-    out = np.zeros_like(vertices)
-    for k in range(3):
-        np.add.at(out, triangles[:, k], n)
-    return out / np.maximum(np.linalg.norm(out, axis=1, keepdims=True), 1e-300)
-
-
 @dataclass
 class ShellSystem:
     """Energy system of one skin (batch of 1 for the Newton solve; kernels take a batch axis)."""
