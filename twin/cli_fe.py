@@ -1,0 +1,217 @@
+"""`twin fe ...`: finite-element physics checks and single indentations (lengths in mm on the CLI)."""
+
+import json
+import sys
+from typing import Annotated
+
+import numpy as np
+import typer
+from rich.progress import Progress
+from rich.table import Table
+
+from twin.cli_common import err_console as _err
+from twin.cli_common import guarded as _guarded
+from twin.cli_common import out_console as _out
+from twin.cli_common import parse_floats as _floats
+from twin.cli_common import progress_bar as _progress
+
+fe_app = typer.Typer(help="Finite-element skin model: physics checks and indentations.", no_args_is_help=True)
+
+
+@fe_app.command()
+def balloon(
+    radius_mm: Annotated[float, typer.Option(help="Sphere radius (mm).")] = 10.0,
+    thickness_mm: Annotated[float, typer.Option(help="Membrane thickness (mm).")] = 0.1,
+    mu_pa: Annotated[float, typer.Option(help="Neo-Hookean shear modulus (Pa).")] = 1e5,
+    volume_ratios: Annotated[str, typer.Option(help="Comma-separated V/V0 values.")] = "1.2,1.5,2.0,2.63,3.375",
+    subdivisions: Annotated[int, typer.Option(help="Icosphere subdivisions of the mesh.")] = 3,
+    as_json: Annotated[bool, typer.Option("--json", help="Print JSON.")] = False,
+) -> None:
+    """Inflate a closed Neo-Hookean spherical membrane by volume control; compare with membrane theory."""
+    from fe.balloon import inflate_balloon
+
+    ratios = _floats(volume_ratios, None, "--volume-ratios")
+    points = _guarded(lambda: inflate_balloon(radius_mm * 1e-3, thickness_mm * 1e-3, mu_pa, ratios, subdivisions))
+    records = [
+        {
+            "volume_ratio": p.volume_ratio,
+            "stretch": p.stretch,
+            "pressure_pa": p.pressure_pa,
+            "analytic_pressure_pa": p.analytic_pressure_pa,
+            "converged": p.converged,
+        }
+        for p in points
+    ]
+    if as_json:
+        print(json.dumps(records))
+        return
+    table = Table("V/V0", "stretch", "p FE (Pa)", "p theory (Pa)", "error")
+    for r in records:
+        err = r["pressure_pa"] / r["analytic_pressure_pa"] - 1
+        table.add_row(
+            f"{r['volume_ratio']:.3f}",
+            f"{r['stretch']:.4f}",
+            f"{r['pressure_pa']:.2f}",
+            f"{r['analytic_pressure_pa']:.2f}",
+            f"{err:+.2%}",
+        )
+    _out.print(table)
+
+
+@fe_app.command()
+def dome(
+    radius_mm: Annotated[float, typer.Option(help="Hemisphere radius (mm).")] = 10.0,
+    thickness_mm: Annotated[float, typer.Option(help="Membrane thickness (mm).")] = 0.1,
+    mu_pa: Annotated[float, typer.Option(help="Neo-Hookean shear modulus (Pa).")] = 1e5,
+    volume_ratio: Annotated[float, typer.Option(help="Inflated volume / initial volume.")] = 1.5,
+    bending: Annotated[str, typer.Option(help="Discrete-shell bending: on or off.")] = "off",
+    indenter_radius_mm: Annotated[float | None, typer.Option(help="Rigid sphere radius (mm).")] = None,
+    depth_mm: Annotated[float, typer.Option(help="Depth past first touch (mm).")] = 0.0,
+    step_mm: Annotated[float, typer.Option(help="Depth increment (mm).")] = 0.25,
+    mesh_mm: Annotated[float | None, typer.Option(help="Maximum edge length (mm); default R/12.")] = None,
+    as_json: Annotated[bool, typer.Option("--json", help="Print JSON.")] = False,
+) -> None:
+    """Hemispherical membrane pinned to a flat base, fluid-filled, inflated, then indented at the apex."""
+    from fe.dome import run_dome
+
+    if bending not in ("on", "off"):
+        raise typer.BadParameter("--bending must be on or off")
+    if depth_mm < 0 or step_mm <= 0:
+        raise typer.BadParameter("--depth-mm must be >= 0 and --step-mm > 0")
+    depths = np.arange(0, int(round(depth_mm / step_mm)) + 1) * step_mm * 1e-3
+    result = _guarded(
+        lambda: run_dome(
+            radius_mm * 1e-3,
+            thickness_mm * 1e-3,
+            mu_pa,
+            volume_ratio,
+            bending == "on",
+            None if indenter_radius_mm is None else indenter_radius_mm * 1e-3,
+            depths if indenter_radius_mm is not None else None,
+            None if mesh_mm is None else mesh_mm * 1e-3,
+        )
+    )
+    records = [
+        {
+            "depth_mm": 0.0,
+            "force_n": 0.0,
+            "pressure_pa": result.inflated_pressure,
+            "volume_m3": result.inflated_volume,
+            "contact_radius_mm": 0.0,
+        }
+    ]
+    if result.increments:
+        records = [
+            {
+                "depth_mm": inc.depth * 1e3,
+                "force_n": float(-inc.force[2]),
+                "pressure_pa": inc.pressure,
+                "volume_m3": inc.volume,
+                "contact_radius_mm": inc.contact_radius * 1e3,
+                "converged": inc.converged,
+            }
+            for inc in result.increments
+        ]
+    if as_json:
+        print(json.dumps(records))
+        return
+    table = Table("depth (mm)", "force (N)", "pressure (Pa)", "volume (m^3)", "contact radius (mm)")
+    for r in records:
+        table.add_row(
+            f"{r['depth_mm']:.3f}",
+            f"{r['force_n']:.5f}",
+            f"{r['pressure_pa']:.2f}",
+            f"{r['volume_m3']:.6e}",
+            f"{r['contact_radius_mm']:.3f}",
+        )
+    _out.print(table)
+
+
+@fe_app.command()
+def indent(
+    indenter: Annotated[str, typer.Option(help="Indenter name (see `twin fe indenters`).")] = "sphere_medium",
+    point_mm: Annotated[str, typer.Option(help="Target point x,y,z (mm, biotac frame).")] = "-5,0,-9",
+    angle_deg: Annotated[float, typer.Option(help="Tilt from the inward surface normal (deg).")] = 0.0,
+    azimuth_deg: Annotated[
+        float, typer.Option(help="Direction of the tilt around the normal (deg, 0 = distal).")
+    ] = 0.0,
+    depth_mm: Annotated[float, typer.Option(help="Depth past first contact (mm).")] = 3.0,
+    step_mm: Annotated[float, typer.Option(help="Increment (mm).")] = 0.1,
+    mesh_mm: Annotated[float, typer.Option(help="Maximum skin edge length (mm).")] = 0.5,
+    as_json: Annotated[bool, typer.Option("--json", help="Print JSON records.")] = False,
+) -> None:
+    """Inflate the BioTac to 15.1 mm, then indent it at a point and print the force-depth table."""
+    from assets.biotac import make_biotac
+    from assets.indenters import get_indenter
+    from fe.sensor import BioTacModel
+
+    point = np.array(_floats(point_mm, 3, "--point-mm")) * 1e-3
+    _guarded(lambda: get_indenter(indenter))
+    if depth_mm < 0 or step_mm <= 0:
+        raise typer.BadParameter("--depth-mm must be >= 0 and --step-mm > 0")
+    geometry = _guarded(lambda: make_biotac(max_edge=mesh_mm * 1e-3))
+    model = BioTacModel(geometry)
+    _err.print(f"skin mesh: {len(geometry.skin.vertices)} vertices; inflating to 15.1 mm ...")
+    inflation = model.inflate()
+    _err.print(
+        f"inflated: +{inflation.volume_change * 1e9:.1f} mm^3, p = {inflation.pressure / 1e3:.2f} kPa, "
+        f"thickness {inflation.thickness * 1e3:.3f} mm ({inflation.message})"
+    )
+    n_steps = int(round(depth_mm / step_mm)) + 1
+    records = []
+    with _progress() as progress:
+        task = progress.add_task("indenting", total=n_steps)
+        increments = _guarded(
+            lambda: model.indent(indenter, point, depth_mm * 1e-3, step_mm * 1e-3, angle_deg, azimuth_deg)
+        )
+        for inc in _guarded(lambda: list(_advance(increments, progress, task))):
+            records.append(
+                {
+                    "depth_mm": inc.depth * 1e3,
+                    "force_n": [float(f) for f in inc.force],
+                    "pressure_pa": inc.pressure,
+                    "volume_m3": inc.volume,
+                    "contact_area_mm2": inc.contact_area * 1e6,
+                    "newton_iters": inc.newton_iterations,
+                    "converged": inc.converged,
+                    "wall_s": inc.wall_s,
+                }
+            )
+    if as_json:
+        print(json.dumps(records))
+        return
+    table = Table("depth (mm)", "Fx (N)", "Fy (N)", "Fz (N)", "p (kPa)", "contact (mm^2)", "Newton", "ok", "s")
+    for r in records:
+        fx, fy, fz = r["force_n"]
+        table.add_row(
+            f"{r['depth_mm']:.2f}",
+            f"{fx:.4f}",
+            f"{fy:.4f}",
+            f"{fz:.4f}",
+            f"{r['pressure_pa'] / 1e3:.3f}",
+            f"{r['contact_area_mm2']:.2f}",
+            str(r["newton_iters"]),
+            "yes" if r["converged"] else "NO",
+            f"{r['wall_s']:.2f}",
+        )
+    _out.print(table)
+    if records and not records[-1]["converged"]:
+        _err.print("[yellow]the last increment did not converge; the trajectory stopped there[/yellow]")
+        sys.exit(1)
+
+
+def _advance(increments, progress: Progress, task) -> object:
+    for inc in increments:
+        progress.advance(task)
+        yield inc
+
+
+@fe_app.command("indenters")
+def list_indenters() -> None:
+    """List the nine indenters and what their size means."""
+    from assets.indenters import INDENTERS
+
+    table = Table("name", "dims (mm)", "description")
+    for name, ind in INDENTERS.items():
+        table.add_row(name, ", ".join(f"{d * 1e3:g}" for d in ind.dims), ind.description)
+    _out.print(table)
