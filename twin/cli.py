@@ -4,9 +4,12 @@ import typer
 
 from hardware.cli import devices_app
 from learn.cli import learn_app
+from twin.cli_campaign import campaign_app, dataset_app
 from twin.cli_fe import fe_app
 
 app = typer.Typer(help="biotac-twin: digital twin of the robotic BioTac indentation testbed.", no_args_is_help=True)
 app.add_typer(fe_app, name="fe")
 app.add_typer(learn_app, name="learn")
 app.add_typer(devices_app, name="devices")
+app.add_typer(campaign_app, name="campaign")
+app.add_typer(dataset_app, name="dataset")

@@ -1,0 +1,293 @@
+"""Campaigns: plan, register, execute on local worker processes, process, write datasets; resumable.
+
+Every trajectory draws its randomness from `SeedSequence([seed, sensor, trajectory_id])` and starts
+from the same simulated state and clock time whatever the order or worker it runs in, so a killed
+and resumed campaign writes exactly the file an uninterrupted one writes. Finished trajectories are
+part files (written atomically); a resume skips them.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+from collections.abc import Callable
+from concurrent.futures import ProcessPoolExecutor, as_completed
+from dataclasses import asdict, dataclass, field
+from multiprocessing import get_context
+from pathlib import Path
+
+import numpy as np
+from assets.tools import tool_tip_transform
+
+from assets.biotac import BioTacGeometry, make_biotac
+from assets.indenters import INDENTERS
+from fe.params import SkinParameters
+from fe.sensor import BioTacModel
+from learn.electrode_physics import ElectrodeModel
+from twin.controller import execute
+from twin.dataset import assemble_sensor_file, part_path, write_part
+from twin.planning import PlannedTrajectory, plan_for_sensor, plan_statistics
+from twin.plant import Plant, make_plant
+from twin.processing import process
+from twin.protocol import QUICK_SETTINGS, ProtocolSettings, TrajectorySpec, plan_specs
+from twin.registration import simulate_registration
+from twin.scene import TestbedScene
+from twin.sim_backend import SimBackend
+
+SPHERES = ("sphere_small", "sphere_medium", "sphere_large")
+TRAJECTORY_SLOT_S = 600.0
+"""Clock time (s) reserved per trajectory: trajectory k of a sensor starts at k * TRAJECTORY_SLOT_S."""
+
+
+@dataclass(frozen=True)
+class CampaignConfig:
+    """What to run. `spheres_only` lists sensors that only get the sphere indenters (the paper's BioTac 1)."""
+
+    sensors: tuple[int, ...] = (1, 2, 3)
+    indenters: tuple[str, ...] = tuple(INDENTERS)
+    settings: ProtocolSettings = field(default_factory=ProtocolSettings)
+    seed: int = 0
+    mesh_max_edge: float = 0.5e-3
+    spheres_only: tuple[int, ...] = (1,)
+    nominal: SkinParameters = field(default_factory=SkinParameters)
+
+    def __post_init__(self) -> None:
+        unknown = [n for n in self.indenters if n not in INDENTERS]
+        if unknown:
+            raise ValueError(f"unknown indenters {unknown}; choose from {list(INDENTERS)}")
+        if not self.sensors or min(self.sensors) < 1:
+            raise ValueError(f"sensors must be positive ids, got {self.sensors!r}")
+
+    def indenters_for(self, sensor_id: int) -> list[str]:
+        """Indenters this sensor is indented with."""
+        if sensor_id in self.spheres_only:
+            return [n for n in self.indenters if n in SPHERES]
+        return list(self.indenters)
+
+
+QUICK_CONFIG = CampaignConfig(settings=QUICK_SETTINGS, mesh_max_edge=2e-3)
+"""A quick campaign: one point per indenter, one normal and one angled path, coarse mesh, short pauses."""
+
+
+@dataclass(frozen=True)
+class CampaignPlan:
+    """Specs (biotac frame), their per-sensor robot plans and each sensor's estimated registration."""
+
+    config: CampaignConfig
+    specs: list[TrajectorySpec]
+    planned: list[PlannedTrajectory]
+    registration: dict[int, np.ndarray]  # sensor -> 4x4 estimated robot<-biotac transform
+    registration_error: dict[int, float]  # sensor -> m
+
+    def statistics(self) -> dict:
+        """Planned/kept/dropped per indenter and totals (the `twin campaign plan --json` shape)."""
+        stats = plan_statistics(self.planned)
+        stats["registration_error_mm"] = {str(k): v * 1e3 for k, v in self.registration_error.items()}
+        return stats
+
+
+def inflated_model(geometry: BioTacGeometry, params: SkinParameters) -> BioTacModel:
+    """A BioTac fe model inflated to the sensor's 15.1 mm thickness; raises if inflation fails."""
+    model = BioTacModel(geometry, params)
+    result = model.inflate()
+    if not result.converged:
+        raise RuntimeError(f"inflation did not converge: {result.message}")
+    return model
+
+
+def sensor_scene(plant: Plant, sensor_id: int) -> TestbedScene:
+    """The testbed with this sensor mounted where the plant really put it."""
+    return TestbedScene.with_mount_error(plant.sensor(sensor_id).mount_error)
+
+
+def plan_campaign(config: CampaignConfig, plant: Plant | None = None) -> CampaignPlan:
+    """Sample the trajectories, register each sensor, and plan joint paths (dropping what cannot run)."""
+    plant = plant if plant is not None else make_plant(list(config.sensors), config.seed)
+    geometry = make_biotac(config.mesh_max_edge)
+    nominal = inflated_model(geometry, config.nominal)
+    specs = plan_specs(nominal, list(config.indenters), config.settings, config.seed)
+    planned, registration, errors = [], {}, {}
+    for sid in config.sensors:
+        scene = sensor_scene(plant, sid)
+        rng = np.random.default_rng(np.random.SeedSequence([config.seed, sid, 0x9E6]))
+        result = simulate_registration(scene, rng)
+        registration[sid], errors[sid] = result.transform, result.error
+        wanted = set(config.indenters_for(sid))
+        planned += plan_for_sensor(scene, [s for s in specs if s.indenter in wanted], sid, result.transform)
+    return CampaignPlan(config, specs, planned, registration, errors)
+
+
+# -- execution ---------------------------------------------------------------------------------------
+@dataclass
+class _Worker:
+    """Per-process state: the geometry, the plant's inflated fe models and scenes, built on first use."""
+
+    config: CampaignConfig
+    plant: Plant
+    geometry: BioTacGeometry = field(init=False)
+    models: dict = field(default_factory=dict)
+
+    def __post_init__(self) -> None:
+        self.geometry = make_biotac(self.config.mesh_max_edge)
+
+    def sensor(self, sid: int) -> tuple[BioTacModel, ElectrodeModel, TestbedScene]:
+        if sid not in self.models:
+            truth = self.plant.sensor(sid)
+            model = inflated_model(self.geometry, truth.skin)
+            electrodes = ElectrodeModel(self.geometry, truth.electrodes, model.reference, truth.skin.thickness)
+            self.models[sid] = (model, electrodes, sensor_scene(self.plant, sid))
+        return self.models[sid]
+
+
+_WORKER: _Worker | None = None
+
+
+def _init_worker(config: CampaignConfig, plant: Plant) -> None:
+    global _WORKER
+    _WORKER = _Worker(config, plant)
+
+
+def _run_one(job: PlannedTrajectory, slot: int, registration: np.ndarray, parts_dir: str) -> tuple[int, int, bool]:
+    worker = _WORKER
+    config, sid, spec = worker.config, job.sensor_id, job.spec
+    model, electrodes, scene = worker.sensor(sid)
+    rng = np.random.default_rng(np.random.SeedSequence([config.seed, sid, spec.trajectory_id]))
+    backend = SimBackend(
+        scene, worker.plant.sensor(sid), model, electrodes, worker.plant.noise, rng, slot * TRAJECTORY_SLOT_S
+    )
+    recording = execute(backend, spec, job.arm, job.joint_path, config.settings)
+    rows = process(
+        recording,
+        job.arm,
+        tool_tip_transform(spec.indenter),
+        np.linalg.inv(registration),
+        np.linalg.inv(scene.biotac_pose) @ scene.ft_sensor_pose,
+        config.settings.sample_rate_hz,
+    )
+    arrays = {f"row_{k}": v for k, v in asdict(rows).items() if k != "sample_index"}
+    n = len(rows.depth)
+    arrays["row_trajectory_id"] = np.full(n, spec.trajectory_id, dtype=np.int64)
+    arrays["row_indenter_type"] = np.full(n, list(INDENTERS).index(spec.indenter), dtype=np.int64)
+    arrays.update(_fe_rows(backend, rows.time, model))
+    arrays.update({f"raw_{k}": v for k, v in asdict(recording).items() if k not in ("complete", "message")})
+    meta = {
+        "trajectory_id": spec.trajectory_id,
+        "indenter_type": list(INDENTERS).index(spec.indenter),
+        "arm": 0 if job.arm == "left" else 1,
+        "angle": spec.angle,
+        "azimuth": spec.azimuth,
+        "point": spec.point,
+        "direction": spec.direction,
+        "rotation": spec.rotation,
+        "touch_point": spec.touch_point,
+        "complete": recording.complete,
+        "message": recording.message,
+    }
+    arrays.update({f"meta_{k}": np.asarray(v) for k, v in meta.items()})
+    arrays["mesh_reference"] = model.reference
+    write_part(part_path(Path(parts_dir), sid, spec.trajectory_id), arrays)
+    return sid, spec.trajectory_id, recording.complete
+
+
+def _fe_rows(backend: SimBackend, times: np.ndarray, model: BioTacModel) -> dict[str, np.ndarray]:
+    """The plant's fe state at each row time (the last solve at or before it)."""
+    log = backend.solve_log
+    solve_times = np.array([t for t, _ in log])
+    force, pressure, converged, nodal = [], [], [], []
+    for t in times:
+        k = int(np.searchsorted(solve_times, t, side="right")) - 1
+        if k < 0:
+            force.append(np.zeros(3))
+            pressure.append(model.pressure)
+            converged.append(True)
+            nodal.append(np.zeros_like(model.reference))
+            continue
+        result = log[k][1]
+        force.append(result.force)
+        pressure.append(result.pressure)
+        converged.append(result.converged)
+        nodal.append(result.displacement)
+    return {
+        "row_fe_force": np.array(force).reshape(-1, 3),
+        "row_fe_pressure": np.array(pressure),
+        "row_fe_converged": np.array(converged, dtype=bool),
+        "row_nodal_res": np.array(nodal, dtype=np.float32).reshape(len(times), -1, 3),
+    }
+
+
+@dataclass(frozen=True)
+class CampaignResult:
+    """Where the files went and what happened."""
+
+    files: dict[int, Path]
+    statistics: dict
+    ran: int
+    skipped: int
+    incomplete: int
+
+
+def run_campaign(
+    config: CampaignConfig,
+    out_dir: Path,
+    workers: int = 1,
+    plant: Plant | None = None,
+    on_progress: Callable[[int, int], None] | None = None,
+) -> CampaignResult:
+    """Plan and run the campaign into `out_dir` (one HDF5 per sensor); resumes from existing parts.
+
+    on_progress(done, total) is called after each trajectory. Parts live in `out_dir/parts` until the
+    sensor files are assembled; they are kept so that a later run can resume or re-assemble.
+    """
+    out_dir = Path(out_dir)
+    out_dir.mkdir(parents=True, exist_ok=True)
+    plant = plant if plant is not None else make_plant(list(config.sensors), config.seed)
+    plan = plan_campaign(config, plant)
+    parts_dir = out_dir / "parts"
+    jobs = [job for job in plan.planned if job.kept]
+    slots = {}
+    for job in jobs:
+        slots[(job.sensor_id, job.spec.trajectory_id)] = sum(1 for key in slots if key[0] == job.sensor_id)
+    todo = [j for j in jobs if not part_path(parts_dir, j.sensor_id, j.spec.trajectory_id).exists()]
+    done, incomplete = len(jobs) - len(todo), 0
+    if on_progress:
+        on_progress(done, len(jobs))
+    if todo:
+        context = get_context("spawn")
+        with ProcessPoolExecutor(max(1, workers), context, _init_worker, (config, plant)) as pool:
+            futures = [
+                pool.submit(
+                    _run_one,
+                    j,
+                    slots[(j.sensor_id, j.spec.trajectory_id)],
+                    plan.registration[j.sensor_id],
+                    str(parts_dir),
+                )
+                for j in todo
+            ]
+            for future in as_completed(futures):
+                _, _, complete = future.result()
+                incomplete += not complete
+                done += 1
+                if on_progress:
+                    on_progress(done, len(jobs))
+    provenance = {
+        "code_version": _code_version(),
+        "config": json.loads(json.dumps(asdict(config), default=str)),
+        "plant_fingerprint": plant.fingerprint(),
+        "registration_error_m": {str(k): v for k, v in plan.registration_error.items()},
+    }
+    files = {}
+    triangles = make_biotac(config.mesh_max_edge).skin.triangles
+    for sid in config.sensors:
+        parts = sorted((parts_dir / f"biotac{sid}").glob("trajectory_*.npz"))
+        provenance_sid = {**provenance, "registration": plan.registration[sid].tolist()}
+        files[sid] = assemble_sensor_file(
+            parts, out_dir / f"biotac{sid}.hdf5", sid, list(INDENTERS), provenance_sid, triangles
+        ).path
+    return CampaignResult(files, plan.statistics(), len(todo), len(jobs) - len(todo), incomplete)
+
+
+def _code_version() -> str:
+    from twin import __version__
+
+    return f"{__version__}+{os.environ.get('BIOTAC_TWIN_COMMIT', 'unknown')}"

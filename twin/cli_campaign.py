@@ -1,0 +1,113 @@
+"""`twin campaign ...` and `twin dataset ...`: plan and run indentation campaigns, inspect datasets."""
+
+import json
+from pathlib import Path
+from typing import Annotated
+
+import typer
+from rich.table import Table
+
+from twin.cli_common import err_console, guarded, out_console, progress_bar
+
+campaign_app = typer.Typer(help="Plan and run indentation campaigns (simulated or on hardware).", no_args_is_help=True)
+dataset_app = typer.Typer(help="Inspect campaign datasets (HDF5).", no_args_is_help=True)
+
+
+def _config(quick: bool, sensors: str | None, indenters: str | None, seed: int, mesh_mm: float | None):
+    from dataclasses import replace
+
+    from twin.campaign import QUICK_CONFIG, CampaignConfig
+
+    config = QUICK_CONFIG if quick else CampaignConfig()
+    changes: dict = {"seed": seed}
+    if sensors:
+        changes["sensors"] = tuple(int(s) for s in sensors.split(",") if s.strip())
+    if indenters:
+        changes["indenters"] = tuple(s.strip() for s in indenters.split(",") if s.strip())
+    if mesh_mm is not None:
+        changes["mesh_max_edge"] = mesh_mm * 1e-3
+    return replace(config, **changes)
+
+
+Quick = Annotated[bool, typer.Option("--quick", help="A small campaign: coarse mesh, few trajectories.")]
+Sensors = Annotated[str | None, typer.Option(help="Comma-separated sensor ids (default 1,2,3).")]
+Indenters = Annotated[str | None, typer.Option(help="Comma-separated indenter names (default all nine).")]
+Seed = Annotated[int, typer.Option(help="Seed of every random draw.")]
+MeshMm = Annotated[float | None, typer.Option(help="Skin mesh max edge (mm); default 0.5, quick 2.")]
+
+
+@campaign_app.command("plan")
+def plan(
+    paper: Annotated[bool, typer.Option("--paper", help="The paper-size plan (the default).")] = False,
+    quick: Quick = False,
+    sensors: Sensors = None,
+    indenters: Indenters = None,
+    seed: Seed = 0,
+    mesh_mm: MeshMm = None,
+    as_json: Annotated[bool, typer.Option("--json", help="Print JSON.")] = False,
+) -> None:
+    """Sample points, register each sensor, plan joint paths; report kept and dropped trajectories."""
+    from twin.campaign import plan_campaign
+
+    if paper and quick:
+        raise typer.BadParameter("--paper and --quick exclude each other")
+    config = guarded(lambda: _config(quick, sensors, indenters, seed, mesh_mm))
+    err_console.print("planning (inflating the nominal model, registering, solving IK) ...")
+    stats = guarded(lambda: plan_campaign(config)).statistics()
+    if as_json:
+        print(json.dumps(stats))
+        return
+    table = Table("indenter", "planned", "kept", "dropped")
+    for name, entry in stats["indenters"].items():
+        dropped = ", ".join(f"{k}: {v}" for k, v in entry["dropped"].items()) or "-"
+        table.add_row(name, str(entry["planned"]), str(entry["kept"]), dropped)
+    out_console.print(table)
+    out_console.print(f"kept {stats['kept_total']} trajectories ({stats['kept_unique']} unique)")
+
+
+@campaign_app.command("run")
+def run(
+    out: Annotated[Path, typer.Option(help="Output folder (one HDF5 per sensor); resumes if it has parts.")],
+    quick: Quick = False,
+    sensors: Sensors = None,
+    indenters: Indenters = None,
+    seed: Seed = 0,
+    mesh_mm: MeshMm = None,
+    workers: Annotated[int, typer.Option(help="Local worker processes.")] = 2,
+) -> None:
+    """Run a simulated campaign on local worker processes; a killed run resumes where it stopped."""
+    from twin.campaign import run_campaign
+
+    if workers < 1:
+        raise typer.BadParameter("--workers must be >= 1")
+    config = guarded(lambda: _config(quick, sensors, indenters, seed, mesh_mm))
+    with progress_bar() as progress:
+        task = progress.add_task("trajectories", total=None)
+
+        def report(done: int, total: int) -> None:
+            progress.update(task, completed=done, total=total)
+
+        result = guarded(lambda: run_campaign(config, out, workers, on_progress=report))
+    for sid, path in result.files.items():
+        out_console.print(f"sensor {sid}: {path}")
+    out_console.print(f"ran {result.ran}, resumed past {result.skipped}, incomplete {result.incomplete}")
+
+
+@dataset_app.command("info")
+def info(
+    path: Annotated[Path, typer.Argument(help="A campaign HDF5 file.")],
+    as_json: Annotated[bool, typer.Option("--json", help="Print JSON.")] = False,
+) -> None:
+    """Features with shapes and units, trajectory counts and provenance of a campaign file."""
+    from twin.dataset import dataset_info
+
+    summary = guarded(lambda: dataset_info(path))
+    if as_json:
+        print(json.dumps(summary))
+        return
+    table = Table("feature", "shape", "dtype", "units", "frame")
+    for name, feature in summary["features"].items():
+        table.add_row(name, str(tuple(feature["shape"])), feature["dtype"], feature["units"], feature["frame"] or "")
+    out_console.print(table)
+    if "trajectories" in summary:
+        out_console.print(f"trajectories: {summary['trajectories']}")

@@ -1,0 +1,127 @@
+"""The plant: the simulated "real world" that simulated measurements come from.
+
+A plant is the nominal model plus per-sensor variability (three BioTacs that differ), mount
+placement error, F/T bias and sensor noise. Predictions never come from a plant: the model side only
+sees the nominal parameters, so whatever the plant hides stays hidden (DESIGN.md).
+"""
+
+from __future__ import annotations
+
+import hashlib
+import json
+from dataclasses import asdict, dataclass, field, replace
+
+import numpy as np
+
+from fe.params import SkinParameters
+from learn.electrode_physics import ElectrodeParameters
+
+
+@dataclass(frozen=True)
+class MeasurementNoise:
+    """Standard deviations of the sensor noise (SI units)."""
+
+    force: float = 0.01
+    """KMS40 force noise per axis (N)."""
+    torque: float = 2e-4
+    """KMS40 torque noise per axis (N·m)."""
+    encoder: float = 2e-5
+    """YuMi joint-encoder noise (rad); 2e-5 rad at 0.5 m reach is 0.01 mm."""
+    ft_bias_force: float = 0.5
+    """Spread of the per-sensor F/T force bias (N); removed by taring."""
+    ft_bias_torque: float = 0.02
+    """Spread of the per-sensor F/T torque bias (N·m)."""
+
+
+@dataclass(frozen=True)
+class PlantSensor:
+    """One physical BioTac as the plant knows it (SI units).
+
+    mount_error: (6,) true mount placement error of this sensor: rotation vector (rad) then
+    translation (m), applied in the robot frame to the scene's nominal robot->biotac transform.
+    ft_bias: (6,) untared F/T offset (N, N·m).
+    """
+
+    sensor_id: int
+    skin: SkinParameters
+    electrodes: ElectrodeParameters
+    mount_error: np.ndarray
+    ft_bias: np.ndarray
+
+
+@dataclass(frozen=True)
+class Plant:
+    """Per-sensor truth plus noise; `seed` drives every random draw made while measuring."""
+
+    sensors: dict[int, PlantSensor]
+    noise: MeasurementNoise = field(default_factory=MeasurementNoise)
+    seed: int = 0
+
+    def sensor(self, sensor_id: int) -> PlantSensor:
+        """The plant's sensor `sensor_id`, or a ValueError naming the ones it has."""
+        if sensor_id not in self.sensors:
+            raise ValueError(f"the plant has no sensor {sensor_id}; it has {sorted(self.sensors)}")
+        return self.sensors[sensor_id]
+
+    def fingerprint(self) -> str:
+        """A short hash of everything the plant is made of (recorded instead of the values themselves)."""
+        text = json.dumps(_jsonable(asdict(self)), sort_keys=True)
+        return hashlib.sha256(text.encode()).hexdigest()[:16]
+
+
+def _jsonable(value: object) -> object:
+    if isinstance(value, np.ndarray):
+        return value.tolist()
+    if isinstance(value, dict):
+        return {str(k): _jsonable(v) for k, v in value.items()}
+    if isinstance(value, list | tuple):
+        return [_jsonable(v) for v in value]
+    return value
+
+
+def make_plant(
+    sensor_ids: list[int],
+    seed: int,
+    nominal: SkinParameters = SkinParameters(),
+    variability: float = 0.05,
+    noise: MeasurementNoise = MeasurementNoise(),
+    mount_rotation_error: float = 2e-3,
+    mount_translation_error: float = 0.5e-3,
+) -> Plant:
+    """Draw a plant of sensors that differ from `nominal` by `variability` (relative, 1 sigma).
+
+    Skin thickness and modulus vary by `variability`, friction by twice that; electrodes get their
+    own gains and offsets; each mount is placed with errors of the given sizes (rad, m, 1 sigma).
+    """
+    if not sensor_ids or len(set(sensor_ids)) != len(sensor_ids) or min(sensor_ids) < 1:
+        raise ValueError(f"sensor ids must be distinct positive integers, got {sensor_ids!r}")
+    rng = np.random.default_rng(np.random.SeedSequence([seed, 0x5E45]))
+    sensors = {}
+    for sid in sensor_ids:
+        factor = np.exp(variability * rng.standard_normal(3) * np.array([1.0, 1.0, 2.0]))
+        skin = replace(
+            nominal,
+            thickness=nominal.thickness * factor[0],
+            mu_nh=nominal.mu_nh * factor[1],
+            friction=nominal.friction * factor[2],
+        )
+        mount_error = np.concatenate(
+            [mount_rotation_error * rng.standard_normal(3), mount_translation_error * rng.standard_normal(3)]
+        )
+        bias = np.concatenate(
+            [noise.ft_bias_force * rng.standard_normal(3), noise.ft_bias_torque * rng.standard_normal(3)]
+        )
+        sensors[sid] = PlantSensor(sid, skin, ElectrodeParameters.sample(rng), mount_error, bias)
+    return Plant(sensors, noise, seed)
+
+
+def rigid_transform(rotation_vector: np.ndarray, translation: np.ndarray) -> np.ndarray:
+    """4x4 transform from a rotation vector (rad, axis * angle) and a translation (m)."""
+    theta = float(np.linalg.norm(rotation_vector))
+    pose = np.eye(4)
+    if theta > 0.0:
+        k = np.asarray(rotation_vector) / theta
+        kx = np.array([[0.0, -k[2], k[1]], [k[2], 0.0, -k[0]], [-k[1], k[0], 0.0]])
+        pose[:3, :3] = np.eye(3) + np.sin(theta) * kx + (1.0 - np.cos(theta)) * kx @ kx
+    pose[:3, 3] = translation
+    return pose

@@ -1,0 +1,175 @@
+"""SimBackend: the testbed in simulation (MuJoCo arms, fe skin, electrode physics, plant noise).
+
+MuJoCo moves the arms (joint targets followed within the velocity limits). Whenever the indenter
+comes to rest at a new pose, its tip pose in the `biotac` frame (through the scene's mount, which is
+where the plant really put this sensor, not where registration thinks it is) drives the fe
+stepper. The F/T reading is the load the BioTac transmits to the mount, expressed in the sensor
+frame, plus the plant's bias and noise; electrodes and PDC come from the electrode physics model of
+the plant's sensor. Between solves every channel holds its last value.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from fe.indentation import IncrementResult
+from fe.sensor import BioTacModel
+from learn.electrode_physics import ElectrodeModel
+from twin.backend import ARMS, BackendError, Sample, check_arm
+from twin.kinematics import joint_limits, velocity_limits
+from twin.plant import MeasurementNoise, PlantSensor
+from twin.scene import TestbedScene
+
+GRAVITY = np.array([0.0, 0.0, -9.81])
+
+
+@dataclass(frozen=True)
+class SimSettings:
+    """Numerics of the simulated testbed."""
+
+    pose_tolerance: float = 1e-7
+    """Tip motion (m) below which the fe state is not re-solved."""
+    rest_tolerance: float = 1e-9
+    """Joint distance (rad) to the target below which an arm counts as at rest."""
+    mounted_mass: float = 0.12
+    """Mass (kg) of BioTac + fixture carried by the F/T sensor (seen untared as a constant load)."""
+
+
+class SimBackend:
+    """The `Backend` of the simulated testbed for one plant sensor; `time_s` starts at `start_time_s`."""
+
+    def __init__(
+        self,
+        scene: TestbedScene,
+        sensor: PlantSensor,
+        fe_model: BioTacModel,
+        electrodes: ElectrodeModel,
+        noise: MeasurementNoise,
+        rng: np.random.Generator,
+        start_time_s: float = 0.0,
+        settings: SimSettings = SimSettings(),
+    ) -> None:
+        if fe_model.reference is None:
+            raise ValueError("the fe model must be inflated before it drives a SimBackend")
+        self.scene = scene
+        self.sensor = sensor
+        self.fe_model = fe_model
+        self.electrodes = electrodes
+        self.noise = noise
+        self.rng = rng
+        self.settings = settings
+        self.time_s = start_time_s
+        self.true_biotac_pose = scene.biotac_pose
+        self._sensor_in_biotac = np.linalg.inv(scene.biotac_pose) @ scene.ft_sensor_pose
+        self._joints = {arm: scene.joints(arm) for arm in ARMS}
+        self._targets = {arm: self._joints[arm].copy() for arm in ARMS}
+        self._tools: dict[str, str | None] = dict.fromkeys(ARMS)
+        self._stepper = None
+        self._stepper_arm: str | None = None
+        self._last_tip: np.ndarray | None = None
+        self._state: IncrementResult | None = None
+        self._clean = self._rest_signals()
+        self.solve_log: list[tuple[float, IncrementResult]] = []
+        """Every fe solve as (simulated time s, result), in time order."""
+
+    # -- Backend ---------------------------------------------------------------------------------
+    def attach_tool(self, arm: str, tool: str | None) -> None:
+        """Mount `tool` (indenter name, "pin" or None) on `arm`; a new indenter starts from the rest skin."""
+        check_arm(arm)
+        self.scene.attach_tool(arm, tool)
+        self._tools[arm] = tool
+        if tool is not None and tool != "pin":
+            self._stepper = self.fe_model.stepper(tool)
+            self._stepper_arm = arm
+            self._last_tip = None
+            self._state = None
+            self._clean = self._rest_signals()
+
+    def command_joints(self, arm: str, joints: np.ndarray) -> None:
+        """Set the joint target (rad); outside the joint limits is refused with BackendError."""
+        check_arm(arm)
+        q = np.asarray(joints, dtype=float)
+        limits = joint_limits(arm)
+        if q.shape != (7,) or not np.all(np.isfinite(q)):
+            raise BackendError(f"joint target for {arm} must be 7 finite numbers, got {q!r}")
+        if np.any(q < limits[:, 0]) or np.any(q > limits[:, 1]):
+            raise BackendError(f"joint target for {arm} is outside the joint limits: {np.round(q, 4)}")
+        self._targets[arm] = q.copy()
+
+    def advance(self, dt: float) -> None:
+        """Move both arms toward their targets for `dt` s, then re-solve the skin if the indenter rests."""
+        if dt < 0:
+            raise ValueError(f"dt must be >= 0, got {dt!r}")
+        for arm in ARMS:
+            step = np.clip(
+                self._targets[arm] - self._joints[arm], -velocity_limits(arm) * dt, velocity_limits(arm) * dt
+            )
+            self._joints[arm] = self._joints[arm] + step
+            self.scene.set_joints(arm, self._joints[arm])
+        self.time_s += dt
+        arm = self._stepper_arm
+        if arm is not None and np.max(np.abs(self._targets[arm] - self._joints[arm])) <= self.settings.rest_tolerance:
+            self._solve_if_moved(arm)
+
+    def read(self) -> Sample:
+        """Noisy readings of every channel at the current simulated time."""
+        joints = {arm: self._joints[arm] + self.noise.encoder * self.rng.standard_normal(7) for arm in ARMS}
+        wrench_noise = np.concatenate(
+            [self.noise.force * self.rng.standard_normal(3), self.noise.torque * self.rng.standard_normal(3)]
+        )
+        wrench = self._clean["wrench"] + self.sensor.ft_bias + wrench_noise
+        electrodes = self.electrodes.counts(self._clean["vertices"], self.time_s, self.rng)
+        pdc = self.electrodes.pdc_counts(self._clean["pressure"], self.rng)
+        return Sample(self.time_s, joints, wrench, electrodes, float(pdc))
+
+    def close(self) -> None:
+        """Nothing to release in simulation."""
+
+    # -- simulation state ------------------------------------------------------------------------
+    @property
+    def fe_state(self) -> IncrementResult | None:
+        """The last fe solution (None before the indenter first rested at a pose)."""
+        return self._state
+
+    def tip_pose_biotac(self, arm: str) -> np.ndarray:
+        """True 4x4 pose of `arm`'s tool tip in the biotac frame."""
+        return np.linalg.inv(self.true_biotac_pose) @ self.scene.tool_pose(arm)
+
+    def _solve_if_moved(self, arm: str) -> None:
+        pose = self.tip_pose_biotac(arm)
+        if self._last_tip is not None and np.linalg.norm(pose[:3, 3] - self._last_tip) <= self.settings.pose_tolerance:
+            return
+        result = self._stepper.step(pose[:3, :3], pose[:3, 3])
+        if not result.converged:
+            raise BackendError(f"the skin model did not converge at this pose ({result.message})")
+        self._last_tip = pose[:3, 3].copy()
+        self._state = result
+        self.solve_log.append((self.time_s, result))
+        self._clean = self._signals(result, pose[:3, 3])
+
+    def _rest_signals(self) -> dict:
+        reference = self.fe_model.reference
+        return {
+            "vertices": reference,
+            "pressure": self.fe_model.pressure,
+            "wrench": self._wrench(np.zeros(3), np.zeros(3)),
+        }
+
+    def _signals(self, result: IncrementResult, tip: np.ndarray) -> dict:
+        return {
+            "vertices": self.fe_model.reference + result.displacement,
+            "pressure": result.pressure,
+            "wrench": self._wrench(result.force, tip),
+        }
+
+    def _wrench(self, force_biotac: np.ndarray, point_biotac: np.ndarray) -> np.ndarray:
+        """Untared, noise-free F/T reading (sensor frame) for an indenter force (N) at a point (m)."""
+        to_sensor = np.linalg.inv(self._sensor_in_biotac)
+        weight_robot = self.settings.mounted_mass * GRAVITY
+        weight_biotac = self.true_biotac_pose[:3, :3].T @ weight_robot
+        total = np.asarray(force_biotac) + weight_biotac
+        arm = np.asarray(point_biotac) - self._sensor_in_biotac[:3, 3]
+        moment = np.cross(arm, np.asarray(force_biotac))
+        return np.concatenate([to_sensor[:3, :3] @ total, to_sensor[:3, :3] @ moment])
