@@ -5,8 +5,10 @@ E_n = kappa A_v g^2 / 2 for g < 0, with A_v the vertex's lumped reference area (
 penalty stiffness (Pa/m), so kappa |g| is the contact pressure. Friction is lagged Coulomb with IPC
 smoothing: E_f = mu lambda f0(|u_T|), lambda the normal force (N) and n the contact normal of the last
 lagging pass, u_T the slip over the increment projected on the plane normal to n, and f0 the C1
-smoothing of |u| over the slip length eps (m). The indenter moves rigidly; its SDF is evaluated in its
-own frame (tip at the origin, body along +z).
+smoothing of |u| over the slip length eps (m). The indenter moves rigidly from pose (R0, t0) to (R, t);
+the slip of a skin vertex at p relative to the indenter material point now under it is
+u = R0 R^T (p - t) + t0 - x_start, i.e. its motion seen from the indenter's body frame. Its SDF is
+evaluated in its own frame (tip at the origin, body along +z).
 """
 
 import warp as wp
@@ -135,6 +137,7 @@ def indenter_contact_kernel(
     dims: wp.vec4d,
     rotation: wp.array(dtype=wp.mat33d),
     translation: wp.array(dtype=wp.vec3d),
+    rotation_start: wp.array(dtype=wp.mat33d),
     translation_start: wp.array(dtype=wp.vec3d),
     offset: wp.array(dtype=wp.float64),
     kappa: wp.float64,
@@ -183,7 +186,8 @@ def indenter_contact_kernel(
     lam = lagged_force[b, v] * friction[b]
     if lam > zero:
         nl = lagged_normal[b, v]
-        u = (p - x_start[b, v]) - (t - translation_start[b])
+        A = rotation_start[b] @ wp.transpose(R)
+        u = A @ (p - t) + translation_start[b] - x_start[b, v]
         ut = u - nl * wp.dot(u, nl)
         y = wp.length(ut)
         eps = slip_eps
@@ -194,7 +198,7 @@ def indenter_contact_kernel(
         else:
             e += lam * y
             f1_over_y = one / y
-        grad += ut * (lam * f1_over_y)
+        grad += wp.transpose(A) @ (ut * (lam * f1_over_y))
         if want_hessian != 0:
             proj = wp.identity(n=3, dtype=wp.float64) - wp.outer(nl, nl)
             Hf = proj * f1_over_y
@@ -203,7 +207,22 @@ def indenter_contact_kernel(
                     Hf -= wp.outer(ut, ut) / (eps * eps * y)
                 else:
                     Hf -= wp.outer(ut, ut) / (y * y * y)
-            H += lam * Hf
+            H += lam * (wp.transpose(A) @ Hf @ A)
     energy[b, v] = e
     wp.atomic_add(gradient, b, v, grad)
     hessian[b, v] = H
+
+
+@wp.kernel
+def indenter_gap_kernel(
+    x: wp.array2d(dtype=wp.vec3d),
+    kind: int,
+    dims: wp.vec4d,
+    rotation: wp.array(dtype=wp.mat33d),
+    translation: wp.array(dtype=wp.vec3d),
+    offset: wp.array(dtype=wp.float64),
+    gap: wp.array2d(dtype=wp.float64),
+):
+    """Gap (m) of skin vertex v to the indenter of batch b: SDF minus the mid-surface offset."""
+    b, v = wp.tid()
+    gap[b, v] = _sdf_world(kind, dims, rotation[b], translation[b], x[b, v]) - offset[b]

@@ -1,9 +1,10 @@
-"""Quasi-static, displacement-controlled indentation of a pressurised shell by a rigid indenter.
+"""Quasi-static, pose-driven indentation of a pressurised shell by a rigid indenter.
 
-The indenter translates along a fixed direction in steps; each increment re-solves equilibrium with the
-fluid volume held, warm-started from the last one, with friction lagged (normal forces and normals
-refreshed between Newton solves until they settle). Forces are in newtons in the sensor frame and are
-the force the indenter applies to the skin.
+`IndentationStepper` holds the skin state between prescribed indenter poses (as a robot arm would move
+the indenter): each `step` re-solves equilibrium with the fluid volume held, warm-started from the last
+state, with friction lagged (normal forces and normals refreshed between Newton solves until they
+settle). `indent` drives a stepper along a straight `Trajectory`. Forces are in newtons in the sensor
+frame and are the force the indenter applies to the skin.
 """
 
 import time
@@ -12,7 +13,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from fe.newton import NewtonSettings, solve_equilibrium
+from fe.newton import NewtonResult, NewtonSettings, solve_equilibrium
 from fe.shell import IndenterState, ShellSystem, lumped_areas
 
 
@@ -21,7 +22,8 @@ class IncrementResult:
     """Outputs of one increment (SI units, sensor frame)."""
 
     depth: float
-    """Indenter travel past first contact (m)."""
+    """Signed tip travel (m) along the indenter's local -z axis (its pressing direction) from the stepper's
+    origin: the first-touch point for `indent`, else the first pose stepped after a reset."""
     force: np.ndarray
     """(3,) force of the indenter on the skin (N)."""
     pressure: float
@@ -31,7 +33,7 @@ class IncrementResult:
     contact_area: float
     """Deformed area of skin vertices in contact with the indenter (m^2)."""
     contact_radius: float
-    """Largest distance of a contact vertex from the indenter axis through the first-touch point (m)."""
+    """Largest distance of a contact vertex from the indenter's axis (its local z through the tip) (m)."""
     displacement: np.ndarray
     """(V,3) nodal displacements from the reference (inflated) state (m)."""
     newton_iterations: int
@@ -46,7 +48,8 @@ class IncrementResult:
 
 @dataclass(frozen=True)
 class Trajectory:
-    """A straight indentation: first-touch tip position (m), unit direction, depths past touch (m)."""
+    """A straight indentation: first-touch tip position (m), unit direction (the indenter's local -z, i.e.
+    rotation[:, 2] = -direction), indenter rotation (3,3) body->sensor, depths past touch (m)."""
 
     touch_point: np.ndarray
     direction: np.ndarray
@@ -58,6 +61,8 @@ class Trajectory:
             raise ValueError("indentation depths must be non-negative")
         if not np.isclose(np.linalg.norm(self.direction), 1.0):
             raise ValueError("direction must be a unit vector")
+        if not np.allclose(np.asarray(self.rotation)[:, 2], -np.asarray(self.direction), atol=1e-9):
+            raise ValueError("the indenter presses along its local -z: rotation[:, 2] must equal -direction")
 
 
 def _force_balance(system: ShellSystem, terms: dict, pressure: float) -> tuple[np.ndarray, float]:
@@ -73,6 +78,176 @@ def _force_balance(system: ShellSystem, terms: dict, pressure: float) -> tuple[n
     return f_indenter, float(imbalance / scale)
 
 
+def _check_pose(rotation: np.ndarray, translation: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Validated copies of an indenter pose: a proper rotation (3,3) and a finite tip position (3,) (m)."""
+    rotation = np.array(rotation, dtype=np.float64)
+    translation = np.array(translation, dtype=np.float64)
+    if rotation.shape != (3, 3) or translation.shape != (3,):
+        raise ValueError("an indenter pose is a rotation (3,3) and a translation (3,)")
+    if not (np.all(np.isfinite(rotation)) and np.all(np.isfinite(translation))):
+        raise ValueError("indenter pose has non-finite entries")
+    if not np.allclose(rotation.T @ rotation, np.eye(3), atol=1e-8) or np.linalg.det(rotation) < 0:
+        raise ValueError("indenter rotation must be orthonormal with determinant +1")
+    return rotation, translation
+
+
+class IndentationStepper:
+    """Skin equilibrium under a sequence of prescribed rigid indenter poses, starting from the inflated state.
+
+    Poses are in the sensor frame: `rotation` (3,3) maps the indenter body frame (tip at the origin, body
+    along +z, pressing along -z) to the sensor frame and `translation` (3,) is the tip position (m). Each
+    `step` solves quasi-static equilibrium with the fluid volume held at `target_volume` (m^3), warm-started
+    from the previous state, friction lagged; the friction slip is measured relative to the indenter's
+    motion since the previous pose. A pose with no skin vertex inside the contact band (gap < 0) while the
+    skin is free costs no Newton work. After a step that does not converge the stepper refuses further
+    steps until `reset()`.
+    """
+
+    def __init__(
+        self,
+        system: ShellSystem,
+        x_reference: np.ndarray,
+        pressure_reference: float,
+        target_volume: float,
+        kind: int,
+        dims: tuple[float, float, float, float],
+        offset: float,
+        newton: NewtonSettings = NewtonSettings(),
+        origin: np.ndarray | None = None,
+    ) -> None:
+        """`x_reference` (V,3) m and `pressure_reference` (Pa): the inflated state; `offset` (m): skin
+        half-thickness outside the mid-surface; `origin` (3,) m: tip position of zero depth (None: the first
+        pose stepped after each reset)."""
+        self.system = system
+        self.x_reference = np.array(x_reference, dtype=np.float64)
+        self.pressure_reference = float(pressure_reference)
+        self.target_volume = float(target_volume)
+        self.kind, self.dims, self.offset, self.newton = kind, tuple(dims), float(offset), newton
+        self._fixed_origin = None if origin is None else np.array(origin, dtype=np.float64)
+        system.indenter = None
+        terms = system.evaluate(self.x_reference, want_hessian=False)
+        self._rest_volume = float(terms["volume"])
+        self._rest_balance = _force_balance(system, terms, self.pressure_reference)[1]
+        lin = system.linearize(system.free_coordinates(self.x_reference), self.pressure_reference, want_matrix=False)
+        self._rest_residual = float(np.max(np.abs(lin.gradient - self.pressure_reference * lin.volume_gradient)))
+        self.reset()
+
+    def reset(self) -> None:
+        """Back to the inflated reference state, indenter released, ready to step again.
+
+        State kept between steps: `x` (V,3) skin mid-surface positions (m), `pressure` (Pa), `pose` (the
+        last (rotation, translation) or None), `in_contact`, and `failure` (message of a non-converged step).
+        """
+        self.x = self.x_reference.copy()
+        self.pressure = self.pressure_reference
+        self.pose: tuple[np.ndarray, np.ndarray] | None = None
+        self.in_contact = False
+        self.failure: str | None = None
+        self._origin = None if self._fixed_origin is None else self._fixed_origin.copy()
+
+    def step(self, rotation: np.ndarray, translation: np.ndarray) -> IncrementResult:
+        """Move the indenter to the pose (rotation (3,3) body->sensor, tip position (3,) m) and re-solve."""
+        if self.failure is not None:
+            raise RuntimeError(f"the last step did not converge ({self.failure}); call reset() before stepping again")
+        rotation, translation = _check_pose(rotation, translation)
+        start = time.perf_counter()
+        if self._origin is None:
+            self._origin = translation.copy()
+        rotation_start, translation_start = self.pose if self.pose is not None else (rotation, translation)
+        indenter = IndenterState(
+            self.kind, self.dims, rotation, translation, translation_start, self.offset, rotation_start
+        )
+        self.pose = (rotation, translation)
+        depth = float((self._origin - translation) @ rotation[:, 2])
+        free_now = self.system.indenter_gaps(self.x, indenter).min(initial=np.inf) >= 0.0
+        if free_now and not self.in_contact:
+            return self._free_result(depth, start)
+        if free_now and self.system.indenter_gaps(self.x_reference, indenter).min(initial=np.inf) >= 0.0:
+            # The inflated state is an equilibrium that the indenter does not touch: release to it.
+            self._release()
+            return self._free_result(depth, start)
+        result, iterations = self._solve(indenter)
+        return self._finish(indenter, result, iterations, depth, start)
+
+    def _release(self) -> None:
+        """Put the skin back to the inflated reference state, keeping the indenter pose and depth origin."""
+        self.x = self.x_reference.copy()
+        self.pressure = self.pressure_reference
+        self.in_contact = False
+
+    def _solve(self, indenter: IndenterState) -> tuple[NewtonResult, int]:
+        """Newton solves with lagged friction at the new pose, from the current state."""
+        system, cs = self.system, self.system.contact_settings
+        system.x_start = self.x.copy()
+        system.indenter = indenter
+        system.lagged_force[:] = 0.0
+        iterations, q, pressure, result = 0, system.free_coordinates(self.x), self.pressure, None
+        for _ in range(cs.friction_passes):
+            terms = system.evaluate(system.positions(q), want_hessian=False)
+            force = cs.penalty_stiffness * system.vertex_area * np.maximum(-terms["indenter_gap"], 0.0)
+            change = np.max(np.abs(force - system.lagged_force), initial=0.0)
+            if result is not None and change <= cs.friction_tolerance * max(force.max(initial=0.0), 1e-12):
+                break
+            system.lagged_force = force
+            system.lagged_normal = terms["indenter_normal"]
+            result = solve_equilibrium(system, q, pressure, self.target_volume, self.newton)
+            iterations += result.iterations
+            q, pressure = result.q, result.pressure
+            if not result.converged or system.params.friction == 0.0:
+                break
+        return result, iterations
+
+    def _finish(
+        self, indenter: IndenterState, result: NewtonResult, iterations: int, depth: float, start: float
+    ) -> IncrementResult:
+        """Accept a converged solve as the new state (or record the failure) and report it."""
+        system = self.system
+        x = system.positions(result.q)
+        terms = system.evaluate(x, want_hessian=False)
+        f_indenter, balance = _force_balance(system, terms, result.pressure)
+        in_contact = terms["indenter_gap"] < 0.0
+        if result.converged:
+            self.x, self.pressure, self.in_contact = x, result.pressure, bool(in_contact.any())
+        else:
+            self.failure = result.message
+        axis = indenter.rotation[:, 2]
+        rel = x - indenter.translation
+        radial = rel - np.outer(rel @ axis, axis)
+        return IncrementResult(
+            depth=depth,
+            force=f_indenter,
+            pressure=float(result.pressure),
+            volume=float(terms["volume"]),
+            contact_area=float(lumped_areas(x, system.mesh.triangles)[in_contact].sum()),
+            contact_radius=float(np.linalg.norm(radial[in_contact], axis=1).max(initial=0.0)),
+            displacement=x - self.x_reference,
+            newton_iterations=iterations,
+            residual=result.residual_norm,
+            equilibrium_error=balance,
+            converged=result.converged,
+            message=result.message,
+            wall_s=time.perf_counter() - start,
+        )
+
+    def _free_result(self, depth: float, start: float) -> IncrementResult:
+        """The report of a pose that leaves the (free, inflated) skin untouched: no Newton work."""
+        return IncrementResult(
+            depth=depth,
+            force=np.zeros(3),
+            pressure=self.pressure,
+            volume=self._rest_volume,
+            contact_area=0.0,
+            contact_radius=0.0,
+            displacement=self.x - self.x_reference,
+            newton_iterations=0,
+            residual=self._rest_residual,
+            equilibrium_error=self._rest_balance,
+            converged=True,
+            message="no contact",
+            wall_s=time.perf_counter() - start,
+        )
+
+
 def indent(
     system: ShellSystem,
     x_reference: np.ndarray,
@@ -84,52 +259,13 @@ def indent(
     offset: float,
     newton: NewtonSettings = NewtonSettings(),
 ) -> Iterator[IncrementResult]:
-    """Yield one result per depth; stop after the first increment that does not converge."""
-    x, pressure = x_reference.copy(), pressure_reference
-    translation = trajectory.touch_point.copy()
-    axis_point = trajectory.touch_point
-    cs = system.contact_settings
+    """Yield one result per depth of a straight trajectory; stop after the first increment that does not
+    converge. A thin loop over an `IndentationStepper` whose depth origin is the first-touch point."""
+    stepper = IndentationStepper(
+        system, x_reference, pressure_reference, target_volume, kind, dims, offset, newton, trajectory.touch_point
+    )
     for depth in trajectory.depths:
-        start = time.perf_counter()
-        system.x_start = x.copy()
-        new_translation = trajectory.touch_point + depth * trajectory.direction
-        system.indenter = IndenterState(kind, dims, trajectory.rotation, new_translation, translation, offset)
-        iterations, q = 0, system.free_coordinates(x)
-        system.lagged_force[:] = 0.0
-        for _ in range(cs.friction_passes):
-            terms = system.evaluate(system.positions(q), want_hessian=False)
-            force = cs.penalty_stiffness * system.vertex_area * np.maximum(-terms["indenter_gap"], 0.0)
-            change = np.max(np.abs(force - system.lagged_force), initial=0.0)
-            if iterations and change <= cs.friction_tolerance * max(force.max(initial=0.0), 1e-12):
-                break
-            system.lagged_force = force
-            system.lagged_normal = terms["indenter_normal"]
-            result = solve_equilibrium(system, q, pressure, target_volume, newton)
-            iterations += result.iterations
-            q, pressure = result.q, result.pressure
-            if not result.converged or system.params.friction == 0.0:
-                break
-        x = system.positions(q)
-        translation = new_translation
-        terms = system.evaluate(x, want_hessian=False)
-        f_indenter, balance = _force_balance(system, terms, pressure)
-        in_contact = terms["indenter_gap"] < 0.0
-        rel = x - axis_point
-        radial = rel - np.outer(rel @ trajectory.direction, trajectory.direction)
-        yield IncrementResult(
-            depth=float(depth),
-            force=f_indenter,
-            pressure=float(pressure),
-            volume=float(terms["volume"]),
-            contact_area=float(lumped_areas(x, system.mesh.triangles)[in_contact].sum()),
-            contact_radius=float(np.linalg.norm(radial[in_contact], axis=1).max(initial=0.0)),
-            displacement=x - x_reference,
-            newton_iterations=iterations,
-            residual=result.residual_norm,
-            equilibrium_error=balance,
-            converged=result.converged,
-            message=result.message,
-            wall_s=time.perf_counter() - start,
-        )
+        result = stepper.step(trajectory.rotation, trajectory.touch_point + depth * trajectory.direction)
+        yield result
         if not result.converged:
             return

@@ -13,7 +13,7 @@ import trimesh
 
 from assets.biotac import BioTacGeometry, vertex_normals
 from assets.indenters import Indenter, get_indenter
-from fe.indentation import IncrementResult, Trajectory, indent
+from fe.indentation import IncrementResult, IndentationStepper, Trajectory, indent
 from fe.newton import NewtonSettings, solve_equilibrium
 from fe.params import ContactSettings, SkinParameters
 from fe.shell import RigidSurface, ShellMesh, ShellSystem
@@ -201,6 +201,23 @@ class BioTacModel:
             mid = 0.5 * (lo + hi)
             lo, hi = (mid, hi) if min_gap(mid) > 0 else (lo, mid)
         return point + lo * direction
+
+    def stepper(self, indenter_name: str) -> IndentationStepper:
+        """A pose-driven stepper for the named indenter, starting from the inflated state (biotac frame, m).
+
+        Its depth origin is the first pose stepped after each reset.
+        """
+        indenter = get_indenter(indenter_name)
+        return IndentationStepper(
+            self.system,
+            self._require_reference(),
+            self.pressure,
+            self.target_volume,
+            indenter.kind,
+            indenter.dims,
+            0.5 * self.params.thickness,
+            self.newton,
+        )
 
     def indent(
         self,

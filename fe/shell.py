@@ -48,7 +48,12 @@ class RigidSurface:
 
 @dataclass
 class IndenterState:
-    """Rigid indenter pose for the current increment: rotation (3,3) body->sensor, tip position (m)."""
+    """Rigid indenter pose for the current increment and at its start (friction slip is measured from it).
+
+    Rotations (3,3) map the indenter body frame (tip at the origin, body along +z) to the sensor frame;
+    translations are tip positions (m); `offset` (m) is the skin's half-thickness outside the mid-surface.
+    `rotation_start` None means the rotation did not change over the increment.
+    """
 
     kind: int
     dims: tuple[float, float, float, float]
@@ -56,6 +61,7 @@ class IndenterState:
     translation: np.ndarray
     translation_start: np.ndarray
     offset: float
+    rotation_start: np.ndarray | None = None
 
 
 def lumped_areas(vertices: np.ndarray, triangles: np.ndarray) -> np.ndarray:
@@ -214,6 +220,7 @@ class ShellSystem:
                     wp.vec4d(*ind.dims),
                     wp.array([ind.rotation], dtype=wp.mat33d),
                     wp.array([ind.translation], dtype=wp.vec3d),
+                    wp.array([ind.rotation if ind.rotation_start is None else ind.rotation_start], dtype=wp.mat33d),
                     wp.array([ind.translation_start], dtype=wp.vec3d),
                     wp.array([ind.offset], dtype=wp.float64),
                     kappa,
@@ -235,6 +242,24 @@ class ShellSystem:
         terms["indenter_normal"] = ind_n.numpy()[0]
         terms["contact_hessian"] = (core_h.numpy()[0] + ind_h.numpy()[0]) if want_hessian else None
         return terms
+
+    def indenter_gaps(self, x: np.ndarray, indenter: IndenterState) -> np.ndarray:
+        """Gap (m) of every skin vertex at positions x (V,3) to `indenter`: negative inside the contact band."""
+        gap = wp.zeros((1, self.n_vertices), dtype=wp.float64)
+        wp.launch(
+            contact.indenter_gap_kernel,
+            (1, self.n_vertices),
+            [
+                wp.array(x[None], dtype=wp.vec3d),
+                indenter.kind,
+                wp.vec4d(*indenter.dims),
+                wp.array([indenter.rotation], dtype=wp.mat33d),
+                wp.array([indenter.translation], dtype=wp.vec3d),
+                wp.array([indenter.offset], dtype=wp.float64),
+                gap,
+            ],
+        )
+        return gap.numpy()[0]
 
     def linearize(self, q: np.ndarray, pressure: float, want_matrix: bool) -> Linearization:
         """Newton's view of the system at free positions q (m) and fluid pressure (Pa)."""

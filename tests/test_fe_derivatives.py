@@ -18,6 +18,13 @@ def _assemble_full(system: ShellSystem, blocks: np.ndarray, nodes: np.ndarray) -
     return H
 
 
+def _rotation_about(axis: list[float], angle: float) -> np.ndarray:
+    """Rotation (3,3) by `angle` (rad) about `axis` (Rodrigues)."""
+    k = np.asarray(axis) / np.linalg.norm(axis)
+    kx = np.array([[0.0, -k[2], k[1]], [k[2], 0.0, -k[0]], [-k[1], k[0], 0.0]])
+    return np.eye(3) + np.sin(angle) * kx + (1.0 - np.cos(angle)) * kx @ kx
+
+
 def _system(with_contact: bool) -> tuple[ShellSystem, np.ndarray]:
     sphere = trimesh.creation.icosphere(subdivisions=1, radius=5e-3)
     rest = np.asarray(sphere.vertices)
@@ -41,6 +48,8 @@ def _system(with_contact: bool) -> tuple[ShellSystem, np.ndarray]:
             bottom + [0.0, 0.0, 2.0e-3],
             bottom + [3e-5, 0, 1.9e-3],
             0.5e-3,
+            # The indenter also turned over the increment, so friction slip is seen from its body frame.
+            np.diag([1.0, -1.0, -1.0]) @ _rotation_about([0.3, -0.5, 0.8], 0.05),
         )
         system.x_start = x + rng.normal(scale=2e-5, size=x.shape)
         terms = system.evaluate(x, want_hessian=False)
