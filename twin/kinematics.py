@@ -20,75 +20,30 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from assets.yumi import ARM_CHAINS, ArmChain, JointSpec
 from twin.backend import N_JOINTS, check_arm
+
+__all__ = [
+    "ARM_CHAINS",
+    "ArmChain",
+    "IKResult",
+    "IKSettings",
+    "JointSpec",
+    "forward",
+    "inverse",
+    "inverse_axis",
+    "jacobian",
+    "joint_frames",
+    "joint_limits",
+    "velocity_limits",
+    "within_limits",
+]
 
 POSITION_TOLERANCE = 1e-5
 """Default IK acceptance on the tip position: 0.01 mm (m), the paper's reachability criterion."""
 ROTATION_TOLERANCE = 1e-4
 """Default IK acceptance on the tip orientation (rad, geodesic angle)."""
 _EYE6 = np.eye(6)
-
-
-@dataclass(frozen=True)
-class JointSpec:
-    """One revolute joint about its own z axis, placed by a fixed URDF origin in its parent link.
-
-    xyz: origin translation (m) in the parent frame; rpy: URDF roll-pitch-yaw (rad), R = Rz(y) Ry(p) Rx(r).
-    lower, upper: position limits (rad). max_velocity: speed limit (rad/s).
-    """
-
-    name: str
-    xyz: tuple[float, float, float]
-    rpy: tuple[float, float, float]
-    lower: float
-    upper: float
-    max_velocity: float
-
-
-@dataclass(frozen=True)
-class ArmChain:
-    """A 7-joint arm: joints in chain order 1-2-7-3-4-5-6, then the fixed link_7 -> flange origin."""
-
-    joints: tuple[JointSpec, ...]
-    flange_xyz: tuple[float, float, float]
-    flange_rpy: tuple[float, float, float]
-
-
-_PI = float(np.pi)
-_HALF_PI = 1.5708  # the URDF's rounded pi/2, kept as published
-
-
-def _shared_joints(suffix: str) -> tuple[JointSpec, ...]:
-    """Joints 2, 7, 3, 4, 5, 6 (identical for both arms), from the facts table."""
-    return (
-        JointSpec(f"joint_2_{suffix}", (0.03, 0.0, 0.1), (_HALF_PI, 0.0, 0.0), -2.50455, 0.75922, 3.1416),
-        JointSpec(f"joint_7_{suffix}", (-0.03, 0.17283, 0.0), (-_HALF_PI, 0.0, 0.0), -2.94088, 2.94088, 3.1416),
-        JointSpec(f"joint_3_{suffix}", (-0.04188, 0.0, 0.07873), (_HALF_PI, -_HALF_PI, 0.0), -2.15548, 1.39626, 3.1416),
-        JointSpec(f"joint_4_{suffix}", (0.0405, 0.16461, 0.0), (-_HALF_PI, 0.0, 0.0), -5.06145, 5.06145, 6.9813),
-        JointSpec(f"joint_5_{suffix}", (-0.027, 0.0, 0.10039), (_HALF_PI, 0.0, 0.0), -1.53589, 2.40855, 6.9813),
-        JointSpec(f"joint_6_{suffix}", (0.027, 0.029, 0.0), (-_HALF_PI, 0.0, 0.0), -3.99680, 3.99680, 6.9813),
-    )
-
-
-ARM_CHAINS: dict[str, ArmChain] = {
-    "right": ArmChain(
-        (
-            JointSpec("joint_1_r", (0.05355, -0.0725, 0.41492), (-0.9795, -0.5682, -2.3155), -2.94088, 2.94088, 3.1416),
-            *_shared_joints("r"),
-        ),
-        flange_xyz=(0.0, 0.0, 0.007),
-        flange_rpy=(0.0, 0.0, _PI),
-    ),
-    "left": ArmChain(
-        (
-            JointSpec("joint_1_l", (0.05355, 0.0725, 0.41492), (0.9781, -0.5716, 2.3180), -2.94088, 2.94088, 3.1416),
-            *_shared_joints("l"),
-        ),
-        flange_xyz=(0.0, 0.0, 0.007),
-        flange_rpy=(0.0, 0.0, _PI),
-    ),
-}
-"""Both YuMi arms from the public URDF (facts/testbed.md), robot frame, m and rad."""
 
 
 def rpy_matrix(rpy: tuple[float, float, float] | np.ndarray) -> np.ndarray:
