@@ -30,7 +30,7 @@ from hardware.egm_client import EgmArmLink
 from hardware.kms40_client import Kms40Client
 from hardware.kms40_protocol import Kms40Error
 from hardware.rws_client import RwsClient, RwsError
-from hardware.stamped import Latest, StaleDataError
+from hardware.stamped import Latest, StaleDataError, wait_for
 from twin.backend import ARMS, BackendError, Sample, check_arm
 from twin.kinematics import joint_limits, velocity_limits
 
@@ -228,11 +228,11 @@ class HardwareBackend:
         self._halt()
         for arm, link in self._links.items():
             link.set_goal(self._safe[arm])
-        deadline = time.monotonic() + self.config.safety.retract_timeout_s
-        arrived = False
-        while time.monotonic() < deadline and not arrived:
-            time.sleep(self.config.safety.poll_s)
-            arrived = all(np.max(np.abs(self._measured(arm) - self._safe[arm])) < ARRIVED_RAD for arm in ARMS)
+        arrived = wait_for(
+            lambda: all(np.max(np.abs(self._measured(arm) - self._safe[arm])) < ARRIVED_RAD for arm in ARMS),
+            self.config.safety.retract_timeout_s,
+            self.config.safety.poll_s,
+        )
         outcome = "retracted to the last contact-free pose" if arrived else "retract did NOT finish in time"
         raise BackendError(
             f"force limit {self.config.safety.force_limit_n:g} N exceeded (|dF| = {force:.2f} N): arms stopped and "

@@ -1,5 +1,129 @@
-"""`twin devices ...`: simulated YuMi (EGM + RWS), KMS40 and BioTac devices on loopback."""
+"""`twin devices ...`: simulated YuMi (EGM + RWS), KMS40 and BioTac devices on loopback, and preflight checks."""
+
+from __future__ import annotations
+
+import json
+import time
+from pathlib import Path
+from typing import Annotated
 
 import typer
 
+from twin.cli_common import err_console, guarded
+
 devices_app = typer.Typer(help="Simulated devices that speak the real wire protocols.", no_args_is_help=True)
+
+
+def _ports(text: str) -> tuple[int, int]:
+    try:
+        left, right = (int(p) for p in text.split(","))
+    except ValueError as exc:
+        raise typer.BadParameter(
+            f"--egm-ports needs two comma-separated port numbers (left,right), got {text!r}"
+        ) from exc
+    return left, right
+
+
+@devices_app.command("serve")
+def serve(
+    host: Annotated[str, typer.Option(help="Address to serve on (loopback by default).")] = "127.0.0.1",
+    rws_port: Annotated[int, typer.Option(help="RWS HTTP port (real: 80; 0 = any free port).")] = 80,
+    kms40_port: Annotated[int, typer.Option(help="KMS40 TCP port (real: 1000; 0 = any free port).")] = 1000,
+    egm_ports: Annotated[
+        str, typer.Option(help="UDP ports the arms send EGM to, left,right (0 = free).")
+    ] = "6511,6512",
+    biotac_port: Annotated[int, typer.Option(help="TCP port of the BioTac SPI bridge (0 = any free port).")] = 6540,
+    egm_loss: Annotated[float, typer.Option(help="Fraction of EGM datagrams to drop (0..1).")] = 0.0,
+    egm_delay_ms: Annotated[float, typer.Option(help="Extra EGM latency each way (ms).")] = 0.0,
+    config_out: Annotated[Path | None, typer.Option(help="Also write the matching hardware config here.")] = None,
+    duration_s: Annotated[float | None, typer.Option(help="Stop after this many seconds (default: Ctrl-C).")] = None,
+) -> None:
+    """Run simulated devices; print the hardware config (TOML) that points a HardwareBackend at them."""
+    from hardware.config import config_to_toml
+    from hardware.testbed import SimulatedTestbed
+
+    left, right = _ports(egm_ports)
+
+    def start() -> SimulatedTestbed:
+        try:
+            return SimulatedTestbed(
+                host=host,
+                rws_port=rws_port,
+                kms40_port=kms40_port,
+                egm_ports=(left, right),
+                biotac_port=biotac_port,
+                egm_loss=egm_loss,
+                egm_delay_s=egm_delay_ms * 1e-3,
+            )
+        except PermissionError as exc:
+            raise ValueError(
+                f"{exc}: ports below 1024 need root; pass unprivileged ones, e.g. --rws-port 8080"
+            ) from exc
+        except OSError as exc:
+            raise ValueError(f"cannot open a device port: {exc}") from exc
+
+    testbed = guarded(start)
+    try:
+        text = config_to_toml(testbed.hardware_config())
+        if config_out is not None:
+            config_out.write_text(text)
+        print(text, flush=True)
+        ports = testbed.egm_ports
+        err_console.print(
+            f"serving on {host}: RWS :{testbed.rws.port}, KMS40 :{testbed.kms40.port}, BioTac SPI bridge "
+            f":{testbed.biotac_bridge.port}, EGM to :{ports['left']} (left) :{ports['right']} (right); Ctrl-C stops"
+        )
+        deadline = None if duration_s is None else time.monotonic() + duration_s
+        while deadline is None or time.monotonic() < deadline:
+            time.sleep(0.1 if deadline is None else max(0.0, min(0.1, deadline - time.monotonic())))
+    except KeyboardInterrupt:
+        pass
+    finally:
+        testbed.close()
+
+
+@devices_app.command("check")
+def check(
+    config: Annotated[Path, typer.Argument(help="Hardware config file (.toml or .json).")],
+    as_json: Annotated[bool, typer.Option("--json", help="Print JSON.")] = False,
+) -> None:
+    """Preflight: open every device of CONFIG, read one sample, report, and release them again."""
+    import numpy as np
+
+    from hardware.backend import HardwareBackend
+    from hardware.config import load_config
+    from twin.backend import BackendError
+
+    cfg = guarded(lambda: load_config(config))
+    try:
+        backend = HardwareBackend(cfg)
+    except BackendError as exc:
+        err_console.print(f"[red]error:[/red] {exc}")
+        raise typer.Exit(code=1) from exc
+    try:
+        sample = backend.read()
+        report = {
+            "joints_deg": {arm: np.degrees(q).round(3).tolist() for arm, q in sample.joints.items()},
+            "wrench": sample.wrench.round(4).tolist(),
+            "electrodes": sample.electrodes.astype(int).tolist(),
+            "pdc": sample.pdc,
+            **backend.status(),
+        }
+    except BackendError as exc:
+        err_console.print(f"[red]error:[/red] {exc}")
+        raise typer.Exit(code=1) from exc
+    finally:
+        backend.close()
+    if as_json:
+        print(json.dumps(report, default=str))
+        return
+    for key, value in report.items():
+        err_console.print(f"[bold]{key}[/bold]: {value}")
+
+
+@devices_app.command("config")
+def config_template() -> None:
+    """Print the default hardware config (the real testbed's factory addresses) as TOML to edit."""
+    from hardware.config import HardwareConfig, config_to_toml
+
+    print(config_to_toml(HardwareConfig()))

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import threading
 import time
+from collections.abc import Callable
 from typing import Generic, TypeVar
 
 T = TypeVar("T")
@@ -58,3 +59,13 @@ class Latest(Generic[T]):
             if not self._lock.wait_for(lambda: self._count > after, timeout=timeout_s):
                 raise StaleDataError(f"no {self.name} data within {timeout_s:g} s")
             return self._value
+
+
+def wait_for(condition: Callable[[], bool], timeout_s: float, poll_s: float = 0.005) -> bool:
+    """Poll `condition` every `poll_s` s until it holds (True) or `timeout_s` s have passed (False)."""
+    deadline = time.monotonic() + timeout_s
+    while not condition():
+        if time.monotonic() >= deadline:
+            return False
+        time.sleep(poll_s)
+    return True
