@@ -4,7 +4,7 @@ import numpy as np
 import pytest
 
 from twin.processing import increment_ends, loading_phase, lowpass
-from twin.protocol import ProtocolSettings, arm_for_point, depth_schedule
+from twin.protocol import ProtocolSettings, depth_schedule
 
 
 def test_lowpass_is_zero_phase_and_has_the_butterworth_gain() -> None:
@@ -45,9 +45,7 @@ def test_depth_schedule_loads_then_unloads_in_steps() -> None:
     assert loading_only[-1] == pytest.approx(3e-4)
 
 
-def test_paper_arm_rule_and_settings_validation() -> None:
-    assert arm_for_point(np.array([0.0, -3e-3, -7e-3])) == "right"
-    assert arm_for_point(np.array([0.0, 3e-3, -7e-3])) == "left"
+def test_protocol_settings_validation() -> None:
     with pytest.raises(ValueError):
         ProtocolSettings(step=0.0)
     with pytest.raises(ValueError):

@@ -17,17 +17,17 @@ from multiprocessing import get_context
 from pathlib import Path
 
 import numpy as np
-from assets.tools import tool_tip_transform
 
 from assets.biotac import BioTacGeometry, make_biotac
 from assets.indenters import INDENTERS
 from fe.params import SkinParameters
 from fe.sensor import BioTacModel
 from learn.electrode_physics import ElectrodeModel
+from twin.backend import ARMS
 from twin.controller import execute
 from twin.dataset import assemble_sensor_file, part_path, write_part
-from twin.planning import PlannedTrajectory, plan_for_sensor, plan_statistics
-from twin.plant import Plant, make_plant
+from twin.planning import PlannedTrajectory, plan_for_sensor, plan_statistics, scene_tool_tip
+from twin.plant import Plant, make_plant, rigid_transform
 from twin.processing import process
 from twin.protocol import QUICK_SETTINGS, ProtocolSettings, TrajectorySpec, plan_specs
 from twin.registration import simulate_registration
@@ -76,13 +76,13 @@ class CampaignPlan:
     config: CampaignConfig
     specs: list[TrajectorySpec]
     planned: list[PlannedTrajectory]
-    registration: dict[int, np.ndarray]  # sensor -> 4x4 estimated robot<-biotac transform
-    registration_error: dict[int, float]  # sensor -> m
+    registration: dict[tuple[int, str], np.ndarray]  # (sensor, arm) -> 4x4 estimated robot<-biotac transform
+    registration_error: dict[tuple[int, str], float]  # (sensor, arm) -> RMS error at the BioTac (m)
 
     def statistics(self) -> dict:
         """Planned/kept/dropped per indenter and totals (the `twin campaign plan --json` shape)."""
         stats = plan_statistics(self.planned)
-        stats["registration_error_mm"] = {str(k): v * 1e3 for k, v in self.registration_error.items()}
+        stats["registration_error_mm"] = {f"{s}/{a}": v * 1e3 for (s, a), v in self.registration_error.items()}
         return stats
 
 
@@ -95,9 +95,10 @@ def inflated_model(geometry: BioTacGeometry, params: SkinParameters) -> BioTacMo
     return model
 
 
-def sensor_scene(plant: Plant, sensor_id: int) -> TestbedScene:
-    """The testbed with this sensor mounted where the plant really put it."""
-    return TestbedScene.with_mount_error(plant.sensor(sensor_id).mount_error)
+def true_biotac_pose(plant: Plant, sensor_id: int, scene: TestbedScene) -> np.ndarray:
+    """Robot<-biotac transform where the plant really mounted this sensor (nominal mount plus its error)."""
+    error = plant.sensor(sensor_id).mount_error
+    return rigid_transform(error[:3], error[3:]) @ scene.biotac_pose
 
 
 def plan_campaign(config: CampaignConfig, plant: Plant | None = None) -> CampaignPlan:
@@ -106,14 +107,18 @@ def plan_campaign(config: CampaignConfig, plant: Plant | None = None) -> Campaig
     geometry = make_biotac(config.mesh_max_edge)
     nominal = inflated_model(geometry, config.nominal)
     specs = plan_specs(nominal, list(config.indenters), config.settings, config.seed)
+    scene = TestbedScene()
     planned, registration, errors = [], {}, {}
     for sid in config.sensors:
-        scene = sensor_scene(plant, sid)
-        rng = np.random.default_rng(np.random.SeedSequence([config.seed, sid, 0x9E6]))
-        result = simulate_registration(scene, rng)
-        registration[sid], errors[sid] = result.transform, result.error
+        truth = true_biotac_pose(plant, sid, scene)
+        for k, arm in enumerate(ARMS):
+            rng = np.random.default_rng(np.random.SeedSequence([config.seed, sid, k, 0x9E6]))
+            result = simulate_registration(scene, arm, rng, true_biotac_pose=truth)
+            registration[(sid, arm)], errors[(sid, arm)] = result.transform, result.error_rms
         wanted = set(config.indenters_for(sid))
-        planned += plan_for_sensor(scene, [s for s in specs if s.indenter in wanted], sid, result.transform)
+        sensor_specs = [s for s in specs if s.indenter in wanted]
+        per_arm = {arm: registration[(sid, arm)] for arm in ARMS}
+        planned += plan_for_sensor(scene, sensor_specs, sid, per_arm)
     return CampaignPlan(config, specs, planned, registration, errors)
 
 
@@ -130,12 +135,12 @@ class _Worker:
     def __post_init__(self) -> None:
         self.geometry = make_biotac(self.config.mesh_max_edge)
 
-    def sensor(self, sid: int) -> tuple[BioTacModel, ElectrodeModel, TestbedScene]:
+    def sensor(self, sid: int) -> tuple[BioTacModel, ElectrodeModel]:
         if sid not in self.models:
             truth = self.plant.sensor(sid)
             model = inflated_model(self.geometry, truth.skin)
             electrodes = ElectrodeModel(self.geometry, truth.electrodes, model.reference, truth.skin.thickness)
-            self.models[sid] = (model, electrodes, sensor_scene(self.plant, sid))
+            self.models[sid] = (model, electrodes)
         return self.models[sid]
 
 
@@ -150,16 +155,24 @@ def _init_worker(config: CampaignConfig, plant: Plant) -> None:
 def _run_one(job: PlannedTrajectory, slot: int, registration: np.ndarray, parts_dir: str) -> tuple[int, int, bool]:
     worker = _WORKER
     config, sid, spec = worker.config, job.sensor_id, job.spec
-    model, electrodes, scene = worker.sensor(sid)
+    model, electrodes = worker.sensor(sid)
+    scene = TestbedScene()
     rng = np.random.default_rng(np.random.SeedSequence([config.seed, sid, spec.trajectory_id]))
     backend = SimBackend(
-        scene, worker.plant.sensor(sid), model, electrodes, worker.plant.noise, rng, slot * TRAJECTORY_SLOT_S
+        scene,
+        true_biotac_pose(worker.plant, sid, scene),
+        worker.plant.sensor(sid),
+        model,
+        electrodes,
+        worker.plant.noise,
+        rng,
+        slot * TRAJECTORY_SLOT_S,
     )
     recording = execute(backend, spec, job.arm, job.joint_path, config.settings)
     rows = process(
         recording,
         job.arm,
-        tool_tip_transform(spec.indenter),
+        scene_tool_tip(scene, spec.indenter),
         np.linalg.inv(registration),
         np.linalg.inv(scene.biotac_pose) @ scene.ft_sensor_pose,
         config.settings.sample_rate_hz,
@@ -274,13 +287,13 @@ def run_campaign(
         "code_version": _code_version(),
         "config": json.loads(json.dumps(asdict(config), default=str)),
         "plant_fingerprint": plant.fingerprint(),
-        "registration_error_m": {str(k): v for k, v in plan.registration_error.items()},
+        "registration_error_m": {f"{s}/{a}": v for (s, a), v in plan.registration_error.items()},
     }
     files = {}
     triangles = make_biotac(config.mesh_max_edge).skin.triangles
     for sid in config.sensors:
         parts = sorted((parts_dir / f"biotac{sid}").glob("trajectory_*.npz"))
-        provenance_sid = {**provenance, "registration": plan.registration[sid].tolist()}
+        provenance_sid = {**provenance, "registration": {a: plan.registration[(sid, a)].tolist() for a in ARMS}}
         files[sid] = assemble_sensor_file(
             parts, out_dir / f"biotac{sid}.hdf5", sid, list(INDENTERS), provenance_sid, triangles
         ).path

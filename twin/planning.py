@@ -12,10 +12,10 @@ from collections import Counter
 from dataclasses import dataclass, replace
 
 import numpy as np
-from assets.tools import tool_tip_transform
 
+from assets.tools import tool_tip_transform
 from twin.kinematics import forward, inverse
-from twin.protocol import TrajectorySpec, arm_for_point
+from twin.protocol import TrajectorySpec
 from twin.scene import TestbedScene
 
 POSITION_TOLERANCE = 1e-5
@@ -46,8 +46,14 @@ def _rolled(spec: TrajectorySpec, roll: float) -> TrajectorySpec:
     return replace(spec, rotation=spec.rotation @ about_z)
 
 
-def _joint_path(spec: TrajectorySpec, arm: str, biotac_to_robot: np.ndarray, seed: np.ndarray) -> np.ndarray | None:
-    tool = tool_tip_transform(spec.indenter)
+def scene_tool_tip(scene: TestbedScene, tool: str) -> np.ndarray:
+    """Flange->tip 4x4 of `tool` as mounted in `scene` (its adapter and pin geometry)."""
+    return tool_tip_transform(tool, scene.params.adapter_length, scene.params.pin)
+
+
+def _joint_path(
+    spec: TrajectorySpec, arm: str, biotac_to_robot: np.ndarray, seed: np.ndarray, tool: np.ndarray
+) -> np.ndarray | None:
     path, q = [], seed
     for k in range(len(spec.depths)):
         target = biotac_to_robot @ spec.tip_pose(k)
@@ -78,16 +84,19 @@ def _collides(scene: TestbedScene, spec: TrajectorySpec, arm: str, path: np.ndar
 
 
 def plan_for_sensor(
-    scene: TestbedScene, specs: list[TrajectorySpec], sensor_id: int, biotac_to_robot: np.ndarray
+    scene: TestbedScene, specs: list[TrajectorySpec], sensor_id: int, registration: dict[str, np.ndarray]
 ) -> list[PlannedTrajectory]:
-    """Joint paths for every spec on one sensor, whose estimated robot<-biotac transform is given."""
+    """Joint paths for every spec on one sensor; `registration` maps arm -> estimated robot<-biotac 4x4."""
     planned = []
     for spec in specs:
-        arm = arm_for_point(spec.point)
+        arm = scene.arm_for_point(spec.point)
+        biotac_to_robot = registration[arm]
         outcome = PlannedTrajectory(sensor_id, spec, arm, None, "unreachable")
         for roll in ROLLS:
             candidate = _rolled(spec, roll)
-            path = _joint_path(candidate, arm, biotac_to_robot, scene.home_joints(arm))
+            path = _joint_path(
+                candidate, arm, biotac_to_robot, scene.home_joints(arm), scene_tool_tip(scene, spec.indenter)
+            )
             if path is None:
                 continue
             if _collides(scene, candidate, arm, path):

@@ -108,11 +108,6 @@ def depth_schedule(depth: float, settings: ProtocolSettings) -> tuple[np.ndarray
     return values, increments
 
 
-def arm_for_point(point: np.ndarray) -> str:
-    """The paper's rule: points right of the long axis (y < 0, biotac frame) go to the right arm."""
-    return "right" if float(point[1]) < 0.0 else "left"
-
-
 def plan_specs(
     model: BioTacModel,
     indenters: list[str] | None = None,

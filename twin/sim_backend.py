@@ -1,11 +1,11 @@
 """SimBackend: the testbed in simulation (MuJoCo arms, fe skin, electrode physics, plant noise).
 
 MuJoCo moves the arms (joint targets followed within the velocity limits). Whenever the indenter
-comes to rest at a new pose, its tip pose in the `biotac` frame (through the scene's mount, which is
-where the plant really put this sensor, not where registration thinks it is) drives the fe
-stepper. The F/T reading is the load the BioTac transmits to the mount, expressed in the sensor
-frame, plus the plant's bias and noise; electrodes and PDC come from the electrode physics model of
-the plant's sensor. Between solves every channel holds its last value.
+comes to rest at a new pose, its tip pose in the `biotac` frame (through `true_biotac_pose`, where
+the plant really mounted this sensor, not where registration thinks it is) drives the fe stepper.
+The F/T reading is the load the BioTac transmits to the mount, expressed in the sensor frame, plus
+the plant's bias and noise; electrodes and PDC come from the electrode physics model of the plant's
+sensor. Between solves every channel holds its last value.
 """
 
 from __future__ import annotations
@@ -43,6 +43,7 @@ class SimBackend:
     def __init__(
         self,
         scene: TestbedScene,
+        true_biotac_pose: np.ndarray,
         sensor: PlantSensor,
         fe_model: BioTacModel,
         electrodes: ElectrodeModel,
@@ -61,7 +62,7 @@ class SimBackend:
         self.rng = rng
         self.settings = settings
         self.time_s = start_time_s
-        self.true_biotac_pose = scene.biotac_pose
+        self.true_biotac_pose = np.asarray(true_biotac_pose, dtype=float)
         self._sensor_in_biotac = np.linalg.inv(scene.biotac_pose) @ scene.ft_sensor_pose
         self._joints = {arm: scene.joints(arm) for arm in ARMS}
         self._targets = {arm: self._joints[arm].copy() for arm in ARMS}
@@ -141,7 +142,10 @@ class SimBackend:
         pose = self.tip_pose_biotac(arm)
         if self._last_tip is not None and np.linalg.norm(pose[:3, 3] - self._last_tip) <= self.settings.pose_tolerance:
             return
-        result = self._stepper.step(pose[:3, :3], pose[:3, 3])
+        try:
+            result = self._stepper.step(pose[:3, :3], pose[:3, 3])
+        except RuntimeError as exc:  # the stepper refuses to go on after a failed step
+            raise BackendError(f"the skin model is stopped: {exc}") from exc
         if not result.converged:
             raise BackendError(f"the skin model did not converge at this pose ({result.message})")
         self._last_tip = pose[:3, 3].copy()
