@@ -117,7 +117,7 @@ class SpiBridgeServer:
     def __init__(self, transport: SpiTransport, host: str = "127.0.0.1", port: int = 0) -> None:
         self.transport = transport
         self._server = socket.create_server((host, port))
-        self._server.settimeout(0.1)
+        self._server.settimeout(0.02)  # how soon close() is noticed
         self._stop = threading.Event()
         self._clients: set[socket.socket] = set()
         self._thread = threading.Thread(target=self._accept, name="spi-bridge", daemon=True)

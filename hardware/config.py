@@ -136,13 +136,10 @@ def config_from_dict(data: dict[str, Any]) -> HardwareConfig:
 def load_config(path: str | Path) -> HardwareConfig:
     """Read a `.toml` or `.json` hardware config file."""
     path = Path(path)
-    text = path.read_text()
-    if path.suffix == ".json":
-        data = json.loads(text)
-    elif path.suffix == ".toml":
-        data = tomllib.loads(text)
-    else:
+    if path.suffix not in (".toml", ".json"):
         raise ValueError(f"hardware config must be .toml or .json, got {path.name}")
+    text = path.read_text()
+    data = json.loads(text) if path.suffix == ".json" else tomllib.loads(text)
     return config_from_dict(data)
 
 

@@ -58,7 +58,7 @@ class EgmArmLink:
         self.stats: Counter[str] = Counter()
         self._sock = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
         self._sock.bind((host, port))
-        self._sock.settimeout(0.05)
+        self._sock.settimeout(0.02)  # how soon close() is noticed
         self._lock = threading.Lock()
         self._goal: np.ndarray | None = None
         self._setpoint: np.ndarray | None = None

@@ -93,7 +93,7 @@ class SimEgmArm:
     def _run(self) -> None:
         next_tick = time.monotonic()
         while not self._stop.is_set():
-            if not self._streaming.wait(timeout=0.05):
+            if not self._streaming.wait(timeout=0.02):
                 next_tick = time.monotonic()
                 continue
             self._step()

@@ -46,7 +46,7 @@ class SimKms40:
         self.serial = serial
         self.range = np.array([force_range_n] * 3 + [torque_range_nm] * 3)
         self._server = socket.create_server((host, port))
-        self._server.settimeout(0.1)
+        self._server.settimeout(0.02)  # how soon close() is noticed
         self._stop = threading.Event()
         self._connections: list[_Connection] = []
         self._t0 = time.monotonic()
