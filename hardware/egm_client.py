@@ -6,8 +6,8 @@ set by `set_goal` at no more than `max_speed` (rad/s per joint), so a far goal b
 speed-limited motion. Before the first goal the link holds the robot where it is.
 
 Bad datagrams (garbage, truncated, oversized, missing joints) and old or repeated sequence numbers
-are counted in `stats` and never answered; a sequence number far behind the last one is taken as a
-restart of EGM on the controller.
+are counted in `stats` and never answered; a sequence number far behind the last one, or any older
+one after a pause in traffic, is taken as a restart of EGM on the controller.
 """
 
 from __future__ import annotations
@@ -34,6 +34,7 @@ from hardware.egm_messages import (
 from hardware.stamped import Latest
 
 RESTART_WINDOW = 1000  # a seqno this far behind the last one means EGM restarted on the controller
+RESTART_GAP_S = 0.2  # so does any older seqno after this long without a message (UDP reorders within ms)
 _MAX_STEP_S = 0.012  # setpoint advance is capped at 3 cycles, so a gap in traffic never makes a jump
 
 
@@ -126,7 +127,8 @@ class EgmArmLink:
         joints = get_joints(msg.feedBack)
         if self._last_seq is not None:
             ahead = seq_newer(seq, self._last_seq)
-            if ahead <= 0 and -ahead < RESTART_WINDOW:
+            restarted = -ahead >= RESTART_WINDOW or self.state.age() > RESTART_GAP_S
+            if ahead <= 0 and not restarted:
                 self.stats["out_of_order"] += 1
                 return None
             if ahead <= 0:

@@ -7,7 +7,7 @@ import time
 import numpy as np
 import pytest
 
-from hardware.egm_client import EgmArmLink
+from hardware.egm_client import RESTART_GAP_S, EgmArmLink
 from hardware.egm_messages import (
     MAX_DATAGRAM_BYTES,
     EgmHeader,
@@ -158,36 +158,41 @@ def test_link_answers_only_valid_new_messages() -> None:
     link = EgmArmLink("right", "127.0.0.1", 0, np.full(7, 1.0))
     robot = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
     robot.bind(("127.0.0.1", 0))
-    robot.settimeout(0.1)
     q = np.full(7, 0.1)
 
-    def exchange(data: bytes) -> EgmSensor | None:
+    def answered(data: bytes) -> EgmSensor:
         robot.sendto(data, ("127.0.0.1", link.port))
-        try:
-            reply = EgmSensor()
-            reply.ParseFromString(robot.recv(4096))
-            return reply
-        except TimeoutError:
-            return None
+        robot.settimeout(1.0)
+        reply = EgmSensor()
+        reply.ParseFromString(robot.recv(4096))
+        return reply
+
+    def ignored(data: bytes, counter: str, count: int) -> bool:
+        robot.sendto(data, ("127.0.0.1", link.port))
+        assert wait_for(lambda: link.stats[counter] == count, 1.0)
+        robot.settimeout(0.02)
+        with pytest.raises(TimeoutError):
+            robot.recv(4096)
+        return True
 
     try:
-        assert exchange(b"\xff\x00garbage\x13") is None
-        assert exchange(_robot_msg(1, q)[:-5]) is None  # truncated
-        assert exchange(b"\x08" * (MAX_DATAGRAM_BYTES + 100)) is None  # oversized
-        assert exchange(_robot_msg(1)) is None  # no joints
-        first = exchange(_robot_msg(10, q))
-        assert first is not None and first.header.mtype == EgmHeader.MSGTYPE_CORRECTION
+        assert ignored(b"\xff\x00garbage\x13", "malformed", 1)
+        assert ignored(_robot_msg(1, q)[:-5], "malformed", 2)  # truncated
+        assert ignored(b"\x08" * (MAX_DATAGRAM_BYTES + 100), "malformed", 3)  # oversized
+        assert ignored(_robot_msg(1), "malformed", 4)  # no joints
+        first = answered(_robot_msg(10, q))
+        assert first.header.mtype == EgmHeader.MSGTYPE_CORRECTION
         np.testing.assert_allclose(get_joints(first.planned), q)  # holds the robot where it is
-        assert exchange(_robot_msg(10, q)) is None  # repeated
-        assert exchange(_robot_msg(8, q)) is None  # old
-        assert exchange(_robot_msg(13, q)) is not None  # 11 and 12 lost
-        assert exchange(_robot_msg(5000, q)) is not None
-        assert exchange(_robot_msg(2, q)) is not None  # far behind: EGM restarted on the controller
-        assert link.stats["malformed"] == 4
-        assert link.stats["out_of_order"] == 2
+        assert ignored(_robot_msg(10, q), "out_of_order", 1)  # repeated
+        assert ignored(_robot_msg(8, q), "out_of_order", 2)  # old
+        assert answered(_robot_msg(13, q)).header.seqno == 2  # 11 and 12 lost
+        answered(_robot_msg(5000, q))
+        answered(_robot_msg(2, q))  # far behind: EGM restarted on the controller
+        time.sleep(RESTART_GAP_S + 0.05)
+        answered(_robot_msg(1, q))  # behind after a pause: restarted again
         assert link.stats["lost"] == 2 + 4986
-        assert link.stats["restarts"] == 1
-        assert wait_for(lambda: link.stats["replied"] == 4, 1.0)  # counted just after the send
+        assert link.stats["restarts"] == 2
+        assert wait_for(lambda: link.stats["replied"] == 5, 1.0)  # counted just after the send
     finally:
         robot.close()
         link.close()
