@@ -34,6 +34,8 @@ from hardware.stamped import Latest, StaleDataError, wait_for
 from twin.backend import ARMS, BackendError, Sample, check_arm
 from twin.kinematics import joint_limits, velocity_limits
 
+KMS40_FAULTS = {"CALIB_FAULT", "TEMP_FAULT", "POWER_FAULT", "CMD_FAILURE"}
+PORT_CHECK_RAD = 0.01  # EGM and RWS joints of one arm at rest agree to better than this (rad)
 ARRIVED_RAD = 1e-3  # a retract counts as done when every joint is this close (rad) to its goal
 CHAIN_AXES = (1, 2, 7, 3, 4, 5, 6)  # ABB axis number of each chain index, for messages
 INCOMPLETE = "arms stopped; trajectory incomplete"
@@ -51,6 +53,8 @@ class HardwareBackend:
         self._rws: RwsClient | None = None
         self._rapid_started = False
         self._closed = False
+        self.kms40_info: dict[str, object] = {}
+        """Serial number and status flags of the F/T sensor, read when opening."""
         try:
             self._open()
         except (Kms40Error, BioTacError, RwsError, StaleDataError, OSError) as exc:
@@ -68,6 +72,11 @@ class HardwareBackend:
     def _open(self) -> None:
         c = self.config
         self._kms = Kms40Client(c.kms40.host, c.kms40.port, c.kms40.timeout_s, c.kms40.reconnect_s)
+        flags = self._kms.flags()
+        self.kms40_info = {"serial": self._kms.serial(), "flags": sorted(flags)}
+        problems = sorted(flags & KMS40_FAULTS) + ([] if "CALIB_VALID" in flags else ["no CALIB_VALID"])
+        if problems:
+            raise Kms40Error(None, f"the sensor reports {', '.join(problems)} (flags: {sorted(flags)})")
         self._kms.tare(False)
         self._kms.set_rate_divider(c.kms40.rate_divider)
         self._kms.set_filter(c.kms40.filter_id)
@@ -96,10 +105,22 @@ class HardwareBackend:
                     f"{exc}: no EgmRobot on UDP port {link.port} - is RAPID running EGMRunJoint for {arm}, and "
                     "does the controller's EGM (UDPUC) device point at this PC and port?"
                 ) from exc
+        self._check_arm_ports()
         self._kms.wrench.wait(c.kms40.timeout_s)
         self._frames().wait(1.0)
         self._baseline = self._kms.wrench.get(c.kms40.watchdog_s)[:3].copy()
         self._safe = {arm: self._measured(arm) for arm in ARMS}
+
+    def _check_arm_ports(self) -> None:
+        """EGM feedback must match RWS's joint target per arm: catches swapped or foreign EGM ports."""
+        for arm in ARMS:
+            egm, rws = self._measured(arm), self._rws.joints(arm)
+            if np.max(np.abs(egm - rws)) > PORT_CHECK_RAD:
+                raise StaleDataError(
+                    f"EGM on port {self._links[arm].port} does not carry the {arm} arm: its joints "
+                    f"{np.degrees(egm).round(2)} deg differ from RWS's {np.degrees(rws).round(2)} deg "
+                    "(check egm.left_port / egm.right_port against the controller's UDPUC devices)"
+                )
 
     # -- Backend ---------------------------------------------------------------------------------
     def attach_tool(self, arm: str, tool: str | None) -> None:
@@ -176,6 +197,7 @@ class HardwareBackend:
         return {
             "egm": {arm: dict(link.stats) for arm, link in self._links.items()},
             "kms40": dict(self._kms.stats) if self._kms else {},
+            "kms40_info": self.kms40_info,
             "biotac": dict(self._biotac.stats) if self._biotac else {},
             "biotac_info": {slot: vars(info) for slot, info in self._biotac.info.items()} if self._biotac else {},
             "tools": dict(self.tools),

@@ -88,12 +88,6 @@ class EgmArmLink:
                 here = self.state.get(float("inf")).joints
                 self._goal, self._setpoint = here.copy(), here.copy()
 
-    @property
-    def goal(self) -> np.ndarray | None:
-        """The joints (rad) the link is steering toward, None before the first feedback."""
-        with self._lock:
-            return None if self._goal is None else self._goal.copy()
-
     def close(self) -> None:
         """Stop answering and release the port; safe to call twice."""
         self._stop.set()

@@ -68,11 +68,6 @@ class SimEgmArm:
         with self._lock:
             return self._joints.copy()
 
-    @property
-    def streaming(self) -> bool:
-        """Whether EGM is running (the RAPID program is executing)."""
-        return self._streaming.is_set()
-
     def start_streaming(self) -> None:
         """Begin sending EgmRobot every cycle (what EGMRunJoint does when RAPID starts)."""
         with self._lock:

@@ -45,6 +45,8 @@ class SimKms40:
         self.wrench_source = wrench_source
         self.serial = serial
         self.range = np.array([force_range_n] * 3 + [torque_range_nm] * 3)
+        self.extra_flags: set[str] = set()
+        """Status bits FLAGS() reports on top of the computed ones (fault injection, e.g. {"TEMP_FAULT"})."""
         self._server = socket.create_server((host, port))
         self._server.settimeout(0.02)  # how soon close() is noticed
         self._stop = threading.Event()
@@ -238,7 +240,7 @@ class _Connection:
         return "2019-01-01"
 
     def _cmd_FLAGS(self, arg: str) -> str:  # noqa: N802
-        flags = {"CALIB_VALID", "STABLE"}
+        flags = {"CALIB_VALID", "STABLE"} | self.device.extra_flags
         flags |= {"TARA"} if self.tared else set()
         flags |= {"FILTER_ENABLED"} if self.filter_id else set()
         flags |= {"DAQ_RUNNING"} if self.streaming else set()

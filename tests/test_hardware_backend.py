@@ -191,7 +191,17 @@ def test_open_failures_are_clear_and_release_everything(testbed: SimulatedTestbe
         HardwareBackend(_config(testbed, rws={"start_rapid": False}, egm={"startup_timeout_s": 0.2}))
     with pytest.raises(BackendError, match="no BioTac answers on slot 2"):
         HardwareBackend(_config(testbed, biotac={"select_mask": 0x02}))
+    testbed.kms40.extra_flags = {"TEMP_FAULT"}
+    with pytest.raises(BackendError, match="KMS40: the sensor reports TEMP_FAULT"):
+        HardwareBackend(_config(testbed))
     assert all(_port_free(p) for p in testbed.egm_ports.values())
+
+
+def test_swapped_egm_ports_are_caught_by_comparing_with_rws() -> None:
+    with _testbed(joints0={"right": np.full(7, 0.1)}) as testbed:
+        ports = testbed.egm_ports
+        with pytest.raises(BackendError, match="EGM on port .* does not carry the left arm"):
+            HardwareBackend(_config(testbed, egm={"left_port": ports["right"], "right_port": ports["left"]}))
 
 
 def test_close_is_idempotent_and_stops_what_it_started(testbed: SimulatedTestbed, backend: HardwareBackend) -> None:
