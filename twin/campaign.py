@@ -31,10 +31,12 @@ from twin.plant import Plant, make_plant, rigid_transform
 from twin.processing import process
 from twin.protocol import QUICK_SETTINGS, ProtocolSettings, TrajectorySpec, plan_specs
 from twin.registration import simulate_registration
-from twin.scene import TestbedScene
+from twin.scene import SceneParameters, TestbedScene
 from twin.sim_backend import SimBackend
 
 SPHERES = ("sphere_small", "sphere_medium", "sphere_large")
+INDENTER_ADAPTER_LENGTH = 0.10
+"""Spacer (m) between flange and indenter shank, so the wrist clears the mount (a 3D-printed adapter)."""
 TRAJECTORY_SLOT_S = 600.0
 """Clock time (s) reserved per trajectory: trajectory k of a sensor starts at k * TRAJECTORY_SLOT_S."""
 
@@ -50,6 +52,7 @@ class CampaignConfig:
     mesh_max_edge: float = 0.5e-3
     spheres_only: tuple[int, ...] = (1,)
     nominal: SkinParameters = field(default_factory=SkinParameters)
+    scene: SceneParameters = field(default_factory=lambda: SceneParameters(adapter_length=INDENTER_ADAPTER_LENGTH))
 
     def __post_init__(self) -> None:
         unknown = [n for n in self.indenters if n not in INDENTERS]
@@ -107,7 +110,7 @@ def plan_campaign(config: CampaignConfig, plant: Plant | None = None) -> Campaig
     geometry = make_biotac(config.mesh_max_edge)
     nominal = inflated_model(geometry, config.nominal)
     specs = plan_specs(nominal, list(config.indenters), config.settings, config.seed)
-    scene = TestbedScene()
+    scene = TestbedScene(config.scene)
     planned, registration, errors = [], {}, {}
     for sid in config.sensors:
         truth = true_biotac_pose(plant, sid, scene)
@@ -156,7 +159,7 @@ def _run_one(job: PlannedTrajectory, slot: int, registration: np.ndarray, parts_
     worker = _WORKER
     config, sid, spec = worker.config, job.sensor_id, job.spec
     model, electrodes = worker.sensor(sid)
-    scene = TestbedScene()
+    scene = TestbedScene(config.scene)
     rng = np.random.default_rng(np.random.SeedSequence([config.seed, sid, spec.trajectory_id]))
     backend = SimBackend(
         scene,
@@ -272,7 +275,7 @@ def run_campaign(
                     _run_one,
                     j,
                     slots[(j.sensor_id, j.spec.trajectory_id)],
-                    plan.registration[j.sensor_id],
+                    plan.registration[(j.sensor_id, j.arm)],
                     str(parts_dir),
                 )
                 for j in todo
