@@ -116,7 +116,7 @@ def plan_campaign(config: CampaignConfig, plant: Plant | None = None) -> Campaig
         truth = true_biotac_pose(plant, sid, scene)
         for k, arm in enumerate(ARMS):
             rng = np.random.default_rng(np.random.SeedSequence([config.seed, sid, k, 0x9E6]))
-            result = simulate_registration(scene, arm, rng, true_biotac_pose=truth)
+            result = simulate_registration(scene, rng, arm=arm, true_biotac_pose=truth)
             registration[(sid, arm)], errors[(sid, arm)] = result.transform, result.error_rms
         wanted = set(config.indenters_for(sid))
         sensor_specs = [s for s in specs if s.indenter in wanted]
