@@ -34,11 +34,13 @@ from dataclasses import dataclass, field, fields
 
 import numpy as np
 
-from assets.biotac import BioTacGeometry, vertex_normals
+from assets.biotac import BioTacGeometry, Electrodes, electrode_table, vertex_normals
 
 N_ELECTRODES = 19
 ADC_MAX = 4095.0
 """Largest 12-bit count."""
+DEFAULT_SKIN_THICKNESS = 1.57e-3
+"""Skin thickness (m) when a bare mesh gives none: the paper's calibrated optimum."""
 PDC_FULL_SCALE_PA = 100e3
 """Gauge pressure (Pa) at the top of the PDC range (facts: 0-100 kPa over 12 bits)."""
 
@@ -134,7 +136,7 @@ class ElectrodeModel:
     """The 19 electrodes of one sensor, reading a deformed skin mesh.
 
     geometry: the BioTac geometry whose skin mesh the vertices belong to (electrode positions/normals,
-        triangles). params: this sensor's read-out parameters.
+        triangles; `from_mesh` takes bare arrays instead). params: this sensor's read-out parameters.
     reference: (V, 3) m, resting mid-surface (usually the FE's inflated state) at which the counts
         equal ``params.offset``; default the geometry's unpressurised skin.
     skin_thickness: m, skin thickness; the inner skin surface is the mid-surface offset inward by half
@@ -155,16 +157,52 @@ class ElectrodeModel:
         reference: np.ndarray | None = None,
         skin_thickness: float | None = None,
     ) -> None:
-        self.geometry = geometry
+        self._setup(
+            geometry.skin.vertices if reference is None else reference,
+            geometry.skin.triangles,
+            geometry.electrodes,
+            2.0 * geometry.core_gap if skin_thickness is None else skin_thickness,
+            params,
+        )
+
+    @classmethod
+    def from_mesh(
+        cls,
+        reference: np.ndarray,
+        triangles: np.ndarray,
+        params: ElectrodeParameters | None = None,
+        skin_thickness: float = DEFAULT_SKIN_THICKNESS,
+        electrodes: Electrodes | None = None,
+    ) -> ElectrodeModel:
+        """The model on a bare skin mesh (e.g. a campaign file's ``mesh/vertices``, ``mesh/triangles``):
+        reference (V, 3) m, triangles (T, 3) oriented away from the core; electrodes default to the
+        product manual's table."""
+        model = cls.__new__(cls)
+        model._setup(
+            reference, triangles, electrode_table() if electrodes is None else electrodes, skin_thickness, params
+        )
+        return model
+
+    def _setup(
+        self,
+        reference: np.ndarray,
+        triangles: np.ndarray,
+        electrodes: Electrodes,
+        skin_thickness: float,
+        params: ElectrodeParameters | None,
+    ) -> None:
         self.params = params if params is not None else ElectrodeParameters()
-        self.skin_thickness = float(2.0 * geometry.core_gap if skin_thickness is None else skin_thickness)
+        self.skin_thickness = float(skin_thickness)
         if not 0.0 < self.skin_thickness < 0.01:
             raise ValueError(f"skin_thickness must be in (0, 0.01) m, got {self.skin_thickness!r}")
-        self.reference = np.array(geometry.skin.vertices if reference is None else reference, dtype=float)
-        self._check_vertices(self.reference)
-        self._triangles = geometry.skin.triangles
-        self._positions = geometry.electrodes.positions
-        self._normals = geometry.electrodes.normals
+        self.reference = np.array(reference, dtype=float)
+        if self.reference.ndim != 2 or self.reference.shape[1] != 3 or not np.all(np.isfinite(self.reference)):
+            raise ValueError(f"reference must be finite (V, 3) m, got shape {self.reference.shape}")
+        self._triangles = np.asarray(triangles)
+        if self._triangles.ndim != 2 or self._triangles.shape[1] != 3 or self._triangles.max() >= len(self.reference):
+            raise ValueError(f"triangles must be (T, 3) ids into the {len(self.reference)} reference vertices")
+        self._positions = electrodes.positions
+        self._normals = electrodes.normals
         self._patches = self._select_patches()
         self._areas = _vertex_areas(self.reference, self._triangles)
         self._rest_impedance = self.impedance(self.reference)
@@ -172,7 +210,7 @@ class ElectrodeModel:
             raise ValueError("an electrode sees no skin at the reference state (check the geometry/reference)")
 
     def _check_vertices(self, vertices: np.ndarray) -> None:
-        expected = self.geometry.skin.vertices.shape
+        expected = self.reference.shape
         if vertices.shape != expected or not np.all(np.isfinite(vertices)):
             raise ValueError(f"vertices must be finite with shape {expected} (m), got {vertices.shape}")
 

@@ -1,0 +1,216 @@
+"""Training of the torch estimators (PointNet++ and the plain MLP) with early stopping.
+
+`NeuralEstimator` follows the API of learn.baselines: ``fit(data) -> self``, ``predict(data)``,
+``get_state()`` / ``from_state()``. Targets are min-max scaled to [0, 1] on the training data (the
+paper's normalisation), the loss is the sum over targets of the mean squared scaled error, and the
+best epoch on a held-out 10 % of the training *trajectories* is kept (never the test data).
+Fine-tuning (``fit(data, init=pretrained)``) starts from a pretrained estimator's weights and scalers.
+"""
+
+from __future__ import annotations
+
+import copy
+import time
+from collections.abc import Callable
+from dataclasses import asdict, dataclass, field
+
+import numpy as np
+import torch
+from torch import nn
+
+from learn.data import TactileData
+from learn.dataset import ElectrodeDataset
+from learn.nets import PlainMLP, PointNet2
+from learn.normalize import MinMax
+from learn.splits import contiguous
+
+TARGETS = ("contact_loc", "force", "nodal")
+NETWORKS = ("pointnet", "mlp")
+
+
+@dataclass(frozen=True)
+class TrainConfig:
+    """How to train. network: "pointnet" | "mlp". targets: any of TARGETS the data has.
+    max_epochs / patience (epochs without validation improvement) / time_limit_s (s) stop training;
+    learning_rate halves after lr_patience epochs without improvement. threads: torch CPU threads.
+    device: "cpu" or "cuda"."""
+
+    network: str = "pointnet"
+    targets: tuple[str, ...] = TARGETS
+    max_epochs: int = 300
+    batch_size: int = 128
+    learning_rate: float = 1e-3
+    lr_patience: int = 5
+    patience: int = 15
+    val_fraction: float = 0.1
+    time_limit_s: float = float("inf")
+    seed: int = 0
+    threads: int = 2
+    device: str = "cpu"
+
+    def __post_init__(self) -> None:
+        if self.network not in NETWORKS:
+            raise ValueError(f"unknown network {self.network!r}; choose one of {', '.join(NETWORKS)}")
+        unknown = set(self.targets) - set(TARGETS)
+        if unknown or not self.targets:
+            raise ValueError(f"targets must be a non-empty subset of {TARGETS}, got {self.targets}")
+
+
+@dataclass
+class EpochRecord:
+    epoch: int
+    train_loss: float
+    val_loss: float
+    seconds: float
+
+
+def _build(network: str, target_dims: dict[str, int], positions: np.ndarray) -> nn.Module:
+    return PointNet2(positions, target_dims) if network == "pointnet" else PlainMLP(len(positions), target_dims)
+
+
+@dataclass
+class NeuralEstimator:
+    """A trained network with the scalers that map its inputs and outputs to SI units."""
+
+    config: TrainConfig = field(default_factory=TrainConfig)
+    net: nn.Module | None = None
+    input_scale: MinMax | None = None
+    target_scales: dict[str, MinMax] = field(default_factory=dict)
+    target_shapes: dict[str, tuple[int, ...]] = field(default_factory=dict)
+    history: list[EpochRecord] = field(default_factory=list)
+
+    @property
+    def name(self) -> str:
+        return self.config.network
+
+    def _loss(self, batch: tuple[torch.Tensor, dict[str, torch.Tensor]]) -> torch.Tensor:
+        x, y = batch
+        out = self.net(x)
+        return sum(nn.functional.mse_loss(out[k], y[k]) for k in y)
+
+    def _evaluate(self, dataset: ElectrodeDataset, device: torch.device) -> float:
+        self.net.eval()
+        with torch.no_grad():
+            x, y = dataset[torch.arange(len(dataset))]
+            loss = self._loss((x.to(device), {k: v.to(device) for k, v in y.items()}))
+        self.net.train()
+        return float(loss)
+
+    def fit(
+        self,
+        data: TactileData,
+        init: NeuralEstimator | None = None,
+        on_epoch: Callable[[EpochRecord], None] | None = None,
+    ) -> NeuralEstimator:
+        """Train on ``data``; with ``init``, fine-tune a copy of its network (its scalers are kept).
+        on_epoch: called with each epoch's record (progress display)."""
+        cfg = self.config
+        torch.manual_seed(cfg.seed)
+        torch.set_num_threads(cfg.threads)
+        device = torch.device(cfg.device)
+        available = data.targets()
+        targets = [k for k in cfg.targets if k in available]
+        if not targets:
+            raise ValueError(f"the data has none of the targets {cfg.targets}")
+        if init is not None:
+            self.input_scale, self.target_scales = init.input_scale, dict(init.target_scales)
+            self.target_shapes, self.net = dict(init.target_shapes), copy.deepcopy(init.net)
+        else:
+            self.input_scale = MinMax.fit(data.electrodes)
+            self.target_scales = {k: MinMax.fit(available[k]) for k in targets}
+            self.target_shapes = {k: available[k].shape[1:] for k in targets}
+            dims = {k: int(np.prod(s)) for k, s in self.target_shapes.items()}
+            self.net = _build(cfg.network, dims, data.electrode_positions)
+        self.net.to(device)
+        train_rows, val_rows = self._validation_rows(data)
+        train = ElectrodeDataset(data.subset(train_rows), self.input_scale, self.target_scales)
+        val = ElectrodeDataset(data.subset(val_rows), self.input_scale, self.target_scales) if len(val_rows) else train
+        self._train_loop(train, val, device, on_epoch)
+        self.net.to("cpu")
+        return self
+
+    def _validation_rows(self, data: TactileData) -> tuple[np.ndarray, np.ndarray]:
+        if len(np.unique(data.trajectory)) < 4:
+            return np.arange(len(data)), np.array([], dtype=np.int64)
+        return contiguous(data.trajectory, self.config.val_fraction, self.config.seed + 1)
+
+    def _train_loop(
+        self,
+        train: ElectrodeDataset,
+        val: ElectrodeDataset,
+        device: torch.device,
+        on_epoch: Callable[[EpochRecord], None] | None,
+    ) -> None:
+        cfg = self.config
+        optimiser = torch.optim.Adam(self.net.parameters(), lr=cfg.learning_rate)
+        scheduler = torch.optim.lr_scheduler.ReduceLROnPlateau(optimiser, factor=0.5, patience=cfg.lr_patience)
+        inputs = train.inputs.to(device)
+        targets = {k: v.to(device) for k, v in train.targets.items()}
+        best, best_state, stale, start = np.inf, None, 0, time.perf_counter()
+        generator = torch.Generator().manual_seed(cfg.seed)
+        self.history = []
+        for epoch in range(cfg.max_epochs):
+            total = 0.0
+            for rows in torch.randperm(len(train), generator=generator).split(cfg.batch_size):
+                rows = rows.to(device)
+                loss = self._loss((inputs[rows], {k: v[rows] for k, v in targets.items()}))
+                optimiser.zero_grad()
+                loss.backward()
+                optimiser.step()
+                total += loss.item() * len(rows)
+            val_loss = self._evaluate(val, device)
+            scheduler.step(val_loss)
+            elapsed = time.perf_counter() - start
+            self.history.append(EpochRecord(epoch, total / len(train), val_loss, elapsed))
+            if on_epoch is not None:
+                on_epoch(self.history[-1])
+            if val_loss < best:
+                best, stale = val_loss, 0
+                best_state = {k: v.detach().clone() for k, v in self.net.state_dict().items()}
+            else:
+                stale += 1
+            if stale >= cfg.patience or elapsed > cfg.time_limit_s:
+                break
+        if best_state is not None:
+            self.net.load_state_dict(best_state)
+
+    def predict(self, data: TactileData, batch_size: int = 4096) -> dict[str, np.ndarray]:
+        """Targets in SI units: contact_loc (N, 3) m, force (N, 3) N, nodal (N, K, 3) m."""
+        if self.net is None:
+            raise RuntimeError("fit the estimator first")
+        self.net.eval()
+        x = torch.as_tensor(self.input_scale.transform(data.electrodes), dtype=torch.float32)
+        with torch.no_grad():
+            parts = [self.net(chunk) for chunk in x.split(batch_size)]
+        out = {}
+        for k, scale in self.target_scales.items():
+            scaled = torch.cat([p[k] for p in parts]).numpy().astype(float).reshape(len(data), *self.target_shapes[k])
+            out[k] = scale.inverse(scaled)
+        return out
+
+    def get_state(self) -> dict:
+        return {
+            "config": asdict(self.config),
+            "state_dict": self.net.state_dict(),
+            "input_scale": self.input_scale.to_state(),
+            "target_scales": {k: s.to_state() for k, s in self.target_scales.items()},
+            "target_shapes": {k: list(s) for k, s in self.target_shapes.items()},
+            "history": [asdict(h) for h in self.history],
+        }
+
+    @classmethod
+    def from_state(cls, state: dict, positions: np.ndarray) -> NeuralEstimator:
+        """Rebuild from ``get_state()``; positions: (19, 3) m electrode positions (the manual's table)."""
+        cfg = state["config"]
+        config = TrainConfig(**{**cfg, "targets": tuple(cfg["targets"])})
+        shapes = {k: tuple(s) for k, s in state["target_shapes"].items()}
+        net = _build(config.network, {k: int(np.prod(s)) for k, s in shapes.items()}, positions)
+        net.load_state_dict(state["state_dict"])
+        return cls(
+            config=config,
+            net=net,
+            input_scale=MinMax.from_state(state["input_scale"]),
+            target_scales={k: MinMax.from_state(s) for k, s in state["target_scales"].items()},
+            target_shapes=shapes,
+            history=[EpochRecord(**h) for h in state["history"]],
+        )
