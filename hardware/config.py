@@ -8,10 +8,13 @@ default. Times in seconds, forces in N, angles in rad, speeds in rad/s.
 from __future__ import annotations
 
 import json
+import re
 import tomllib
 from dataclasses import asdict, dataclass, field, fields, replace
 from pathlib import Path
 from typing import Any
+
+TRANSPORT_SPEC = re.compile(r"cheetah(:\d+)?|tcp://[^:/\s]+:\d+")
 
 
 @dataclass(frozen=True)
@@ -94,6 +97,10 @@ class HardwareConfig:
     safety: SafetyConfig = field(default_factory=SafetyConfig)
 
     def __post_init__(self) -> None:
+        if not TRANSPORT_SPEC.fullmatch(self.biotac.transport):
+            raise ValueError(
+                f"biotac.transport must be cheetah, cheetah:PORT or tcp://HOST:PORT, got {self.biotac.transport!r}"
+            )
         if self.biotac.select_mask not in (0x01, 0x02, 0x04):
             raise ValueError(f"biotac.select_mask must be 0x01, 0x02 or 0x04, got {self.biotac.select_mask:#x}")
         for name, port in (
