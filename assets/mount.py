@@ -42,7 +42,7 @@ class MountGeometry:
     hole_azimuths: tuple[float, ...] = tuple(np.deg2rad([45.0, 135.0, 225.0, 315.0]))
     liner_bore_radius: float = 3.15e-3
     liner_outer_radius: float = 5.0e-3
-    biotac_height: float = 0.025
+    biotac_height: float = 0.040
     fixture_gap_x: float = 0.016
     fixture_length: float = 0.036
     fixture_half_width: float = 0.015

@@ -80,6 +80,27 @@ ARM_CHAINS: dict[str, ArmChain] = {
 """Both YuMi arms from the public URDF (facts/testbed.md), robot frame, m and rad."""
 
 
+def rpy_matrix(rpy: tuple[float, float, float] | np.ndarray) -> np.ndarray:
+    """(3, 3) rotation of URDF roll-pitch-yaw (rad): Rz(yaw) @ Ry(pitch) @ Rx(roll)."""
+    r, p, y = rpy
+    cr, sr, cp, sp, cy, sy = np.cos(r), np.sin(r), np.cos(p), np.sin(p), np.cos(y), np.sin(y)
+    return np.array(
+        [
+            [cy * cp, cy * sp * sr - sy * cr, cy * sp * cr + sy * sr],
+            [sy * cp, sy * sp * sr + cy * cr, sy * sp * cr - cy * sr],
+            [-sp, cp * sr, cp * cr],
+        ]
+    )
+
+
+def origin_transform(xyz: tuple[float, float, float], rpy: tuple[float, float, float]) -> np.ndarray:
+    """(4, 4) homogeneous transform of a URDF origin (xyz in m, rpy in rad)."""
+    t = np.eye(4)
+    t[:3, :3] = rpy_matrix(rpy)
+    t[:3, 3] = xyz
+    return t
+
+
 @dataclass(frozen=True)
 class Shape:
     """A collision primitive in a body frame (m). kind: "capsule" | "cylinder" | "box".
@@ -96,10 +117,13 @@ class Shape:
     collide: bool = True
 
 
-LINK_RADII = (0.050, 0.045, 0.040, 0.040, 0.035, 0.030, 0.022)
+LINK_RADII = (0.050, 0.045, 0.040, 0.040, 0.035, 0.025, 0.021)
 """Collision radius (m) of link_1 .. link_7 (link_7 carries the flange)."""
 FLANGE_LINK_BACK = 0.015
 """How far (m) the flange link's cylinder extends behind the joint-6 frame origin."""
+WRIST_SETBACK = 0.003
+"""The wrist capsule (link_6) ends this far (m) plus its radius behind joint 6 along the tool axis, so
+it never reaches past the flange face: the flange link's cylinder covers the space in between."""
 NEIGHBOUR_EXCLUDE = 2
 """Links this many or fewer apart in one chain never collide (the real joints keep them apart)."""
 
@@ -124,7 +148,10 @@ def link_shapes(arm: str) -> tuple[tuple[Shape, ...], ...]:
     for i in range(len(joints)):
         name = f"{arm}_link_{i + 1}"
         if i + 1 < len(joints):
-            links.append((Shape(name, "capsule", (LINK_RADII[i],), (0.0, 0.0, 0.0), joints[i + 1].xyz),))
+            end = np.asarray(joints[i + 1].xyz, dtype=float)
+            if i + 2 == len(joints):  # the wrist: pull the end back along the tool axis (joint 6's z)
+                end = end - (LINK_RADII[i] + WRIST_SETBACK) * rpy_matrix(joints[i + 1].rpy)[:, 2]
+            links.append((Shape(name, "capsule", (LINK_RADII[i],), (0.0, 0.0, 0.0), tuple(end)),))
         else:
             flange = ARM_CHAINS[arm].flange_xyz
             links.append((Shape(name, "cylinder", (LINK_RADII[i],), (0.0, 0.0, -FLANGE_LINK_BACK), flange),))

@@ -20,7 +20,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from assets.yumi import ARM_CHAINS, ArmChain, JointSpec
+from assets.yumi import ARM_CHAINS, ArmChain, JointSpec, origin_transform, rpy_matrix
 from twin.backend import N_JOINTS, check_arm
 
 __all__ = [
@@ -35,6 +35,8 @@ __all__ = [
     "jacobian",
     "joint_frames",
     "joint_limits",
+    "origin_transform",
+    "rpy_matrix",
     "velocity_limits",
     "within_limits",
 ]
@@ -44,27 +46,6 @@ POSITION_TOLERANCE = 1e-5
 ROTATION_TOLERANCE = 1e-4
 """Default IK acceptance on the tip orientation (rad, geodesic angle)."""
 _EYE6 = np.eye(6)
-
-
-def rpy_matrix(rpy: tuple[float, float, float] | np.ndarray) -> np.ndarray:
-    """(3, 3) rotation of URDF roll-pitch-yaw (rad): Rz(yaw) @ Ry(pitch) @ Rx(roll)."""
-    r, p, y = rpy
-    cr, sr, cp, sp, cy, sy = np.cos(r), np.sin(r), np.cos(p), np.sin(p), np.cos(y), np.sin(y)
-    return np.array(
-        [
-            [cy * cp, cy * sp * sr - sy * cr, cy * sp * cr + sy * sr],
-            [sy * cp, sy * sp * sr + cy * cr, sy * sp * cr - cy * sr],
-            [-sp, cp * sr, cp * cr],
-        ]
-    )
-
-
-def origin_transform(xyz: tuple[float, float, float], rpy: tuple[float, float, float]) -> np.ndarray:
-    """(4, 4) homogeneous transform of a URDF origin (xyz in m, rpy in rad)."""
-    t = np.eye(4)
-    t[:3, :3] = rpy_matrix(rpy)
-    t[:3, 3] = xyz
-    return t
 
 
 def _origins(arm: str) -> tuple[np.ndarray, np.ndarray]:
@@ -186,8 +167,8 @@ class IKSettings:
 
     damping: Levenberg-Marquardt damping (m, rad scale) at the start of each attempt; it shrinks on
     progress and grows on a rejected step. null_gain: pull of the null-space term toward the seed,
-    applied while the position error exceeds null_until times the position tolerance (then the last
-    iterations converge on the task alone).
+    applied while the position error exceeds null_until (m); closer in, the iterations converge on the
+    task alone (short moves from the seed are minimal-norm steps already).
     length_scale: m per rad used to weigh position against orientation errors.
     """
 
@@ -198,7 +179,7 @@ class IKSettings:
     damping: float = 1e-2
     null_gain: float = 0.05
     length_scale: float = 0.1
-    null_until: float = 10.0
+    null_until: float = 1e-3
     seed: int = 0
 
 
@@ -251,7 +232,7 @@ def _solve(
                 jw[3:] -= np.outer(z, z @ jw[3:])
             jjt = jw @ jw.T
             step = jw.T @ np.linalg.solve(jjt + damping**2 * _EYE6, err)
-            if pos_err > settings.null_until * settings.position_tolerance:  # shape the redundancy far out
+            if pos_err > settings.null_until:  # shape the redundancy far out
                 pinv_j = jw.T @ np.linalg.solve(jjt + 1e-8 * _EYE6, jw)
                 step += settings.null_gain * (q_rest - q - pinv_j @ (q_rest - q))
             q_new = np.clip(q + step, lim[:, 0], lim[:, 1])

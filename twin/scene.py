@@ -48,7 +48,7 @@ class SceneParameters:
     mount_position: tuple[float, float, float] = (0.38, 0.0, 0.0)
     mount_yaw: float = 0.0
     biotac_max_edge: float = 2e-3
-    tool_max_edge: float = 1e-3
+    tool_max_edge: float = 2e-3
     pin: PinGeometry = DEFAULT_PIN
     adapter_length: float = 0.0
 
@@ -113,7 +113,8 @@ def _mesh_asset(asset: ET.Element, name: str, vertices: np.ndarray, faces: np.nd
 
 
 def _tool_geoms(link7: ET.Element, arm: str, params: SceneParameters, flange: np.ndarray) -> None:
-    """Every tool on `arm`'s flange, switched off (contype 0, transparent) until attached."""
+    """Every tool on `arm`'s flange. They compile as colliding (so MuJoCo builds their convex hulls);
+    ``TestbedScene`` switches them off (collision bits 0, transparent) until attached."""
     for tool in TOOLS:
         tip = flange @ tool_tip_transform(tool, params.adapter_length, params.pin)
         if tool == PIN:
@@ -130,9 +131,7 @@ def _tool_geoms(link7: ET.Element, arm: str, params: SceneParameters, flange: np
             _place(geom, tip)
             geoms = (geom,)
         for geom in geoms:
-            geom.set("contype", "0")
-            geom.set("conaffinity", "0")
-            geom.set("rgba", "0.8 0.6 0.2 0")
+            geom.set("rgba", "0.8 0.6 0.2 1")
             geom.set("group", "1")
 
 
@@ -233,6 +232,7 @@ class TestbedScene:
         self._tools: dict[str, str | None] = {arm: None for arm in ARMS}
         self._biotac_pose = mount_pose(self.params) @ self.params.mount.biotac_in_mount()
         for arm in ARMS:
+            self.attach_tool(arm, None)
             self.set_joints(arm, self.home_joints(arm))
 
     def mjcf(self) -> str:
