@@ -42,13 +42,19 @@ class BlockAssembler:
             self._selectors.append(np.flatnonzero(keep))
         all_keys = np.concatenate(keys) if keys else np.zeros(0, dtype=np.int64)
         unique, inverse = np.unique(all_keys, return_inverse=True)
-        self._inverse = inverse
         self._rows = unique // max(self.n_free, 1)
         self._cols = unique % max(self.n_free, 1)
         self._indptr = np.searchsorted(self._rows, np.arange(self.n_free + 1))
+        # One 0/1 scatter matrix per family maps its flattened blocks onto the CSR data array.
+        self._scatter, start = [], 0
+        for nodes, selector in zip(self.connectivities, self._selectors, strict=True):
+            size = len(nodes) * (3 * nodes.shape[1]) ** 2
+            target = inverse[start : start + len(selector)]
+            ones = np.ones(len(selector))
+            self._scatter.append(sp.csr_matrix((ones, (target, selector)), shape=(len(unique), size)))
+            start += len(selector)
 
     def assemble(self, blocks: list[np.ndarray]) -> sp.csr_matrix:
         """Sum blocks (one (E_k, 3 n_k, 3 n_k) array per family, in order) into an (n_free, n_free) CSR matrix."""
-        values = np.concatenate([b.reshape(-1)[sel] for b, sel in zip(blocks, self._selectors, strict=True)])
-        data = np.bincount(self._inverse, weights=values, minlength=len(self._rows))
-        return sp.csr_matrix((data, self._cols, self._indptr), shape=(self.n_free, self.n_free))
+        data = sum(s @ b.reshape(-1) for s, b in zip(self._scatter, blocks, strict=True))
+        return sp.csr_matrix((data, self._cols.copy(), self._indptr.copy()), shape=(self.n_free, self.n_free))

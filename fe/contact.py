@@ -54,11 +54,15 @@ def closest_point_on_triangle(p: wp.vec3d, a: wp.vec3d, b: wp.vec3d, c: wp.vec3d
 
 @wp.func
 def core_distance(
-    core: wp.uint64, core_vertices: wp.array(dtype=wp.vec3d), core_triangles: wp.array(dtype=wp.vec3i), p: wp.vec3d
+    core: wp.uint64,
+    core_vertices: wp.array(dtype=wp.vec3d),
+    core_triangles: wp.array(dtype=wp.vec3i),
+    p: wp.vec3d,
+    max_dist: wp.float32,
 ) -> wp.vec4d:
     """(signed distance m, unit gradient) of p to the core mesh; the closest face is found in float32,
-    the closest point on it is recomputed in float64. Distance 1 m when the query fails."""
-    q = wp.mesh_query_point_sign_normal(core, wp.vec3(p), wp.float32(1.0))
+    the closest point on it is recomputed in float64. Distance 1 m when no face is within `max_dist` (m)."""
+    q = wp.mesh_query_point_sign_normal(core, wp.vec3(p), max_dist)
     if not q.result:
         return wp.vec4d(wp.float64(1.0), wp.float64(0.0), wp.float64(0.0), wp.float64(0.0))
     tri = core_triangles[q.face]
@@ -88,6 +92,7 @@ def core_contact_kernel(
 ):
     """Frictionless one-sided contact of skin vertex v (mid-surface, `offset` m outside) with the core mesh.
 
+    The closest-face search is limited to offset + 5 mm, far beyond any penetration the penalty allows.
     The Hessian includes the curvature of the distance field (non-zero where the closest point is on a
     mesh edge or vertex) by central differences of its gradient.
     """
@@ -96,7 +101,8 @@ def core_contact_kernel(
     zero = wp.float64(0.0)
     energy[b, v] = zero
     hessian[b, v] = wp.mat33d()
-    dn = core_distance(core, core_vertices, core_triangles, p)
+    reach = wp.float32(offset) + wp.float32(5.0e-3)
+    dn = core_distance(core, core_vertices, core_triangles, p, reach)
     g = dn[0] - offset
     gap[b, v] = g
     if g >= zero:
@@ -110,8 +116,8 @@ def core_contact_kernel(
     for j in range(3):
         dp = wp.vec3d()
         dp[j] = h
-        plus = core_distance(core, core_vertices, core_triangles, p + dp)
-        minus = core_distance(core, core_vertices, core_triangles, p - dp)
+        plus = core_distance(core, core_vertices, core_triangles, p + dp, reach)
+        minus = core_distance(core, core_vertices, core_triangles, p - dp, reach)
         for i in range(3):
             curv[i, j] = (plus[i + 1] - minus[i + 1]) / (wp.float64(2.0) * h)
     curv = wp.float64(0.5) * (curv + wp.transpose(curv))
@@ -222,7 +228,9 @@ def indenter_gap_kernel(
     translation: wp.array(dtype=wp.vec3d),
     offset: wp.array(dtype=wp.float64),
     gap: wp.array2d(dtype=wp.float64),
+    normal: wp.array2d(dtype=wp.vec3d),
 ):
-    """Gap (m) of skin vertex v to the indenter of batch b: SDF minus the mid-surface offset."""
+    """Gap (m) of skin vertex v to the indenter of batch b (SDF minus the mid-surface offset), unit normal."""
     b, v = wp.tid()
     gap[b, v] = _sdf_world(kind, dims, rotation[b], translation[b], x[b, v]) - offset[b]
+    normal[b, v] = _sdf_grad_world(kind, dims, rotation[b], translation[b], x[b, v])

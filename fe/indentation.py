@@ -138,11 +138,9 @@ class IndentationStepper:
         State kept between steps: `x` (V,3) skin mid-surface positions (m), `pressure` (Pa), `pose` (the
         last (rotation, translation) or None), `in_contact`, and `failure` (message of a non-converged step).
         """
-        self.x = self.x_reference.copy()
-        self.pressure = self.pressure_reference
         self.pose: tuple[np.ndarray, np.ndarray] | None = None
-        self.in_contact = False
         self.failure: str | None = None
+        self._release()
         self._origin = None if self._fixed_origin is None else self._fixed_origin.copy()
 
     def step(self, rotation: np.ndarray, translation: np.ndarray) -> IncrementResult:
@@ -159,10 +157,10 @@ class IndentationStepper:
         )
         self.pose = (rotation, translation)
         depth = float((self._origin - translation) @ rotation[:, 2])
-        free_now = self.system.indenter_gaps(self.x, indenter).min(initial=np.inf) >= 0.0
+        free_now = self.system.indenter_proximity(self.x, indenter)[0].min(initial=np.inf) >= 0.0
         if free_now and not self.in_contact:
             return self._free_result(depth, start)
-        if free_now and self.system.indenter_gaps(self.x_reference, indenter).min(initial=np.inf) >= 0.0:
+        if free_now and self.system.indenter_proximity(self.x_reference, indenter)[0].min(initial=np.inf) >= 0.0:
             # The inflated state is an equilibrium that the indenter does not touch: release to it.
             self._release()
             return self._free_result(depth, start)
@@ -174,28 +172,64 @@ class IndentationStepper:
         self.x = self.x_reference.copy()
         self.pressure = self.pressure_reference
         self.in_contact = False
+        self._motion: np.ndarray | None = None
+        self._travel = np.zeros(3)
+        self._gap = np.zeros(len(self.x))
+        self._gap_change = np.zeros(len(self.x))
+
+    def _predict(self, indenter: IndenterState) -> np.ndarray:
+        """Warm start (V,3) m for the new pose: the last solved increment's displacement extrapolated by the
+        share of its tip travel that the new move repeats, then every vertex that would sit deeper in the
+        indenter than it did at the last equilibrium pushed out along the SDF normal to that depth."""
+        x = self.x.copy()
+        travel = indenter.translation - indenter.translation_start
+        share = 0.0
+        if self._motion is not None and self._travel @ self._travel > 0.0:
+            share = float(np.clip((travel @ self._travel) / (self._travel @ self._travel), 0.0, 1.0))
+            x += share * self._motion
+        gap, normal = self.system.indenter_proximity(x, indenter)
+        depth = np.minimum(self._gap + share * self._gap_change, 0.0)
+        x += np.maximum(depth - gap, 0.0)[:, None] * normal
+        return x
 
     def _solve(self, indenter: IndenterState) -> tuple[NewtonResult, int]:
-        """Newton solves with lagged friction at the new pose, from the current state."""
+        """One Newton solve at the new pose from the predicted state, the friction normal forces and
+        normals refreshed inside it (at most `friction_passes` times) until they settle."""
         system, cs = self.system, self.system.contact_settings
         system.x_start = self.x.copy()
         system.indenter = indenter
-        system.lagged_force[:] = 0.0
-        iterations, q, pressure, result = 0, system.free_coordinates(self.x), self.pressure, None
-        for _ in range(cs.friction_passes):
-            terms = system.evaluate(system.positions(q), want_hessian=False)
-            force = cs.penalty_stiffness * system.vertex_area * np.maximum(-terms["indenter_gap"], 0.0)
-            change = np.max(np.abs(force - system.lagged_force), initial=0.0)
-            if result is not None and change <= cs.friction_tolerance * max(force.max(initial=0.0), 1e-12):
-                break
-            system.lagged_force = force
-            system.lagged_normal = terms["indenter_normal"]
-            result = solve_equilibrium(system, q, pressure, self.target_volume, self.newton)
-            iterations += result.iterations
-            q, pressure = result.q, result.pressure
-            if not result.converged or system.params.friction == 0.0:
-                break
-        return result, iterations
+        x0 = self._predict(indenter)
+        self._lag_contact(x0)
+        passes = 0
+
+        def refresh(q: np.ndarray) -> bool:
+            nonlocal passes
+            if passes >= cs.friction_passes:
+                return False
+            passes += 1
+            return self._lag_contact(system.positions(q))
+
+        result = solve_equilibrium(
+            system,
+            system.free_coordinates(x0),
+            self.pressure,
+            self.target_volume,
+            self.newton,
+            refresh=refresh if system.params.friction > 0.0 else None,
+        )
+        return result, result.iterations
+
+    def _lag_contact(self, x: np.ndarray) -> bool:
+        """Set the lagged friction normal forces (N) and normals from positions x (V,3) m; returns whether
+        the forces changed by more than the friction tolerance (relative to the largest one)."""
+        system, cs = self.system, self.system.contact_settings
+        gap, normal = system.indenter_proximity(x, system.indenter)
+        force = cs.penalty_stiffness * system.vertex_area * np.maximum(-gap, 0.0)
+        change = np.max(np.abs(force - system.lagged_force), initial=0.0)
+        if change <= cs.friction_tolerance * max(force.max(initial=0.0), 1e-12):
+            return False
+        system.lagged_force, system.lagged_normal = force, normal
+        return True
 
     def _finish(
         self, indenter: IndenterState, result: NewtonResult, iterations: int, depth: float, start: float
@@ -207,6 +241,9 @@ class IndentationStepper:
         f_indenter, balance = _force_balance(system, terms, result.pressure)
         in_contact = terms["indenter_gap"] < 0.0
         if result.converged:
+            self._motion, self._travel = x - self.x, indenter.translation - indenter.translation_start
+            self._gap_change = np.minimum(terms["indenter_gap"], 0.0) - np.minimum(self._gap, 0.0)
+            self._gap = terms["indenter_gap"]
             self.x, self.pressure, self.in_contact = x, result.pressure, bool(in_contact.any())
         else:
             self.failure = result.message

@@ -2,8 +2,12 @@
 
 Solves grad E(x) - p grad V(x) = 0 and V(x) = V_target for the free positions x (m) and the fluid
 pressure p (Pa), the Lagrange multiplier of the volume constraint. Each step solves the bordered KKT
-system [[K, -b], [-b^T, 0]] with a sparse direct factorisation, where K is the PSD-projected Hessian of
-E minus p times the volume Hessian, and backtracks on an augmented-Lagrangian merit function.
+system [[K, -b], [-b^T, 0]] through its Schur complement with a sparse direct factorisation of K
+(`fe.linsolve`), where K is the Hessian of E minus p
+times the volume Hessian, and backtracks on an augmented-Lagrangian merit function. K is the exact
+Hessian (quadratic convergence near a stable equilibrium); an iteration whose exact step shows
+non-positive curvature, or finds no acceptable step length, is redone with per-element PSD-projected
+energy Hessians (robust, but only linearly convergent).
 """
 
 from collections.abc import Callable
@@ -12,7 +16,8 @@ from typing import Protocol
 
 import numpy as np
 import scipy.sparse as sp
-import scipy.sparse.linalg as spla
+
+from fe.linsolve import SingularMatrixError, SymmetricSolver
 
 
 @dataclass
@@ -27,9 +32,17 @@ class Linearization:
 
 
 class EquilibriumProblem(Protocol):
-    """What Newton needs from a model: values, gradients and Hessians at free positions `q` (m)."""
+    """What Newton needs from a model: values, gradients and Hessians at free positions `q` (m), and a
+    factorisation object kept across solves (its symbolic analysis is reused).
 
-    def linearize(self, q: np.ndarray, pressure: float, want_matrix: bool) -> Linearization: ...
+    With `projected` the energy Hessian blocks are projected to PSD element by element.
+    """
+
+    linear_solver: SymmetricSolver
+
+    def linearize(
+        self, q: np.ndarray, pressure: float, want_matrix: bool, projected: bool = False
+    ) -> Linearization: ...
 
 
 @dataclass(frozen=True)
@@ -45,6 +58,8 @@ class NewtonSettings:
     volume_tolerance: float = 1e-10
     max_iterations: int = 60
     max_backtracks: int = 30
+    refresh_factor: float = 1e5
+    """Lagged quantities are refreshed once the residual is below refresh_factor x its tolerance."""
 
 
 @dataclass
@@ -78,8 +93,14 @@ def solve_equilibrium(
     target_volume: float | None,
     settings: NewtonSettings = NewtonSettings(),
     on_iteration: Callable[[int, float], None] | None = None,
+    refresh: Callable[[np.ndarray], bool] | None = None,
 ) -> NewtonResult:
-    """Newton-solve from (q0, pressure0). With `target_volume` None the pressure is held fixed instead."""
+    """Newton-solve from (q0, pressure0). With `target_volume` None the pressure is held fixed instead.
+
+    `refresh(q)`, when given, updates lagged data of the problem (e.g. friction normal forces) near
+    convergence and returns whether they changed beyond their tolerance; a solve only converges once
+    they have settled.
+    """
     q, pressure = q0.copy(), float(pressure0)
     lin = problem.linearize(q, pressure, want_matrix=True)
     volume_scale = abs(target_volume) if target_volume else 1.0
@@ -91,58 +112,91 @@ def solve_equilibrium(
             on_iteration(iteration, rnorm)
         if not np.isfinite(rnorm):
             return NewtonResult(q, pressure, False, iteration, rnorm, lin.volume, "non-finite residual")
-        load = max(
-            np.max(np.abs(lin.gradient), initial=0.0), np.max(np.abs(pressure * lin.volume_gradient), initial=0.0)
-        )
-        tolerance = max(settings.force_tolerance, settings.relative_force_tolerance * load)
+        tolerance = _force_tolerance(lin, pressure, settings)
+        if refresh is not None and rnorm <= settings.refresh_factor * tolerance and refresh(q):
+            lin = problem.linearize(q, pressure, want_matrix=True)
+            continue
         if rnorm <= tolerance and abs(c) <= settings.volume_tolerance * volume_scale:
             return NewtonResult(q, pressure, True, iteration, rnorm, lin.volume, "converged")
         if iteration == settings.max_iterations:
             break
-        dq, dp = _newton_step(lin, r, c, target_volume is not None)
-        if dq is None:
-            return NewtonResult(q, pressure, False, iteration, rnorm, lin.volume, "singular KKT matrix")
-        new_pressure = pressure + dp
-        curvature = float(dq @ (lin.matrix @ dq))
-        rho = 3.0 * max(0.0, -curvature) / (c * c) if c != 0.0 else 0.0
-        phi0 = _merit(lin, new_pressure, target_volume, rho)
-        slope = float(_residual(lin, new_pressure) @ dq) - rho * c * c
-        step, accepted = 1.0, False
-        for _ in range(settings.max_backtracks):
-            trial = problem.linearize(q + step * dq, new_pressure, want_matrix=False)
-            phi = _merit(trial, new_pressure, target_volume, rho)
-            if np.isfinite(phi) and (phi <= phi0 + 1e-4 * step * min(slope, 0.0) or slope >= 0.0 and phi <= phi0):
-                accepted = True
-                break
-            step *= 0.5
-        if not accepted:
-            # Near the solution the merit function stalls at round-off; accept a full step that still
-            # reduces the residual force.
-            step = 1.0
-            trial = problem.linearize(q + dq, new_pressure, want_matrix=False)
-            if not np.max(np.abs(_residual(trial, new_pressure)), initial=0.0) < rnorm:
-                return NewtonResult(q, pressure, False, iteration, rnorm, lin.volume, "line search failed")
-        q = q + step * dq
-        pressure = pressure + step * dp
+        step = _line_search(problem, lin, q, pressure, r, c, target_volume, settings, robust=False)
+        if step is None:
+            projected = problem.linearize(q, pressure, want_matrix=True, projected=True)
+            step = _line_search(problem, projected, q, pressure, r, c, target_volume, settings, robust=True)
+        if step is None:
+            return NewtonResult(q, pressure, False, iteration, rnorm, lin.volume, "line search failed")
+        q, pressure = step
         lin = problem.linearize(q, pressure, want_matrix=True)
     r = _residual(lin, pressure)
     rnorm = float(np.max(np.abs(r))) if r.size else 0.0
     return NewtonResult(q, pressure, False, settings.max_iterations, rnorm, lin.volume, "iteration limit")
 
 
-def _newton_step(lin: Linearization, r: np.ndarray, c: float, constrained: bool) -> tuple[np.ndarray | None, float]:
-    """Solve the (bordered) Newton system; returns (dq, dp) or (None, 0) when singular."""
-    K = lin.matrix
+def _force_tolerance(lin: Linearization, pressure: float, settings: NewtonSettings) -> float:
+    """Residual force tolerance (N): absolute floor or a part-per-million of the largest nodal load."""
+    load = max(np.max(np.abs(lin.gradient), initial=0.0), np.max(np.abs(pressure * lin.volume_gradient), initial=0.0))
+    return max(settings.force_tolerance, settings.relative_force_tolerance * load)
+
+
+def _line_search(
+    problem: EquilibriumProblem,
+    lin: Linearization,
+    q: np.ndarray,
+    pressure: float,
+    r: np.ndarray,
+    c: float,
+    target_volume: float | None,
+    settings: NewtonSettings,
+    robust: bool,
+) -> tuple[np.ndarray, float] | None:
+    """Newton step with backtracking on the merit function: new (q, pressure), or None when the matrix is
+    singular, has non-positive curvature along the step (unless `robust`), or no step length is acceptable."""
+    dq, dp = _newton_step(lin, r, c, target_volume is not None, problem.linear_solver)
+    if dq is None:
+        return None
+    new_pressure = pressure + dp
+    curvature = float(dq @ (lin.matrix @ dq))
+    if not curvature > 0.0 and not (robust and c != 0.0):
+        return None
+    # Along dq the slope of the Lagrangian at the new pressure is -curvature; where that is not negative
+    # (robust mode only) a quadratic penalty on the volume error restores descent.
+    rho = 3.0 * max(0.0, -curvature) / (c * c) if c != 0.0 else 0.0
+    phi0 = _merit(lin, new_pressure, target_volume, rho)
+    slope = float(_residual(lin, new_pressure) @ dq) - rho * c * c
+    step = 1.0
+    for _ in range(settings.max_backtracks):
+        trial = problem.linearize(q + step * dq, new_pressure, want_matrix=False)
+        phi = _merit(trial, new_pressure, target_volume, rho)
+        if np.isfinite(phi) and phi <= phi0 + 1e-4 * step * min(slope, 0.0):
+            return q + step * dq, pressure + step * dp
+        step *= 0.5
+    # Near the solution the merit function stalls at round-off; accept a full step that still reduces the
+    # residual force.
+    trial = problem.linearize(q + dq, new_pressure, want_matrix=False)
+    if np.max(np.abs(_residual(trial, new_pressure)), initial=0.0) < np.max(np.abs(r), initial=0.0):
+        return q + dq, new_pressure
+    return None
+
+
+def _newton_step(
+    lin: Linearization, r: np.ndarray, c: float, constrained: bool, solver: SymmetricSolver
+) -> tuple[np.ndarray | None, float]:
+    """Solve the (bordered) Newton system; returns (dq, dp) or (None, 0) when singular.
+
+    The bordered system is solved through its Schur complement: with K u1 = -r and K u2 = b,
+    dq = u1 + dp u2 and dp = -(c + b.u1) / (b.u2), so only K is factorised.
+    """
     try:
+        solver.factorize(lin.matrix)
         if not constrained:
-            lu = spla.splu(K.tocsc(), permc_spec="MMD_AT_PLUS_A", options={"SymmetricMode": True})
-            return lu.solve(-r), 0.0
-        b = lin.volume_gradient[:, None]
-        kkt = sp.bmat([[K, sp.csr_matrix(-b)], [sp.csr_matrix(-b.T), None]], format="csc")
-        lu = spla.splu(kkt, permc_spec="MMD_AT_PLUS_A", options={"SymmetricMode": True})
-        sol = lu.solve(np.concatenate([-r, [c]]))
-    except RuntimeError:
+            return solver.solve(-r), 0.0
+        b = lin.volume_gradient
+        u = solver.solve(np.column_stack([-r, b]))
+    except SingularMatrixError:
         return None, 0.0
-    if not np.all(np.isfinite(sol)):
+    schur = float(b @ u[:, 1])
+    if not (np.isfinite(schur) and schur != 0.0):
         return None, 0.0
-    return sol[:-1], float(sol[-1])
+    dp = -(c + float(b @ u[:, 0])) / schur
+    return u[:, 0] + dp * u[:, 1], dp

@@ -14,7 +14,7 @@ import trimesh
 from assets.biotac import BioTacGeometry, vertex_normals
 from assets.indenters import Indenter, get_indenter
 from fe.indentation import IncrementResult, IndentationStepper, Trajectory, indent
-from fe.newton import NewtonSettings, solve_equilibrium
+from fe.newton import NewtonResult, NewtonSettings, solve_equilibrium
 from fe.params import ContactSettings, SkinParameters
 from fe.shell import RigidSurface, ShellMesh, ShellSystem
 
@@ -74,8 +74,19 @@ class BioTacModel:
         outer = x + 0.5 * self.params.thickness * vertex_normals(x, self.geometry.skin.triangles)
         return float(self.geometry.dorsal_top_z - outer[:, 2].min())
 
-    def _solve_volume(self, q: np.ndarray, pressure: float, volume: float):
-        return solve_equilibrium(self.system, q, pressure, volume, self.newton)
+    def _solve_volume(
+        self, q: np.ndarray, pressure: float, volume: float, start_volume: float, splits: int = 4
+    ) -> NewtonResult:
+        """Equilibrium at `volume` (m^3) from the state (q, pressure) held at `start_volume`; a jump that does
+        not converge is split in two, at most `splits` times deep."""
+        result = solve_equilibrium(self.system, q, pressure, volume, self.newton)
+        if result.converged or splits == 0:
+            return result
+        middle = 0.5 * (start_volume + volume)
+        half = self._solve_volume(q, pressure, middle, start_volume, splits - 1)
+        if not half.converged:
+            return half
+        return self._solve_volume(half.q, half.pressure, volume, middle, splits - 1)
 
     def inflate(self, target_thickness: float | None = SENSOR_THICKNESS, volume_step: float = 0.02) -> InflationResult:
         """Inflate to `target_thickness` (m), or by the thermal rule when it is None.
@@ -92,18 +103,18 @@ class BioTacModel:
             targets = np.linspace(v, v + dv_total, max(2, int(np.ceil(abs(dv_total) / (volume_step * abs(v)))) + 1))[1:]
             result = None
             for target in targets:
-                result = self._solve_volume(q, pressure, target)
+                result = self._solve_volume(q, pressure, target, v)
                 if not result.converged:
                     break
-                q, pressure = result.q, result.pressure
-            return self._finish(q, pressure, targets[-1], result.converged, result.message)
+                q, pressure, v = result.q, result.pressure, target
+            return self._finish(q, pressure, v, result.converged, result.message)
         if target_thickness <= self.thickness(self.system.x):
             raise ValueError(f"target thickness {target_thickness * 1e3:.2f} mm is below the unpressurised one")
         lo_v, lo_t = v, self.thickness(self.system.x)
         lo_state = (q, pressure)
         for _ in range(200):
             hi_v = lo_v + volume_step * abs(self._volume0)
-            result = self._solve_volume(*lo_state, hi_v)
+            result = self._solve_volume(*lo_state, hi_v, lo_v)
             if not result.converged:
                 return self._finish(*lo_state, lo_v, False, f"inflation stalled: {result.message}")
             hi_t = self.thickness(self.system.positions(result.q))
@@ -112,13 +123,13 @@ class BioTacModel:
             lo_v, lo_t, lo_state = hi_v, hi_t, (result.q, result.pressure)
         else:
             return self._finish(*lo_state, lo_v, False, "target thickness not reached")
-        state = (result.q, result.pressure)
+        state, state_v = (result.q, result.pressure), hi_v
         for _ in range(30):
             v = lo_v + (target_thickness - lo_t) * (hi_v - lo_v) / (hi_t - lo_t)
-            result = self._solve_volume(*state, v)
+            result = self._solve_volume(*state, v, state_v)
             if not result.converged:
-                return self._finish(*state, v, False, f"inflation refinement failed: {result.message}")
-            state = (result.q, result.pressure)
+                return self._finish(*state, state_v, False, f"inflation refinement failed: {result.message}")
+            state, state_v = (result.q, result.pressure), v
             t_now = self.thickness(self.system.positions(result.q))
             if abs(t_now - target_thickness) < 1e-6:
                 break

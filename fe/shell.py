@@ -12,6 +12,7 @@ import warp as wp
 
 from fe import bending, contact, membrane, volume
 from fe.assembly import BlockAssembler, project_psd
+from fe.linsolve import SymmetricSolver
 from fe.newton import Linearization
 from fe.params import ContactSettings, SkinParameters
 from fe.wptypes import mat99d, mat1212d
@@ -118,6 +119,8 @@ class ShellSystem:
         self.x_start = self.x.copy()
         self.lagged_force = np.zeros(self.n_vertices)
         self.lagged_normal = np.zeros((self.n_vertices, 3))
+        self._allocate()
+        self.linear_solver = SymmetricSolver()
 
     # -- state -------------------------------------------------------------------------------
     def positions(self, q: np.ndarray) -> np.ndarray:
@@ -131,150 +134,154 @@ class ShellSystem:
         return x.reshape(-1)[self.free_dofs].copy()
 
     # -- evaluation --------------------------------------------------------------------------
-    def evaluate(self, x: np.ndarray, want_hessian: bool) -> dict[str, np.ndarray | float]:
-        """All terms at full positions x (m): energies (J), node gradients (V,3) (N), Hessian blocks."""
+    def _allocate(self) -> None:
+        """Warp buffers reused by every evaluation (batch axis of 1)."""
         nv, nt, nh = self.n_vertices, len(self.mesh.triangles), len(self.hinges)
-        xw = wp.array(x[None], dtype=wp.vec3d)
+        zeros = wp.zeros
+        self._buf = {
+            "x": zeros((1, nv), dtype=wp.vec3d),
+            "x_start": zeros((1, nv), dtype=wp.vec3d),
+            "lagged_force": zeros((1, nv), dtype=wp.float64),
+            "lagged_normal": zeros((1, nv), dtype=wp.vec3d),
+            "elastic_gradient": zeros((1, nv), dtype=wp.vec3d),
+            "membrane_energy": zeros((1, nt), dtype=wp.float64),
+            "membrane_hessian": zeros((1, nt), dtype=mat99d),
+            "bending_energy": zeros((1, nh), dtype=wp.float64),
+            "bending_hessian": zeros((1, nh), dtype=mat1212d),
+            "volume": zeros((1, nt), dtype=wp.float64),
+            "volume_gradient": zeros((1, nv), dtype=wp.vec3d),
+            "volume_hessian": zeros((1, nt), dtype=mat99d),
+            "core_energy": zeros((1, nv), dtype=wp.float64),
+            "core_gradient": zeros((1, nv), dtype=wp.vec3d),
+            "core_hessian": zeros((1, nv), dtype=wp.mat33d),
+            "core_gap": zeros((1, nv), dtype=wp.float64),
+            "indenter_energy": zeros((1, nv), dtype=wp.float64),
+            "indenter_gradient": zeros((1, nv), dtype=wp.vec3d),
+            "indenter_hessian": zeros((1, nv), dtype=wp.mat33d),
+            "indenter_gap": zeros((1, nv), dtype=wp.float64),
+            "indenter_normal": zeros((1, nv), dtype=wp.vec3d),
+        }
+        self._mu_t = wp.array([self.params.membrane_modulus], dtype=wp.float64)
+        self._kb = wp.array([self.params.bending_stiffness], dtype=wp.float64)
+        self._friction = wp.array([self.params.friction], dtype=wp.float64)
+
+    def _host(self, name: str) -> np.ndarray:
+        """A copy of buffer `name` for batch 0."""
+        return self._buf[name].numpy()[0].copy()
+
+    def evaluate(self, x: np.ndarray, want_hessian: bool) -> dict[str, np.ndarray | float]:
+        """All terms at full positions x (m): energies (J), node gradients (V,3) (N), Hessian blocks.
+
+        Contact terms use the current `indenter` pose, `x_start`, `lagged_force` and `lagged_normal`.
+        """
+        nv, nt, nh = self.n_vertices, len(self.mesh.triangles), len(self.hinges)
+        buf = self._buf
+        buf["x"].numpy()[0] = x
+        for name in ("elastic_gradient", "volume_gradient", "core_gradient", "indenter_gradient"):
+            buf[name].zero_()
         flag = 1 if want_hessian else 0
-        out: dict[str, np.ndarray | float] = {}
-
-        grad = wp.zeros((1, nv), dtype=wp.vec3d)
-        e = wp.zeros((1, nt), dtype=wp.float64)
-        h9 = wp.zeros((1, nt if want_hessian else 0), dtype=mat99d)
-        mu_t = wp.array([self.params.membrane_modulus], dtype=wp.float64)
+        xw = buf["x"]
         wp.launch(
-            membrane.membrane_kernel, (1, nt), [xw, self._tri, self._dm_inv, self._rest_area, mu_t, flag, e, grad, h9]
+            membrane.membrane_kernel,
+            (1, nt),
+            [xw, self._tri, self._dm_inv, self._rest_area, self._mu_t, flag]
+            + [buf["membrane_energy"], buf["elastic_gradient"], buf["membrane_hessian"]],
         )
-        out["elastic_energy"] = float(e.numpy().sum())
-        out["membrane_hessian"] = h9.numpy()[0] if want_hessian else None
-
-        out["bending_hessian"] = np.zeros((0, 12, 12))
         if nh:
-            eb = wp.zeros((1, nh), dtype=wp.float64)
-            h12 = wp.zeros((1, nh if want_hessian else 0), dtype=mat1212d)
-            kb = wp.array([self.params.bending_stiffness], dtype=wp.float64)
             wp.launch(
                 bending.bending_kernel,
                 (1, nh),
-                [xw, self._hinges, self._rest_angle, self._rest_weight, kb, flag, eb, grad, h12],
+                [xw, self._hinges, self._rest_angle, self._rest_weight, self._kb, flag]
+                + [buf["bending_energy"], buf["elastic_gradient"], buf["bending_hessian"]],
             )
-            out["elastic_energy"] += float(eb.numpy().sum())
-            out["bending_hessian"] = h12.numpy()[0] if want_hessian else None
-        out["elastic_gradient"] = grad.numpy()[0]
-
-        vgrad = wp.zeros((1, nv), dtype=wp.vec3d)
-        ev = wp.zeros((1, nt), dtype=wp.float64)
-        hv = wp.zeros((1, nt if want_hessian else 0), dtype=mat99d)
-        wp.launch(volume.volume_kernel, (1, nt), [xw, self._tri, wp.vec3d(*self.volume_origin), flag, ev, vgrad, hv])
-        out["volume"] = float(ev.numpy().sum())
-        out["volume_gradient"] = vgrad.numpy()[0]
-        out["volume_hessian"] = hv.numpy()[0] if want_hessian else None
-
-        out.update(self._contact_terms(xw, want_hessian))
+        wp.launch(
+            volume.volume_kernel,
+            (1, nt),
+            [xw, self._tri, wp.vec3d(*self.volume_origin), flag]
+            + [buf["volume"], buf["volume_gradient"], buf["volume_hessian"]],
+        )
+        self._launch_contact(want_hessian)
+        out: dict[str, np.ndarray | float] = {
+            "elastic_energy": float(buf["membrane_energy"].numpy().sum() + buf["bending_energy"].numpy().sum()),
+            "volume": float(buf["volume"].numpy().sum()),
+            "core_energy": float(buf["core_energy"].numpy().sum()),
+            "indenter_energy": float(buf["indenter_energy"].numpy().sum()),
+        }
+        for name in ("elastic_gradient", "volume_gradient", "core_gradient", "core_gap", "indenter_gradient"):
+            out[name] = self._host(name)
+        for name in ("indenter_gap", "indenter_normal"):
+            out[name] = self._host(name) if self.indenter is not None else None
+        if out["indenter_gap"] is None:
+            out["indenter_gap"], out["indenter_normal"] = np.ones(nv), np.zeros((nv, 3))
+        if self._core_mesh is None:
+            out["core_gap"] = np.ones(nv)
+        for name in ("membrane_hessian", "bending_hessian", "volume_hessian"):
+            out[name] = self._host(name) if want_hessian else None
+        out["contact_hessian"] = (self._host("core_hessian") + self._host("indenter_hessian")) if want_hessian else None
         return out
 
-    def _contact_terms(self, xw: wp.array, want_hessian: bool) -> dict[str, np.ndarray | float]:
-        nv = self.n_vertices
+    def _launch_contact(self, want_hessian: bool) -> None:
+        """Core and indenter contact kernels into the shared buffers."""
+        nv, buf = self.n_vertices, self._buf
         kappa = wp.float64(self.contact_settings.penalty_stiffness)
-        terms: dict[str, np.ndarray | float] = {}
-        core_grad = wp.zeros((1, nv), dtype=wp.vec3d)
-        core_h = wp.zeros((1, nv), dtype=wp.mat33d)
-        core_gap = wp.zeros((1, nv), dtype=wp.float64)
-        core_e = wp.zeros((1, nv), dtype=wp.float64)
+        for name in ("core_energy", "core_hessian", "indenter_energy", "indenter_hessian"):
+            buf[name].zero_()
         if self._core_mesh is not None:
             wp.launch(
                 contact.core_contact_kernel,
                 (1, nv),
-                [
-                    xw,
-                    self._core_mesh.id,
-                    self._core_vertices,
-                    self._core_triangles,
-                    self._vertex_area,
-                    wp.float64(self.core.offset),
-                    kappa,
-                    core_e,
-                    core_grad,
-                    core_h,
-                    core_gap,
-                ],
+                [buf["x"], self._core_mesh.id, self._core_vertices, self._core_triangles, self._vertex_area]
+                + [wp.float64(self.core.offset), kappa, buf["core_energy"], buf["core_gradient"]]
+                + [buf["core_hessian"], buf["core_gap"]],
             )
-        terms["core_energy"] = float(core_e.numpy().sum())
-        terms["core_gradient"] = core_grad.numpy()[0]
-        terms["core_gap"] = core_gap.numpy()[0] if self._core_mesh is not None else np.ones(nv)
-        ind_grad = wp.zeros((1, nv), dtype=wp.vec3d)
-        ind_h = wp.zeros((1, nv), dtype=wp.mat33d)
-        ind_gap = wp.zeros((1, nv), dtype=wp.float64)
-        ind_n = wp.zeros((1, nv), dtype=wp.vec3d)
-        ind_e = wp.zeros((1, nv), dtype=wp.float64)
         ind = self.indenter
-        if ind is not None:
-            wp.launch(
-                contact.indenter_contact_kernel,
-                (1, nv),
-                [
-                    xw,
-                    wp.array(self.x_start[None], dtype=wp.vec3d),
-                    self._vertex_area,
-                    ind.kind,
-                    wp.vec4d(*ind.dims),
-                    wp.array([ind.rotation], dtype=wp.mat33d),
-                    wp.array([ind.translation], dtype=wp.vec3d),
-                    wp.array([ind.rotation if ind.rotation_start is None else ind.rotation_start], dtype=wp.mat33d),
-                    wp.array([ind.translation_start], dtype=wp.vec3d),
-                    wp.array([ind.offset], dtype=wp.float64),
-                    kappa,
-                    wp.array([self.params.friction], dtype=wp.float64),
-                    wp.array(self.lagged_force[None], dtype=wp.float64),
-                    wp.array(self.lagged_normal[None], dtype=wp.vec3d),
-                    wp.float64(self.contact_settings.slip_length),
-                    1 if want_hessian else 0,
-                    ind_e,
-                    ind_grad,
-                    ind_h,
-                    ind_gap,
-                    ind_n,
-                ],
-            )
-        terms["indenter_energy"] = float(ind_e.numpy().sum())
-        terms["indenter_gradient"] = ind_grad.numpy()[0]
-        terms["indenter_gap"] = ind_gap.numpy()[0] if ind is not None else np.ones(nv)
-        terms["indenter_normal"] = ind_n.numpy()[0]
-        terms["contact_hessian"] = (core_h.numpy()[0] + ind_h.numpy()[0]) if want_hessian else None
-        return terms
+        if ind is None:
+            return
+        buf["x_start"].numpy()[0] = self.x_start
+        buf["lagged_force"].numpy()[0] = self.lagged_force
+        buf["lagged_normal"].numpy()[0] = self.lagged_normal
+        rotation_start = ind.rotation if ind.rotation_start is None else ind.rotation_start
+        wp.launch(
+            contact.indenter_contact_kernel,
+            (1, nv),
+            [buf["x"], buf["x_start"], self._vertex_area, ind.kind, wp.vec4d(*ind.dims)]
+            + [wp.array([ind.rotation], dtype=wp.mat33d), wp.array([ind.translation], dtype=wp.vec3d)]
+            + [wp.array([rotation_start], dtype=wp.mat33d), wp.array([ind.translation_start], dtype=wp.vec3d)]
+            + [wp.array([ind.offset], dtype=wp.float64), kappa, self._friction, buf["lagged_force"]]
+            + [buf["lagged_normal"], wp.float64(self.contact_settings.slip_length), 1 if want_hessian else 0]
+            + [buf["indenter_energy"], buf["indenter_gradient"], buf["indenter_hessian"], buf["indenter_gap"]]
+            + [buf["indenter_normal"]],
+        )
 
-    def indenter_gaps(self, x: np.ndarray, indenter: IndenterState) -> np.ndarray:
-        """Gap (m) of every skin vertex at positions x (V,3) to `indenter`: negative inside the contact band."""
-        gap = wp.zeros((1, self.n_vertices), dtype=wp.float64)
+    def indenter_proximity(self, x: np.ndarray, indenter: IndenterState) -> tuple[np.ndarray, np.ndarray]:
+        """Gap (m, negative inside the contact band) and unit SDF normal (V,3) of every vertex at x to `indenter`."""
+        buf = self._buf
+        buf["x"].numpy()[0] = x
         wp.launch(
             contact.indenter_gap_kernel,
             (1, self.n_vertices),
-            [
-                wp.array(x[None], dtype=wp.vec3d),
-                indenter.kind,
-                wp.vec4d(*indenter.dims),
-                wp.array([indenter.rotation], dtype=wp.mat33d),
-                wp.array([indenter.translation], dtype=wp.vec3d),
-                wp.array([indenter.offset], dtype=wp.float64),
-                gap,
-            ],
+            [buf["x"], indenter.kind, wp.vec4d(*indenter.dims), wp.array([indenter.rotation], dtype=wp.mat33d)]
+            + [wp.array([indenter.translation], dtype=wp.vec3d), wp.array([indenter.offset], dtype=wp.float64)]
+            + [buf["indenter_gap"], buf["indenter_normal"]],
         )
-        return gap.numpy()[0]
+        return self._host("indenter_gap"), self._host("indenter_normal")
 
-    def linearize(self, q: np.ndarray, pressure: float, want_matrix: bool) -> Linearization:
-        """Newton's view of the system at free positions q (m) and fluid pressure (Pa)."""
+    def linearize(self, q: np.ndarray, pressure: float, want_matrix: bool, projected: bool = False) -> Linearization:
+        """Newton's view of the system at free positions q (m) and fluid pressure (Pa).
+
+        The matrix is the Hessian of the energy minus pressure times the volume Hessian; with `projected`
+        each membrane, bending and contact block is first projected to PSD.
+        """
         terms = self.evaluate(self.positions(q), want_matrix)
         energy = terms["elastic_energy"] + terms["core_energy"] + terms["indenter_energy"]
         gradient = terms["elastic_gradient"] + terms["core_gradient"] + terms["indenter_gradient"]
         matrix = None
         if want_matrix:
-            tri_blocks = project_psd(terms["membrane_hessian"]) - pressure * terms["volume_hessian"]
-            blocks = [
-                tri_blocks,
-                project_psd(terms["bending_hessian"]),
-                project_psd(terms["contact_hessian"]),
-            ]
-            matrix = self.assembler.assemble(blocks)
+            energy_blocks = [terms["membrane_hessian"], terms["bending_hessian"], terms["contact_hessian"]]
+            if projected:
+                energy_blocks = [project_psd(block) for block in energy_blocks]
+            energy_blocks[0] = energy_blocks[0] - pressure * terms["volume_hessian"]
+            matrix = self.assembler.assemble(energy_blocks)
         free = self.free_dofs
         return Linearization(
             energy=energy,
