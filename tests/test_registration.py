@@ -34,6 +34,8 @@ def test_frame_from_points_is_right_handed_and_anchored():
     assert np.allclose(frame[:3, :3], np.eye(3)) and np.allclose(frame[:3, 3], p[0])
     with pytest.raises(ValueError, match="collinear"):
         frame_from_points(np.array([[0, 0, 0], [1, 1, 1], [2, 2, 2.0]]))
+    with pytest.raises(ValueError, match="collinear"):
+        frame_from_points(np.array([[1, 2, 3], [1, 2, 3], [0, 0, 1.0]]))
 
 
 def test_estimate_is_exact_for_exact_points_and_maps_biotac_to_robot():

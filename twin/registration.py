@@ -46,10 +46,10 @@ this size (docs/testbed.md)."""
 def frame_from_points(points: np.ndarray) -> np.ndarray:
     """(4, 4) pose of frame I built on three points (3, 3) m: origin p0, x toward p1, z = (p1-p0) x (p2-p0)."""
     p = np.asarray(points, dtype=float)
-    x = p[1] - p[0]
-    z = np.cross(x, p[2] - p[0])
+    x, y = p[1] - p[0], p[2] - p[0]
+    z = np.cross(x, y)
     nz = np.linalg.norm(z)
-    if nz < 1e-12 * max(np.linalg.norm(x), 1e-300) ** 2:
+    if nz <= 1e-9 * np.linalg.norm(x) * np.linalg.norm(y):
         raise ValueError("frame_from_points: the three points are collinear")
     x, z = x / np.linalg.norm(x), z / nz
     frame = np.eye(4)
