@@ -36,6 +36,7 @@ def run(mesh_mm: float, indenter: str, point_mm: list[float], depth_mm: float, s
         "reached_mm": increments[-1].depth * 1e3,
         "converged": increments[-1].converged,
         "force": increments[-1].force,
+        "backend": model.system.linear_solver.backend,
     }
 
 
@@ -77,6 +78,7 @@ def main() -> None:
             f"{change:.1%}",
         )
     Console().print(table)
+    Console().print(f"sparse factorisation: {rows[0]['backend']}")
 
 
 if __name__ == "__main__":

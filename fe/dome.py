@@ -69,6 +69,30 @@ def hemisphere_mesh(radius: float, max_edge: float) -> ShellMesh:
     return ShellMesh(v, t, fixed)
 
 
+def disk_mesh(radius: float, max_edge: float, clamp_rings: int = 2) -> ShellMesh:
+    """Flat disk z = 0 (m) of concentric rings, normals +z, centre vertex first; the `clamp_rings` rings
+    beyond `radius` are held fixed, so the plate edge at `radius` is clamped (no deflection, no slope)."""
+    if radius <= 0 or max_edge <= 0 or clamp_rings < 1:
+        raise ValueError("radius and max_edge must be positive and clamp_rings at least 1")
+    n_rings = max(2, int(np.ceil(radius / max_edge)))
+    step = radius / n_rings
+    vertices, rings, angles = [np.zeros((1, 3))], [np.array([0])], [np.array([0.0])]
+    for k in range(1, n_rings + clamp_rings + 1):
+        count = max(6, int(np.ceil(2 * np.pi * k * step / max_edge)))
+        az = np.sort((np.arange(count) * 2 * np.pi / count + 0.5 * (k % 2) * 2 * np.pi / count) % (2 * np.pi))
+        start = sum(len(r) for r in rings)
+        rings.append(np.arange(start, start + count))
+        angles.append(az)
+        vertices.append(np.column_stack([k * step * np.cos(az), k * step * np.sin(az), np.zeros(count)]))
+    tris = [tri for k in range(1, len(rings)) for tri in _zip_rings(rings[k], rings[k - 1], angles[k], angles[k - 1])]
+    v = np.vstack(vertices)
+    t = np.asarray([tri for tri in tris if len(set(tri)) == 3], dtype=np.int32)
+    flip = np.cross(v[t[:, 1]] - v[t[:, 0]], v[t[:, 2]] - v[t[:, 0]])[:, 2] < 0
+    t[flip] = t[flip][:, ::-1]
+    fixed = np.linalg.norm(v[:, :2], axis=1) > radius * (1 + 1e-9)
+    return ShellMesh(v, t, fixed)
+
+
 @dataclass(frozen=True)
 class DomeResult:
     """Inflated state and indentation increments of the dome benchmark."""
