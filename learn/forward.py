@@ -146,7 +146,8 @@ class ForwardModel:
                 stale += 1
                 if stale >= self.patience:
                     break
-        self.net.load_state_dict(best_state)
+        if best_state is not None:
+            self.net.load_state_dict(best_state)
         return self
 
     def predict(self, features: np.ndarray) -> np.ndarray:

@@ -6,7 +6,8 @@ linear head per target ("contact_loc": 3, "force": 3, "nodal": 3 K).
 PointNet++ (the paper's architecture): the 19 electrodes are points with features (value, x, y, z).
 Three set-abstraction levels down to 32, 8 and 1 points with ball radii 2.5 mm, 7 mm and infinity and
 shared MLPs [64, 64, 128], [128, 128, 256], [256, 256, 512], max-pooled over each ball; then two fully
-connected layers of 1024. Electrode positions are the same on every BioTac, so sampling (farthest
+connected layers of 1024. Hidden layers are batch-normalised as in PointNet++ (without it training
+sits on the mean predictor for several epochs). Electrode positions are the same on every BioTac, so sampling (farthest
 point) and grouping (ball query) are computed once from them and stored as index buffers. Sampling 32
 centres from 19 points repeats the farthest-point order cyclically (PointNet++ samples with repetition
 when asked for more centres than points).
@@ -51,11 +52,22 @@ def ball_groups(points: np.ndarray, centres: np.ndarray, radius: float, size: in
     return np.where(inside, nearest, nearest[:, :1])
 
 
-def shared_mlp(width_in: int, widths: tuple[int, ...]) -> nn.Sequential:
-    """Linear + ReLU layers applied to the last axis."""
+class ChannelBatchNorm(nn.Module):
+    """Batch normalisation of the last axis (channels) over every other axis."""
+
+    def __init__(self, width: int) -> None:
+        super().__init__()
+        self.norm = nn.BatchNorm1d(width)
+
+    def forward(self, x: torch.Tensor) -> torch.Tensor:
+        return self.norm(x.reshape(-1, x.shape[-1])).reshape(x.shape)
+
+
+def shared_mlp(width_in: int, widths: tuple[int, ...], batch_norm: bool = False) -> nn.Sequential:
+    """Linear (+ batch norm) + ReLU layers applied to the last axis."""
     layers: list[nn.Module] = []
     for w in widths:
-        layers += [nn.Linear(width_in, w), nn.ReLU()]
+        layers += [nn.Linear(width_in, w), *([ChannelBatchNorm(w)] if batch_norm else []), nn.ReLU()]
         width_in = w
     return nn.Sequential(*layers)
 
@@ -123,6 +135,7 @@ class SetAbstraction(nn.Module):
 
     The first layer is linear in the concatenation, so it is applied once per point (features) plus
     once per member (offsets) instead of once per member on the concatenation: the same function.
+    Every layer is batch-normalised, as in PointNet++.
     """
 
     def __init__(self, plan: LevelPlan, width_in: int, widths: tuple[int, ...]) -> None:
@@ -131,12 +144,13 @@ class SetAbstraction(nn.Module):
         self.register_buffer("offsets", torch.as_tensor(plan.offsets, dtype=torch.float32))
         self.point_layer = nn.Linear(width_in, widths[0])
         self.offset_layer = nn.Linear(3, widths[0], bias=False)
-        self.rest = shared_mlp(widths[0], widths[1:])
+        self.first_norm = ChannelBatchNorm(widths[0])
+        self.rest = shared_mlp(widths[0], widths[1:], batch_norm=True)
 
     def forward(self, features: torch.Tensor) -> torch.Tensor:
         """(B, P, C) point features -> (B, S, widths[-1]) centre features."""
         first = self.point_layer(features)[:, self.groups] + self.offset_layer(self.offsets)
-        return self.rest(torch.relu(first)).amax(dim=2)
+        return self.rest(torch.relu(self.first_norm(first))).amax(dim=2)
 
 
 class PointNet2(nn.Module):
@@ -150,7 +164,7 @@ class PointNet2(nn.Module):
         self.levels = nn.ModuleList(
             SetAbstraction(plan, w, mlp) for plan, w, mlp in zip(plan_levels(pos), widths_in, LEVEL_MLPS, strict=True)
         )
-        self.fc = shared_mlp(LEVEL_MLPS[2][-1], (FC_WIDTH, FC_WIDTH))
+        self.fc = shared_mlp(LEVEL_MLPS[2][-1], (FC_WIDTH, FC_WIDTH), batch_norm=True)
         self.heads = Heads(FC_WIDTH, target_dims)
 
     def forward(self, values: torch.Tensor) -> dict[str, torch.Tensor]:

@@ -152,6 +152,8 @@ class NeuralEstimator:
         for epoch in range(cfg.max_epochs):
             total = 0.0
             for rows in torch.randperm(len(train), generator=generator).split(cfg.batch_size):
+                if len(rows) < 2:  # batch norm needs two samples
+                    continue
                 rows = rows.to(device)
                 loss = self._loss((inputs[rows], {k: v[rows] for k, v in targets.items()}))
                 optimiser.zero_grad()
