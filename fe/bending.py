@@ -1,8 +1,12 @@
 """Discrete-shell bending energy on interior edges (hinges), in warp.
 
-Per hinge: E = k_b * 3 |e0|^2 / (A0_A + A0_B) * (theta - theta0)^2, with theta the signed dihedral angle,
-theta0 its rest value, |e0| and A0 the rest edge length and triangle areas (m, m^2) and
-k_b = c * D, D = mu t^3 / 3 the plate bending stiffness of an incompressible sheet (J).
+Per hinge: E = (D / 2) * 3 |e0|^2 / (A0_A + A0_B) * (theta - theta0)^2, with theta the signed dihedral
+angle, theta0 its rest value, |e0| and A0 the rest edge length and triangle areas (m, m^2) and
+D = mu t^3 / 3 the plate bending stiffness of an incompressible sheet (J). The hinge sum
+sum 3 |e|^2 / (A_A + A_B) theta^2 approximates the integral of (2H)^2 = (k1 + k2)^2 over the surface
+(exactly so for isotropic curvature), so E approximates the plate energy (D / 2) int (k1 + k2)^2 dA
+(Gaussian-curvature term omitted, as for clamped or closed shells). The hinge energy is anisotropic:
+curvature fields that vary across an irregular mesh come out stiffer than the plate (see docs/fe.md).
 The gradient of theta is analytic; the Hessian is the forward difference of that analytic gradient
 (step 1e-7 of the edge length, then symmetrised), accurate to ~1e-7 relative: plenty for Newton.
 """
@@ -124,7 +128,8 @@ def build_hinges(triangles: np.ndarray) -> np.ndarray:
 
 
 def hinge_rest_state(vertices: np.ndarray, triangles: np.ndarray, hinges: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Rest dihedral angles (rad) and weights 3|e0|^2/(A0_A + A0_B) (dimensionless) of each hinge."""
+    """Rest dihedral angles (rad) and weights (1/2) 3|e0|^2/(A0_A + A0_B) (dimensionless) of each hinge,
+    so that the hinge energy is D * weight * (theta - theta0)^2."""
     x0, x1, x2, x3 = (vertices[hinges[:, k]] for k in range(4))
     e = x1 - x0
     na = np.cross(e, x2 - x0)
@@ -133,4 +138,4 @@ def hinge_rest_state(vertices: np.ndarray, triangles: np.ndarray, hinges: np.nda
     s = np.einsum("ij,ij->i", np.cross(na, nb), e) / len_e
     angle = np.arctan2(s, np.einsum("ij,ij->i", na, nb))
     areas = 0.5 * (np.linalg.norm(na, axis=1) + np.linalg.norm(nb, axis=1))
-    return angle, 3.0 * len_e**2 / areas
+    return angle, 1.5 * len_e**2 / areas
