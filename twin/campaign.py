@@ -26,6 +26,7 @@ from learn.electrode_physics import ElectrodeModel
 from twin.backend import ARMS
 from twin.controller import execute
 from twin.dataset import assemble_sensor_file, part_path, write_part
+from twin.effects import apply_path, apply_skin
 from twin.planning import PlannedTrajectory, plan_for_sensor, plan_statistics, scene_tool_tip
 from twin.plant import Plant, make_plant, rigid_transform
 from twin.processing import process
@@ -116,13 +117,32 @@ def plan_campaign(config: CampaignConfig, plant: Plant | None = None) -> Campaig
         truth = true_biotac_pose(plant, sid, scene)
         for k, arm in enumerate(ARMS):
             rng = np.random.default_rng(np.random.SeedSequence([config.seed, sid, k, 0x9E6]))
-            result = simulate_registration(scene, rng, arm=arm, true_biotac_pose=truth)
-            registration[(sid, arm)], errors[(sid, arm)] = result.transform, result.error_rms
+            result = simulate_registration(
+                scene,
+                rng,
+                arm=arm,
+                clearance=plant.registration_clearance,
+                encoder_noise_rad=plant.registration_encoder_noise,
+                true_biotac_pose=truth,
+            )
+            registration[(sid, arm)] = result.transform @ _path_effect_transform(plant)
+            errors[(sid, arm)] = result.error_rms
         wanted = set(config.indenters_for(sid))
         sensor_specs = [s for s in specs if s.indenter in wanted]
         per_arm = {arm: registration[(sid, arm)] for arm in ARMS}
         planned += plan_for_sensor(scene, sensor_specs, sid, per_arm)
     return CampaignPlan(config, specs, planned, registration, errors)
+
+
+def _path_effect_transform(plant: Plant) -> np.ndarray:
+    """Biotac-frame shift a hidden path effect puts between the registered and the true indenter path.
+
+    Planning with H_est @ T(d) sends the tip to H_true^-1 H_est T(d) p = p + d (for H_est = H_true), so
+    the recorded path is p while the true path is p + d: what `apply_path` models.
+    """
+    shift = np.eye(4)
+    shift[:3, 3] = apply_path(np.zeros((1, 3)), plant.effects)[0]
+    return shift
 
 
 # -- execution ---------------------------------------------------------------------------------------
@@ -141,7 +161,7 @@ class _Worker:
     def sensor(self, sid: int) -> tuple[BioTacModel, ElectrodeModel]:
         if sid not in self.models:
             truth = self.plant.sensor(sid)
-            model = inflated_model(self.geometry, truth.skin)
+            model = inflated_model(self.geometry, apply_skin(truth.skin, self.plant.effects))
             electrodes = ElectrodeModel(self.geometry, truth.electrodes, model.reference, truth.skin.thickness)
             self.models[sid] = (model, electrodes)
         return self.models[sid]
@@ -170,15 +190,13 @@ def _run_one(job: PlannedTrajectory, slot: int, registration: np.ndarray, parts_
         worker.plant.noise,
         rng,
         slot * TRAJECTORY_SLOT_S,
+        effects=worker.plant.effects,
     )
     recording = execute(backend, spec, job.arm, job.joint_path, config.settings)
+    tool_tip = scene_tool_tip(scene, spec.indenter)
+    sensor_in_biotac = np.linalg.inv(scene.biotac_pose) @ scene.ft_sensor_pose
     rows = process(
-        recording,
-        job.arm,
-        scene_tool_tip(scene, spec.indenter),
-        np.linalg.inv(registration),
-        np.linalg.inv(scene.biotac_pose) @ scene.ft_sensor_pose,
-        config.settings.sample_rate_hz,
+        recording, job.arm, tool_tip, np.linalg.inv(registration), sensor_in_biotac, config.settings.sample_rate_hz
     )
     arrays = {f"row_{k}": v for k, v in asdict(rows).items() if k != "sample_index"}
     n = len(rows.depth)
@@ -198,6 +216,9 @@ def _run_one(job: PlannedTrajectory, slot: int, registration: np.ndarray, parts_
         "touch_point": spec.touch_point,
         "complete": recording.complete,
         "message": recording.message,
+        "tool_tip": tool_tip,
+        "registration": registration,
+        "sensor_in_biotac": sensor_in_biotac,
     }
     arrays.update({f"meta_{k}": np.asarray(v) for k, v in meta.items()})
     arrays["mesh_reference"] = model.reference

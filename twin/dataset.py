@@ -50,6 +50,9 @@ TRAJECTORY_FIELDS = (
     "rotation",
     "touch_point",
     "complete",
+    "tool_tip",
+    "registration",
+    "sensor_in_biotac",
     "first_row",
     "n_rows",
 )

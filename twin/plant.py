@@ -15,6 +15,8 @@ import numpy as np
 
 from fe.params import SkinParameters
 from learn.electrode_physics import ElectrodeParameters
+from twin.effects import EffectValues, check_values
+from twin.registration import ENCODER_NOISE_RAD
 
 
 @dataclass(frozen=True)
@@ -51,11 +53,22 @@ class PlantSensor:
 
 @dataclass(frozen=True)
 class Plant:
-    """Per-sensor truth plus noise; `seed` drives every random draw made while measuring."""
+    """Per-sensor truth plus noise and hidden effects; `seed` drives every random draw made while measuring.
+
+    effects: effect values (twin.effects) the real world has and the nominal model lacks.
+    registration_clearance: pin-liner clearance (m) of the simulated registration (0: exact).
+    registration_encoder_noise: joint-reading noise (rad) during registration (0: exact).
+    """
 
     sensors: dict[int, PlantSensor]
     noise: MeasurementNoise = field(default_factory=MeasurementNoise)
     seed: int = 0
+    effects: EffectValues = field(default_factory=dict)
+    registration_clearance: float = 0.3e-3
+    registration_encoder_noise: float = ENCODER_NOISE_RAD
+
+    def __post_init__(self) -> None:
+        check_values(self.effects)
 
     def sensor(self, sensor_id: int) -> PlantSensor:
         """The plant's sensor `sensor_id`, or a ValueError naming the ones it has."""
@@ -87,11 +100,14 @@ def make_plant(
     noise: MeasurementNoise = MeasurementNoise(),
     mount_rotation_error: float = 2e-3,
     mount_translation_error: float = 0.5e-3,
+    effects: EffectValues | None = None,
+    exact_registration: bool = False,
 ) -> Plant:
     """Draw a plant of sensors that differ from `nominal` by `variability` (relative, 1 sigma).
 
     Skin thickness and modulus vary by `variability`, friction by twice that; electrodes get their
     own gains and offsets; each mount is placed with errors of the given sizes (rad, m, 1 sigma).
+    `effects` are hidden in the plant; `exact_registration` removes the registration noise.
     """
     if not sensor_ids or len(set(sensor_ids)) != len(sensor_ids) or min(sensor_ids) < 1:
         raise ValueError(f"sensor ids must be distinct positive integers, got {sensor_ids!r}")
@@ -112,7 +128,9 @@ def make_plant(
             [noise.ft_bias_force * rng.standard_normal(3), noise.ft_bias_torque * rng.standard_normal(3)]
         )
         sensors[sid] = PlantSensor(sid, skin, ElectrodeParameters.sample(rng), mount_error, bias)
-    return Plant(sensors, noise, seed)
+    if exact_registration:
+        return Plant(sensors, noise, seed, dict(effects or {}), 0.0, 0.0)
+    return Plant(sensors, noise, seed, dict(effects or {}))
 
 
 def rigid_transform(rotation_vector: np.ndarray, translation: np.ndarray) -> np.ndarray:

@@ -18,6 +18,7 @@ from fe.indentation import IncrementResult
 from fe.sensor import BioTacModel
 from learn.electrode_physics import ElectrodeModel
 from twin.backend import ARMS, BackendError, Sample, check_arm
+from twin.effects import EffectValues, check_values, measure_wrench
 from twin.kinematics import joint_limits, velocity_limits
 from twin.plant import MeasurementNoise, PlantSensor
 from twin.scene import TestbedScene
@@ -51,6 +52,7 @@ class SimBackend:
         rng: np.random.Generator,
         start_time_s: float = 0.0,
         settings: SimSettings = SimSettings(),
+        effects: EffectValues | None = None,
     ) -> None:
         if fe_model.reference is None:
             raise ValueError("the fe model must be inflated before it drives a SimBackend")
@@ -74,6 +76,8 @@ class SimBackend:
         self._clean = self._rest_signals()
         self.solve_log: list[tuple[float, IncrementResult]] = []
         """Every fe solve as (simulated time s, result), in time order."""
+        self.effects = check_values(effects or {})
+        self._wrench_history: list[tuple[float, np.ndarray]] = [(-np.inf, self._clean["wrench"])]
 
     # -- Backend ---------------------------------------------------------------------------------
     def attach_tool(self, arm: str, tool: str | None) -> None:
@@ -87,6 +91,7 @@ class SimBackend:
             self._last_tip = None
             self._state = None
             self._clean = self._rest_signals()
+            self._wrench_history.append((self.time_s, self._clean["wrench"]))
 
     def command_joints(self, arm: str, joints: np.ndarray) -> None:
         """Set the joint target (rad); outside the joint limits is refused with BackendError."""
@@ -120,13 +125,25 @@ class SimBackend:
         wrench_noise = np.concatenate(
             [self.noise.force * self.rng.standard_normal(3), self.noise.torque * self.rng.standard_normal(3)]
         )
-        wrench = self._clean["wrench"] + self.sensor.ft_bias + wrench_noise
+        wrench = self._measured_wrench() + self.sensor.ft_bias + wrench_noise
         electrodes = self.electrodes.counts(self._clean["vertices"], self.time_s, self.rng)
         pdc = self.electrodes.pdc_counts(self._clean["pressure"], self.rng)
         return Sample(self.time_s, joints, wrench, electrodes, float(pdc))
 
     def close(self) -> None:
         """Nothing to release in simulation."""
+
+    def _measured_wrench(self) -> np.ndarray:
+        """Noise-free F/T reading now: the clean load history through the plant's measurement effects."""
+        if not self.effects:
+            return self._clean["wrench"]
+        times = np.array([t for t, _ in self._wrench_history])
+        values = np.array([w for _, w in self._wrench_history])
+
+        def clean_at(t: np.ndarray) -> np.ndarray:
+            return values[np.clip(np.searchsorted(times, t, side="right") - 1, 0, None)]
+
+        return measure_wrench(np.array([self.time_s]), clean_at, self.effects)[0]
 
     # -- simulation state ------------------------------------------------------------------------
     @property
@@ -152,6 +169,7 @@ class SimBackend:
         self._state = result
         self.solve_log.append((self.time_s, result))
         self._clean = self._signals(result, pose[:3, 3])
+        self._wrench_history.append((self.time_s, self._clean["wrench"]))
 
     def _rest_signals(self) -> dict:
         reference = self.fe_model.reference
@@ -169,11 +187,17 @@ class SimBackend:
         }
 
     def _wrench(self, force_biotac: np.ndarray, point_biotac: np.ndarray) -> np.ndarray:
-        """Untared, noise-free F/T reading (sensor frame) for an indenter force (N) at a point (m)."""
-        to_sensor = np.linalg.inv(self._sensor_in_biotac)
-        weight_robot = self.settings.mounted_mass * GRAVITY
-        weight_biotac = self.true_biotac_pose[:3, :3].T @ weight_robot
-        total = np.asarray(force_biotac) + weight_biotac
-        arm = np.asarray(point_biotac) - self._sensor_in_biotac[:3, 3]
-        moment = np.cross(arm, np.asarray(force_biotac))
-        return np.concatenate([to_sensor[:3, :3] @ total, to_sensor[:3, :3] @ moment])
+        """Untared, noise-free F/T reading (sensor frame): the indenter load plus the mounted weight."""
+        weight_biotac = self.true_biotac_pose[:3, :3].T @ (self.settings.mounted_mass * GRAVITY)
+        weight = ft_load(weight_biotac, self._sensor_in_biotac[:3, 3], self._sensor_in_biotac)
+        return ft_load(force_biotac, point_biotac, self._sensor_in_biotac) + weight
+
+
+def ft_load(force_biotac: np.ndarray, point_biotac: np.ndarray, sensor_in_biotac: np.ndarray) -> np.ndarray:
+    """(6,) wrench (N, N·m) in the F/T sensor frame of a force (N, biotac frame) applied at a point (m).
+
+    sensor_in_biotac: 4x4 pose of the sensor frame in the biotac frame; moments are about its origin.
+    """
+    rotation = sensor_in_biotac[:3, :3]
+    moment = np.cross(np.asarray(point_biotac) - sensor_in_biotac[:3, 3], np.asarray(force_biotac))
+    return np.concatenate([rotation.T @ force_biotac, rotation.T @ moment])

@@ -1,0 +1,1 @@
+"""Model-vs-measurement analysis: load campaigns, predict them, compare, diagnose, improve."""

@@ -1,0 +1,194 @@
+"""Measured vs predicted, channel by channel, as flat tables that can be broken down any way.
+
+Two tables per comparison, both long-form (one entry per sample, equal-length arrays):
+- `rows`: the subsampled rows (the paper's comparison points: end of each 0.1 mm increment);
+- `fullrate`: every full-rate sample, labelled loading / pause / unloading, for effects that live in
+  the settle pauses and the moves.
+Channels: force x, y, z (N, biotac frame, tared; rows filtered as in the paper, full rate unfiltered),
+pdc (counts, raw). Electrodes are compared on rows only, after a per-sensor least-squares gain and
+offset per electrode (the model does not know a real sensor's read-out).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from twin.analysis.data import CampaignData, TrajectoryRecord
+from twin.analysis.predict import Prediction, Predictor, TwinModel, measured_force_fullrate
+
+FORCE_CHANNELS = ("force_x", "force_y", "force_z")
+PHASES = ("loading", "pause", "unloading")
+
+
+@dataclass
+class SampleTable:
+    """Long-form table: `labels` (per-sample covariates) and `measured` / `predicted` per channel."""
+
+    labels: dict[str, np.ndarray] = field(default_factory=dict)
+    measured: dict[str, np.ndarray] = field(default_factory=dict)
+    predicted: dict[str, np.ndarray] = field(default_factory=dict)
+
+    def residual(self, channel: str) -> np.ndarray:
+        """measured - predicted of one channel."""
+        return self.measured[channel] - self.predicted[channel]
+
+    def __len__(self) -> int:
+        return len(next(iter(self.labels.values()), ()))
+
+
+@dataclass
+class Comparison:
+    """Both tables plus the model and data they came from; `noise` is the estimated per-channel noise."""
+
+    model: TwinModel
+    datasets: list[str]
+    rows: SampleTable
+    fullrate: SampleTable
+    noise: dict[str, float]
+    predictions: dict[tuple[int, int], Prediction]  # (sensor, trajectory) -> prediction
+
+
+def _append(table: SampleTable, labels: dict, measured: dict, predicted: dict) -> None:
+    for target, source in ((table.labels, labels), (table.measured, measured), (table.predicted, predicted)):
+        for key, value in source.items():
+            target.setdefault(key, []).append(np.asarray(value))
+
+
+def _concatenate(table: SampleTable) -> SampleTable:
+    return SampleTable(
+        *({k: np.concatenate(v) for k, v in part.items()} for part in (table.labels, table.measured, table.predicted))
+    )
+
+
+def sample_phase(trajectory: TrajectoryRecord, move_s: float) -> np.ndarray:
+    """Per full-rate sample: 0 loading move, 1 settle pause, 2 unloading move (standoff samples: pause)."""
+    raw = trajectory.raw
+    starts = np.r_[0, np.flatnonzero(np.diff(raw.increment)) + 1]
+    start_time = np.repeat(raw.time[starts], np.diff(np.r_[starts, len(raw.time)]))
+    in_move = (raw.time - start_time) < move_s
+    deepest = int(np.argmax(raw.depth_command))
+    unloading = np.arange(len(raw.time)) > deepest
+    phase = np.where(in_move, np.where(unloading, 2, 0), 1)
+    phase[raw.increment < 0] = 1
+    return phase
+
+
+def time_in_increment(trajectory: TrajectoryRecord) -> np.ndarray:
+    """Seconds since the current increment's command, per full-rate sample."""
+    raw = trajectory.raw
+    starts = np.r_[0, np.flatnonzero(np.diff(raw.increment)) + 1]
+    start_time = np.repeat(raw.time[starts], np.diff(np.r_[starts, len(raw.time)]))
+    return raw.time - start_time
+
+
+def noise_estimate(trajectories: list[TrajectoryRecord]) -> dict[str, float]:
+    """Per-channel white-noise standard deviation from successive-sample differences (robust MAD).
+
+    During the settle pauses the signal is (nearly) constant, so differences are noise: sigma =
+    1.4826 MAD(diff) / sqrt(2).
+    """
+    diffs: dict[str, list[np.ndarray]] = {c: [] for c in (*FORCE_CHANNELS, "pdc")}
+    for t in trajectories:
+        force = measured_force_fullrate(t)
+        for i, c in enumerate(FORCE_CHANNELS):
+            diffs[c].append(np.diff(force[:, i]))
+        diffs["pdc"].append(np.diff(t.raw.pdc))
+    out = {}
+    for c, parts in diffs.items():
+        d = np.concatenate(parts)
+        out[c] = float(1.4826 * np.median(np.abs(d - np.median(d))) / np.sqrt(2.0))
+    return out
+
+
+def compare(datasets: list[CampaignData], model: TwinModel, predictor: Predictor, move_s: float = 0.1) -> Comparison:
+    """Predict every complete trajectory of every dataset and tabulate measured vs predicted."""
+    rows, full = SampleTable(), SampleTable()
+    predictions = {}
+    for data in datasets:
+        for t in data.trajectories:
+            prediction = predictor.predict(model, t)
+            predictions[(t.sensor_id, t.trajectory_id)] = prediction
+            _append_rows(rows, t, prediction, data.indenter_names)
+            _append_fullrate(full, t, prediction, move_s)
+    noise = noise_estimate([t for d in datasets for t in d.trajectories])
+    rows, full = _concatenate(rows), _concatenate(full)
+    _fit_electrodes(rows)
+    return Comparison(model, [str(d.path) for d in datasets], rows, full, noise, predictions)
+
+
+def _trajectory_labels(t: TrajectoryRecord, n: int) -> dict[str, np.ndarray]:
+    return {
+        "sensor": np.full(n, t.sensor_id),
+        "trajectory": np.full(n, t.trajectory_id),
+        "indenter": np.full(n, t.indenter, dtype=object),
+        "normal": np.full(n, t.normal),
+    }
+
+
+def _append_rows(table: SampleTable, t: TrajectoryRecord, p: Prediction, names: list[str]) -> None:
+    n = len(t.rows["depth"])
+    valid = np.isfinite(p.rows.force).all(axis=1)
+    labels = {
+        **_trajectory_labels(t, n),
+        "depth": t.rows["depth"],
+        "phase": np.where(t.rows["phase"] == 1, 2, 0),
+        "time": t.rows["time"],
+        "contact_x": t.rows["contact_loc"][:, 0],
+        "contact_y": t.rows["contact_loc"][:, 1],
+        "contact_z": t.rows["contact_loc"][:, 2],
+        "converged": valid,
+    }
+    measured = {c: t.rows["force"][:, i] for i, c in enumerate(FORCE_CHANNELS)}
+    predicted = {c: p.rows.force[:, i] for i, c in enumerate(FORCE_CHANNELS)}
+    measured["pdc"], predicted["pdc"] = t.rows["pdc"], p.rows.pdc
+    for e in range(19):
+        measured[f"electrode_{e + 1}"] = t.rows["electrode_vals"][:, e]
+        predicted[f"electrode_{e + 1}"] = p.rows.electrode_vals[:, e]
+    _append(table, labels, measured, predicted)
+
+
+def _append_fullrate(table: SampleTable, t: TrajectoryRecord, p: Prediction, move_s: float) -> None:
+    raw = t.raw
+    n = len(raw.time)
+    force = measured_force_fullrate(t)
+    labels = {
+        **_trajectory_labels(t, n),
+        "depth": raw.depth_command,
+        "phase": sample_phase(t, move_s),
+        "time": raw.time,
+        "time_in_increment": time_in_increment(t),
+        "converged": np.isfinite(p.force_fullrate).all(axis=1),
+    }
+    measured = {c: force[:, i] for i, c in enumerate(FORCE_CHANNELS)}
+    predicted = {c: p.force_fullrate[:, i] for i, c in enumerate(FORCE_CHANNELS)}
+    _append(table, labels, measured, predicted)
+
+
+def _fit_electrodes(rows: SampleTable) -> None:
+    """Replace each predicted electrode channel by its per-sensor least-squares affine fit to the measurement."""
+    for e in range(1, 20):
+        key = f"electrode_{e}"
+        fitted = np.array(rows.predicted[key], dtype=float)
+        for sensor in np.unique(rows.labels["sensor"]):
+            mask = (rows.labels["sensor"] == sensor) & np.isfinite(fitted)
+            if mask.sum() < 2 or np.ptp(fitted[mask]) == 0:
+                continue
+            design = np.column_stack([fitted[mask], np.ones(mask.sum())])
+            coef, *_ = np.linalg.lstsq(design, rows.measured[key][mask], rcond=None)
+            fitted[mask] = design @ coef
+        rows.predicted[key] = fitted
+
+
+def rms(values: np.ndarray) -> float:
+    """Root mean square of the finite entries (nan when none)."""
+    finite = values[np.isfinite(values)]
+    return float(np.sqrt(np.mean(finite**2))) if len(finite) else float("nan")
+
+
+def breakdown(table: SampleTable, channel: str, by: str) -> dict[str, dict[str, float]]:
+    """RMS residual and sample count of `channel` grouped by the label `by`."""
+    residual = table.residual(channel)
+    groups = table.labels[by]
+    return {str(g): {"rms": rms(residual[groups == g]), "n": int((groups == g).sum())} for g in np.unique(groups)}

@@ -1,0 +1,236 @@
+"""Candidate effects: physics or measurement mechanisms a model can lack, each with an "off" value.
+
+An effect has named parameters (off value, bounds, typical scale, units), the channels it changes and
+whether it acts on the physics (the fe model: skin parameters, the indenter path) or on the
+measurement (the F/T signal chain). The base model has every effect off. The same code puts a hidden
+effect into a plant and an added effect into a model, so what is fitted is what was simulated.
+
+Values are plain dicts: {effect name: {parameter name: value}}; missing effects or parameters are off.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+from dataclasses import dataclass, replace
+
+import numpy as np
+
+from fe.params import SkinParameters
+
+EffectValues = dict[str, dict[str, float]]
+CleanWrench = Callable[[np.ndarray], np.ndarray]
+"""Noise-free sensor-frame wrench (N, 6) at the given times (N,) s."""
+
+
+@dataclass(frozen=True)
+class EffectParameter:
+    """One parameter of an effect (SI units)."""
+
+    name: str
+    off: float
+    lower: float
+    upper: float
+    scale: float
+    """Typical magnitude: finite-difference step and optimiser scaling."""
+    units: str
+
+
+@dataclass(frozen=True)
+class Effect:
+    """A candidate mechanism. Exactly one of `skin`, `path`, `wrench` says how it acts."""
+
+    name: str
+    description: str
+    kind: str  # "physics" or "measurement"
+    parameters: tuple[EffectParameter, ...]
+    channels: tuple[str, ...]
+    skin: Callable[[SkinParameters, dict[str, float]], SkinParameters] | None = None
+    path: Callable[[np.ndarray, dict[str, float]], np.ndarray] | None = None
+    wrench: Callable[[np.ndarray, CleanWrench, dict[str, float]], np.ndarray] | None = None
+
+    def values(self, given: dict[str, float] | None = None) -> dict[str, float]:
+        """Every parameter's value: `given` where present, the off value otherwise (bounds checked)."""
+        given = given or {}
+        unknown = set(given) - {p.name for p in self.parameters}
+        if unknown:
+            raise ValueError(f"effect {self.name!r} has no parameters {sorted(unknown)}")
+        out = {}
+        for p in self.parameters:
+            value = float(given.get(p.name, p.off))
+            if not p.lower <= value <= p.upper:
+                raise ValueError(f"{self.name}.{p.name}={value:g} is outside [{p.lower:g}, {p.upper:g}] {p.units}")
+            out[p.name] = value
+        return out
+
+    def is_off(self, given: dict[str, float] | None) -> bool:
+        """True when every parameter sits at its off value."""
+        values = self.values(given)
+        return all(values[p.name] == p.off for p in self.parameters)
+
+
+# -- how each effect acts -----------------------------------------------------------------------------
+def _thickness(skin: SkinParameters, v: dict[str, float]) -> SkinParameters:
+    return replace(skin, thickness=skin.thickness * v["scale"])
+
+
+def _friction(skin: SkinParameters, v: dict[str, float]) -> SkinParameters:
+    return replace(skin, friction=skin.friction * v["scale"])
+
+
+def _modulus(skin: SkinParameters, v: dict[str, float]) -> SkinParameters:
+    return replace(skin, mu_nh=skin.mu_nh * v["scale"])
+
+
+def _registration(tips: np.ndarray, v: dict[str, float]) -> np.ndarray:
+    return tips + np.array([v["dx"], v["dy"], v["dz"]])
+
+
+def _delay(times: np.ndarray, clean: CleanWrench, v: dict[str, float]) -> np.ndarray:
+    return clean(times - v["seconds"])
+
+
+def _drift(times: np.ndarray, clean: CleanWrench, v: dict[str, float]) -> np.ndarray:
+    rate = np.array([v["fx_rate"], v["fy_rate"], v["fz_rate"], 0.0, 0.0, 0.0])
+    return clean(times) + np.outer(times, rate)
+
+
+_CROSSTALK_TERMS = ("xy", "xz", "yx", "yz", "zx", "zy")
+
+
+def _crosstalk(times: np.ndarray, clean: CleanWrench, v: dict[str, float]) -> np.ndarray:
+    mixing = np.eye(3)
+    for term in _CROSSTALK_TERMS:
+        mixing["xyz".index(term[0]), "xyz".index(term[1])] = v[term]
+    wrench = np.array(clean(times), dtype=float)
+    wrench[:, :3] = wrench[:, :3] @ mixing.T
+    return wrench
+
+
+def _gain(times: np.ndarray, clean: CleanWrench, v: dict[str, float]) -> np.ndarray:
+    wrench = np.array(clean(times), dtype=float)
+    wrench[:, :3] *= v["scale"]
+    return wrench
+
+
+def _mm(name: str) -> EffectParameter:
+    return EffectParameter(name, 0.0, -3e-3, 3e-3, 2e-4, "m")
+
+
+EFFECTS: dict[str, Effect] = {
+    e.name: e
+    for e in (
+        Effect(
+            "skin_thickness",
+            "Skin shell thickness differs from the model's (scale factor on t_s).",
+            "physics",
+            (EffectParameter("scale", 1.0, 0.6, 1.5, 0.05, "1"),),
+            ("force", "pdc", "electrodes"),
+            skin=_thickness,
+        ),
+        Effect(
+            "skin_modulus",
+            "Skin shear modulus differs from the model's (scale factor on mu_NH).",
+            "physics",
+            (EffectParameter("scale", 1.0, 0.5, 2.0, 0.05, "1"),),
+            ("force", "pdc", "electrodes"),
+            skin=_modulus,
+        ),
+        Effect(
+            "indenter_friction",
+            "Coulomb friction between indenter and skin differs (scale factor on mu_fr).",
+            "physics",
+            (EffectParameter("scale", 1.0, 0.0, 5.0, 0.25, "1"),),
+            ("force",),
+            skin=_friction,
+        ),
+        Effect(
+            "registration_offset",
+            "The indenter path is offset from where registration says it is (biotac frame).",
+            "physics",
+            (_mm("dx"), _mm("dy"), _mm("dz")),
+            ("force", "pdc", "electrodes"),
+            path=_registration,
+        ),
+        Effect(
+            "time_delay",
+            "The F/T stream lags the joint stream by a constant delay.",
+            "measurement",
+            (EffectParameter("seconds", 0.0, 0.0, 0.5, 0.02, "s"),),
+            ("force",),
+            wrench=_delay,
+        ),
+        Effect(
+            "ft_drift",
+            "F/T force bias drifts linearly in time (taring removes only its value at the start).",
+            "measurement",
+            tuple(EffectParameter(f"f{a}_rate", 0.0, -0.02, 0.02, 2e-4, "N/s") for a in "xyz"),
+            ("force",),
+            wrench=_drift,
+        ),
+        Effect(
+            "ft_crosstalk",
+            "F/T force channels leak into each other (off-diagonal calibration error, sensor frame).",
+            "measurement",
+            tuple(EffectParameter(t, 0.0, -0.2, 0.2, 0.01, "1") for t in _CROSSTALK_TERMS),
+            ("force",),
+            wrench=_crosstalk,
+        ),
+        Effect(
+            "ft_gain",
+            "F/T force calibration scale error (same factor on every force axis).",
+            "measurement",
+            (EffectParameter("scale", 1.0, 0.5, 1.5, 0.02, "1"),),
+            ("force",),
+            wrench=_gain,
+        ),
+    )
+}
+"""The effect library, keyed by name."""
+
+MEASUREMENT_ORDER = ("time_delay", "ft_crosstalk", "ft_gain", "ft_drift")
+"""Order of the F/T signal chain: the sensor sees a delayed load, mixes and scales it, then drifts."""
+
+
+def get_effect(name: str) -> Effect:
+    """The effect called `name`, or a ValueError listing the library."""
+    if name not in EFFECTS:
+        raise ValueError(f"unknown effect {name!r}; the library has {sorted(EFFECTS)}")
+    return EFFECTS[name]
+
+
+def check_values(values: EffectValues) -> EffectValues:
+    """Validate names and bounds; return the values with every parameter of each named effect filled in."""
+    return {name: get_effect(name).values(v) for name, v in values.items()}
+
+
+def apply_skin(skin: SkinParameters, values: EffectValues) -> SkinParameters:
+    """Skin parameters with every physics effect on the skin applied."""
+    for name, v in check_values(values).items():
+        effect = EFFECTS[name]
+        if effect.skin is not None:
+            skin = effect.skin(skin, v)
+    return skin
+
+
+def apply_path(tips: np.ndarray, values: EffectValues) -> np.ndarray:
+    """Indenter tip positions (K, 3) m, biotac frame, with path effects applied."""
+    for name, v in check_values(values).items():
+        effect = EFFECTS[name]
+        if effect.path is not None:
+            tips = effect.path(tips, v)
+    return tips
+
+
+def measure_wrench(times: np.ndarray, clean: CleanWrench, values: EffectValues) -> np.ndarray:
+    """(N, 6) F/T readings at `times` (s) from the clean load `clean`, through the measurement effects."""
+    checked = check_values(values)
+    chain = clean
+    for name in MEASUREMENT_ORDER:
+        if name in checked:
+            effect, v = EFFECTS[name], checked[name]
+            chain = _bind(effect, chain, v)
+    return np.asarray(chain(np.asarray(times, dtype=float)))
+
+
+def _bind(effect: Effect, inner: CleanWrench, v: dict[str, float]) -> CleanWrench:
+    return lambda t: effect.wrench(t, inner, v)
