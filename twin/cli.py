@@ -4,6 +4,7 @@ import typer
 
 from hardware.cli import devices_app
 from learn.cli import learn_app
+from twin.cli_analysis import analysis_app
 from twin.cli_campaign import campaign_app, dataset_app
 from twin.cli_fe import fe_app
 
@@ -13,3 +14,4 @@ app.add_typer(learn_app, name="learn")
 app.add_typer(devices_app, name="devices")
 app.add_typer(campaign_app, name="campaign")
 app.add_typer(dataset_app, name="dataset")
+app.registered_commands += analysis_app.registered_commands
