@@ -1,0 +1,105 @@
+"""`twin compare ...`: model-vs-measurement commands (registered at the top level of `twin`)."""
+
+from __future__ import annotations
+
+import json
+from collections.abc import Callable
+from pathlib import Path
+from typing import TYPE_CHECKING, Annotated
+
+import typer
+from rich.table import Table
+
+from twin.cli_common import err_console, guarded, out_console, progress_bar
+
+if TYPE_CHECKING:
+    from twin.analysis.data import CampaignData, TrajectoryRecord
+    from twin.analysis.predict import Prediction, Predictor, TwinModel
+
+analysis_app = typer.Typer(help="Compare the model with measurements.")
+
+
+class _CountingPredictor:
+    """Forwards `predict` to a Predictor and calls `advance()` after each trajectory (progress bars)."""
+
+    def __init__(self, predictor: Predictor, advance: Callable[[], None]) -> None:
+        self._predictor = predictor
+        self._advance = advance
+
+    def predict(self, model: TwinModel, trajectory: TrajectoryRecord) -> Prediction:
+        """The wrapped predictor's prediction of `trajectory`."""
+        prediction = self._predictor.predict(model, trajectory)
+        self._advance()
+        return prediction
+
+
+def _load_model(path: Path | None, mesh_max_edge: float) -> TwinModel:
+    """The TwinModel of a `TwinModel.to_dict()` JSON file, or the nominal model at `mesh_max_edge` (m)."""
+    from twin.analysis.predict import TwinModel
+
+    if path is None:
+        return TwinModel(mesh_max_edge=mesh_max_edge)
+    try:
+        return TwinModel.from_dict(json.loads(path.read_text()))
+    except OSError as exc:
+        raise ValueError(f"cannot read the model {path}: {exc}") from exc
+    except (json.JSONDecodeError, KeyError, TypeError) as exc:
+        raise ValueError(f"{path} is not a model JSON (TwinModel.to_dict()): {exc!r}") from exc
+
+
+def _load_datasets(paths: list[Path]) -> list[CampaignData]:
+    """The campaign files; ValueError when they disagree on the mesh size the default model needs."""
+    from twin.analysis.data import load_campaign
+
+    datasets = [load_campaign(p) for p in paths]
+    if len({d.mesh_max_edge for d in datasets}) > 1:
+        raise ValueError("the datasets were made with different mesh sizes: pass --model")
+    return datasets
+
+
+def _print_overall(summary: dict, out: Path) -> None:
+    table = Table("channel", "RMS error", "mean", "n", "noise sigma (rows)", title="measured - predicted (rows)")
+    for channel in ("force_x", "force_y", "force_z", "force", "pdc", "electrodes"):
+        stats = summary["overall"].get(channel)
+        if stats is None or stats["rms"] is None:
+            continue
+        noise = summary["noise"].get(channel, {}).get("rows")
+        table.add_row(
+            channel,
+            f"{stats['rms']:.4g}",
+            f"{stats['mean']:+.3g}",
+            str(stats["n"]),
+            "-" if noise is None else f"{noise:.3g}",
+        )
+    out_console.print(table)
+    out_console.print(f"report: {out / 'report.html'}")
+
+
+@analysis_app.command("compare")
+def compare_command(
+    datasets: Annotated[list[Path], typer.Argument(help="Campaign HDF5 files (one per sensor).")],
+    out: Annotated[Path, typer.Option(help="Report folder (created): report.html, summary.json, ...")],
+    model: Annotated[
+        Path | None, typer.Option(help="Model JSON (TwinModel.to_dict()); default: nominal at the data's mesh size.")
+    ] = None,
+    title: Annotated[str | None, typer.Option(help="Report title.")] = None,
+    as_json: Annotated[bool, typer.Option("--json", help="Print summary.json.")] = False,
+) -> None:
+    """Measured vs predicted on every channel: error tables, plots, residual field on the skin."""
+    from twin.analysis.compare import compare
+    from twin.analysis.predict import Predictor
+    from twin.analysis.report import DEFAULT_TITLE, write_report
+
+    data = guarded(lambda: _load_datasets(datasets))
+    twin_model = guarded(lambda: _load_model(model, data[0].mesh_max_edge))
+    total = sum(len(d.trajectories) for d in data)
+    with progress_bar() as progress:
+        task = progress.add_task("predicting", total=total)
+        predictor = _CountingPredictor(Predictor(), lambda: progress.advance(task))
+        comparison = compare(data, twin_model, predictor)  # type: ignore[arg-type]
+    err_console.print("writing the report ...")
+    files = write_report(comparison, out, title or DEFAULT_TITLE)
+    if as_json:
+        print(files.summary.read_text())
+        return
+    _print_overall(json.loads(files.summary.read_text()), out)
