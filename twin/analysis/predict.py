@@ -71,11 +71,16 @@ class Prediction:
 
 
 class Predictor:
-    """Replays trajectories; inflated fe models are cached per (skin parameters, mesh)."""
+    """Replays trajectories; inflated fe models and fe replays are cached.
+
+    A replay depends only on the skin parameters, the mesh and the indenter path, so predictions that
+    differ only in measurement effects reuse it.
+    """
 
     def __init__(self) -> None:
         self._models: dict[tuple, BioTacModel] = {}
         self._electrodes: dict[int, ElectrodeModel] = {}
+        self._replays: dict[tuple, tuple] = {}
 
     def fe_model(self, skin: SkinParameters, mesh_max_edge: float) -> BioTacModel:
         """An inflated fe model for these parameters (built once)."""
@@ -97,11 +102,16 @@ class Predictor:
 
     def predict(self, model: TwinModel, trajectory: TrajectoryRecord) -> Prediction:
         """The model's prediction of `trajectory` (see the module docstring)."""
-        fe = self.fe_model(apply_skin(model.skin, model.effects), model.mesh_max_edge)
+        skin = apply_skin(model.skin, model.effects)
         raw = trajectory.raw
         path_depths = _path_depths(raw)
         tips = apply_path(trajectory.touch_point + np.outer(path_depths, trajectory.direction), model.effects)
-        forces, pressures, converged, electrodes = _replay(fe, self.electrode_model(fe), trajectory, tips)
+        key = (tuple(sorted(asdict(skin).items())), model.mesh_max_edge, trajectory.sensor_id)
+        key += (trajectory.trajectory_id, tips.round(12).tobytes())
+        if key not in self._replays:
+            fe = self.fe_model(skin, model.mesh_max_edge)
+            self._replays[key] = _replay(fe, self.electrode_model(fe), trajectory, tips)
+        forces, pressures, converged, electrodes = self._replays[key]
         index = raw.increment + 1  # path index of every sample
         loads = np.array([ft_load(f, t, trajectory.sensor_in_biotac) for f, t in zip(forces, tips, strict=True)])
         times = raw.time
