@@ -131,7 +131,25 @@ def plan_campaign(config: CampaignConfig, plant: Plant | None = None) -> Campaig
         sensor_specs = [s for s in specs if s.indenter in wanted]
         per_arm = {arm: registration[(sid, arm)] for arm in ARMS}
         planned += plan_for_sensor(scene, sensor_specs, sid, per_arm)
+    for round_ in range(1, config.settings.replacement_rounds + 1):
+        uncovered = _uncovered(config, planned)
+        if not uncovered:
+            break
+        extra = plan_specs(
+            nominal, sorted({name for _, name in uncovered}), config.settings, config.seed + round_, len(specs)
+        )
+        specs += extra
+        for sid in sorted({s for s, _ in uncovered}):
+            names = {name for s, name in uncovered if s == sid}
+            per_arm = {arm: registration[(sid, arm)] for arm in ARMS}
+            planned += plan_for_sensor(scene, [s for s in extra if s.indenter in names], sid, per_arm)
     return CampaignPlan(config, specs, planned, registration, errors)
+
+
+def _uncovered(config: CampaignConfig, planned: list[PlannedTrajectory]) -> set[tuple[int, str]]:
+    """(sensor, indenter) pairs of the campaign without any kept trajectory."""
+    kept = {(p.sensor_id, p.spec.indenter) for p in planned if p.kept}
+    return {(sid, name) for sid in config.sensors for name in config.indenters_for(sid) if (sid, name) not in kept}
 
 
 def _path_effect_transform(plant: Plant) -> np.ndarray:

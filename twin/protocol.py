@@ -37,6 +37,9 @@ class ProtocolSettings:
     """Retract through the same increments after the deepest one (an unloading phase)."""
     force_limit: float = 25.0
     """The controller stops and retracts above this force magnitude (N)."""
+    replacement_rounds: int = 0
+    """Draw new points for an indenter whose trajectories were all dropped on a sensor, up to this many
+    times (0: the paper's protocol, drop and move on)."""
 
     def __post_init__(self) -> None:
         positive = {
@@ -58,9 +61,16 @@ class ProtocolSettings:
 
 
 QUICK_SETTINGS = ProtocolSettings(
-    points_per_indenter=1, angled_per_point=1, normal_depth=1.0e-3, angled_depth=0.6e-3, pause_s=0.5, unload=True
+    points_per_indenter=1,
+    angled_per_point=1,
+    normal_depth=1.0e-3,
+    angled_depth=0.6e-3,
+    pause_s=0.5,
+    unload=True,
+    replacement_rounds=4,
 )
-"""A small campaign for tests and demos: one point per indenter, one normal and one angled path."""
+"""A small campaign for tests and demos: one point per indenter, one normal and one angled path; a
+point whose paths the robot cannot run is replaced, so every indenter is covered."""
 
 
 @dataclass(frozen=True)
@@ -113,12 +123,13 @@ def plan_specs(
     indenters: list[str] | None = None,
     settings: ProtocolSettings = ProtocolSettings(),
     seed: int = 0,
+    first_id: int = 0,
 ) -> list[TrajectorySpec]:
     """Seeded random ventral points per indenter; one normal and `angled_per_point` angled paths each.
 
     `model` must be inflated (its outer surface defines first contact). Azimuths of the angled paths
     are spread evenly around the normal with a random phase per point. Trajectory ids are assigned in
-    a fixed order (indenter, point, path), so the same seed always gives the same ids.
+    a fixed order (indenter, point, path) starting at `first_id`, so the same seed gives the same ids.
     """
     names = list(INDENTERS) if indenters is None else list(indenters)
     rng = np.random.default_rng(seed)
@@ -139,7 +150,7 @@ def plan_specs(
                 depths, increments = depth_schedule(depth, settings)
                 specs.append(
                     TrajectorySpec(
-                        trajectory_id=len(specs),
+                        trajectory_id=first_id + len(specs),
                         indenter=name,
                         point=point,
                         angle=float(angle),
