@@ -211,7 +211,9 @@ def diagnose(
         ranked.append((candidate, jac))
     ranked.sort(key=lambda item: -item[0].evidence)
     for candidate, jac in ranked[:top]:
-        _heldout(candidate, jac, r, residual.indenter)
+        _heldout(
+            candidate, jac, r, residual.indenter, EFFECTS[candidate.name].values(model.effects.get(candidate.name))
+        )
         _identifiability(candidate, jac)
         _refit(candidate, model, predictor, trajectories, masks, sigma, jac, r, base)
     ordered = [c for c, _ in ranked]
@@ -219,10 +221,11 @@ def diagnose(
     return Diagnosis(base_rms, signatures(residual), ordered, verdict, reason)
 
 
-def _heldout(candidate: Candidate, jac: np.ndarray, r: np.ndarray, indenter: np.ndarray) -> None:
+def _heldout(
+    candidate: Candidate, jac: np.ndarray, r: np.ndarray, indenter: np.ndarray, current: dict[str, float]
+) -> None:
     """Leave-one-indenter-out: fit the linearised effect on the rest, score the whitened RMS on the left-out."""
     effect = EFFECTS[candidate.name]
-    current = effect.values({p.name: p.off for p in effect.parameters})
     groups = np.unique(indenter)
     if len(groups) < 2:
         candidate.heldout_rms = None
@@ -298,3 +301,40 @@ def _verdict(base_rms: float, candidates: list[Candidate]) -> tuple[str, str]:
         f"{best.name} explains {best.explained_fraction:.0%} of the excess residual; "
         f"refitted RMS {best.refit_rms:.2f}x noise (held-out {best.heldout_rms or float('nan'):.2f}x)"
     )
+
+
+@dataclass(frozen=True)
+class EffectFit:
+    """An effect fitted to data: its values, and whitened RMS (1 = noise) before, after and held out."""
+
+    name: str
+    values: dict[str, float]
+    rms_before: float
+    rms_after: float
+    heldout_rms: float | None
+    model: TwinModel
+
+
+def fit_effect(
+    datasets: list[CampaignData], model: TwinModel, name: str, predictor: Predictor | None = None
+) -> EffectFit:
+    """Fit one library effect's parameters (chord iterations on the whitened full-rate residual)."""
+    predictor = predictor or Predictor()
+    effect = EFFECTS.get(name)
+    if effect is None:
+        raise ValueError(f"unknown effect {name!r}; the library has {sorted(EFFECTS)}")
+    trajectories = [t for d in datasets for t in d.trajectories]
+    if not trajectories:
+        raise ValueError("no trajectories to fit")
+    noise = noise_estimate(trajectories)
+    sigma = np.array([max(noise[c], 1e-9) for c in FORCE_CHANNELS])
+    predicted = _fullrate_prediction(predictor, model, trajectories)
+    residual, masks = build_residual(trajectories, predicted, sigma)
+    base = _whitened(predicted, masks, sigma)
+    jac = sensitivity(effect, model, predictor, trajectories, masks, sigma, base)
+    candidate = Candidate(name, effect.kind, {}, 0.0, 0.0, 0.0)
+    _heldout(candidate, jac, residual.values, residual.indenter, effect.values(model.effects.get(name)))
+    _refit(candidate, model, predictor, trajectories, masks, sigma, jac, residual.values, base, iterations=3)
+    rms_before = float(np.sqrt(np.mean(residual.values**2)))
+    improved = model.with_effects({name: candidate.refit_parameters})
+    return EffectFit(name, candidate.refit_parameters, rms_before, candidate.refit_rms, candidate.heldout_rms, improved)

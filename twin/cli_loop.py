@@ -1,0 +1,127 @@
+"""`twin diagnose`, `twin improve`, `twin history`: find the missing effect, add it, watch the error fall."""
+
+import json
+from pathlib import Path
+from typing import Annotated
+
+import typer
+from rich.table import Table
+
+from twin.cli_common import err_console, guarded, out_console
+
+loop_app = typer.Typer()
+
+Datasets = Annotated[list[Path], typer.Argument(help="Campaign HDF5 file(s).")]
+ModelOption = Annotated[Path | None, typer.Option("--model", help="Model JSON (default: nominal).")]
+HistoryOption = Annotated[Path, typer.Option("--history", help="History file (JSON lines).")]
+
+
+def _inputs(datasets: list[Path], model_path: Path | None):
+    from twin.analysis.data import load_campaign
+    from twin.analysis.history import load_model
+    from twin.analysis.predict import TwinModel
+
+    data = [guarded(lambda p=p: load_campaign(p)) for p in datasets]
+    model = guarded(lambda: load_model(model_path)) if model_path else TwinModel(mesh_max_edge=data[0].mesh_max_edge)
+    return data, model
+
+
+@loop_app.command()
+def diagnose(
+    datasets: Datasets,
+    model: ModelOption = None,
+    as_json: Annotated[bool, typer.Option("--json", help="Print JSON.")] = False,
+) -> None:
+    """Rank candidate effects by how much of the model-vs-measurement residual each explains."""
+    from twin.analysis.diagnose import diagnose as run_diagnosis
+
+    data, twin_model = _inputs(datasets, model)
+    err_console.print("diagnosing (replaying every trajectory per candidate parameter) ...")
+    result = guarded(lambda: run_diagnosis(data, twin_model))
+    if as_json:
+        print(json.dumps(result.to_dict()))
+        return
+    table = Table("rank", "effect", "kind", "evidence", "explains", "held-out RMS/noise", "refit RMS/noise", "fit")
+    for rank, c in enumerate(result.candidates, start=1):
+        fit = ", ".join(f"{k}={v:.4g}" for k, v in (c.refit_parameters or c.parameters).items())
+        held = "-" if c.heldout_rms is None else f"{c.heldout_rms:.2f}"
+        refit = "-" if c.refit_rms is None else f"{c.refit_rms:.2f}"
+        table.add_row(str(rank), c.name, c.kind, f"{c.evidence:.0f}", f"{c.explained_fraction:.0%}", held, refit, fit)
+    out_console.print(f"residual RMS = {result.base_rms:.2f} x noise")
+    out_console.print(table)
+    out_console.print(f"verdict: [bold]{result.verdict}[/bold] - {result.reason}")
+
+
+@loop_app.command()
+def improve(
+    datasets: Datasets,
+    add: Annotated[str, typer.Option("--add", help="Effect to add (see `twin effects`).")],
+    model: ModelOption = None,
+    history: HistoryOption = Path("twin-history.jsonl"),
+    out: Annotated[Path | None, typer.Option(help="Also write the new model JSON here.")] = None,
+) -> None:
+    """Fit an effect's parameters, show the error before and after, save the model in the history."""
+    from twin.analysis.diagnose import fit_effect
+    from twin.analysis.history import append_entry
+
+    data, twin_model = _inputs(datasets, model)
+    fit = guarded(lambda: fit_effect(data, twin_model, add))
+    table = Table("", "RMS / noise")
+    table.add_row("before", f"{fit.rms_before:.2f}")
+    table.add_row(f"after adding {add}", f"{fit.rms_after:.2f}")
+    table.add_row("held out (leave one indenter out)", "-" if fit.heldout_rms is None else f"{fit.heldout_rms:.2f}")
+    out_console.print(table)
+    out_console.print("fitted: " + ", ".join(f"{k}={v:.5g}" for k, v in fit.values.items()))
+    entry = append_entry(
+        history,
+        {
+            "model": fit.model.to_dict(),
+            "added": {"effect": add, "values": fit.values},
+            "datasets": [{"path": str(d.path), "sha256_16": d.digest} for d in data],
+            "rms_before": fit.rms_before,
+            "rms_after": fit.rms_after,
+            "heldout_rms": fit.heldout_rms,
+        },
+    )
+    if out is not None:
+        out.write_text(json.dumps(fit.model.to_dict(), indent=2))
+    out_console.print(f"saved as step {entry['step']} in {history}")
+
+
+@loop_app.command("history")
+def show_history(
+    history: HistoryOption = Path("twin-history.jsonl"),
+    as_json: Annotated[bool, typer.Option("--json", help="Print JSON.")] = False,
+) -> None:
+    """The sequence of models and how the error fell."""
+    from twin.analysis.history import read_history
+
+    entries = guarded(lambda: read_history(history))
+    if as_json:
+        print(json.dumps(entries))
+        return
+    table = Table("step", "time (UTC)", "added", "RMS before", "RMS after", "held out", "datasets")
+    for e in entries:
+        held = e.get("heldout_rms")
+        table.add_row(
+            str(e["step"]),
+            e["time_utc"],
+            e["added"]["effect"],
+            f"{e['rms_before']:.2f}",
+            f"{e['rms_after']:.2f}",
+            "-" if held is None else f"{held:.2f}",
+            ", ".join(Path(d["path"]).name for d in e["datasets"]),
+        )
+    out_console.print(table)
+
+
+@loop_app.command("effects")
+def list_effects() -> None:
+    """The library of candidate effects and their parameters."""
+    from twin.effects import EFFECTS
+
+    table = Table("effect", "kind", "parameters (off [lower, upper] units)", "description")
+    for e in EFFECTS.values():
+        params = "; ".join(f"{p.name}={p.off:g} [{p.lower:g}, {p.upper:g}] {p.units}" for p in e.parameters)
+        table.add_row(e.name, e.kind, params, e.description)
+    out_console.print(table)
