@@ -37,9 +37,20 @@ def load_files(paths: list[str | Path], node_ids: list[int] | None = None, node_
 
 
 def split_rows(parts: list[TactileData], spec: SplitSpec) -> list[tuple[np.ndarray, np.ndarray]]:
-    """(train_rows, test_rows) of each part; split "none" trains on every row and tests on none."""
+    """(train_rows, test_rows) of each part; split "none" trains on every row and tests on none.
+
+    Leave-one-indenter-out over several files: a file without that indenter trains on every row (the
+    paper's BioTac 1 saw only the spheres); it is an error only when no file has it.
+    """
+    everything = [(np.arange(len(p)), np.array([], dtype=np.int64)) for p in parts]
     if spec.name == "none":
-        return [(np.arange(len(p)), np.array([], dtype=np.int64)) for p in parts]
+        return everything
+    if spec.name.startswith("indenter:"):
+        name = spec.name.split(":", 1)[1]
+        has = [name in p.indenter_names and np.any(p.indenter == p.indenter_names.index(name)) for p in parts]
+        if not any(has):
+            raise ValueError(f"no file has samples of indenter {name!r}")
+        return [split(p, spec.name) if h else rows for p, h, rows in zip(parts, has, everything, strict=True)]
     return [split(p, spec.name, spec.test_fraction, spec.seed) for p in parts]
 
 

@@ -176,18 +176,19 @@ class NeuralEstimator:
         if best_state is not None:
             self.net.load_state_dict(best_state)
 
-    def predict(self, data: TactileData, batch_size: int = 4096) -> dict[str, np.ndarray]:
+    def predict(self, data: TactileData, batch_size: int = 4096, device: str = "cpu") -> dict[str, np.ndarray]:
         """Targets in SI units: contact_loc (N, 3) m, force (N, 3) N, nodal (N, K, 3) m."""
         if self.net is None:
             raise RuntimeError("fit the estimator first")
-        self.net.eval()
-        x = torch.as_tensor(self.input_scale.transform(data.electrodes), dtype=torch.float32)
+        self.net.to(device).eval()
+        x = torch.as_tensor(self.input_scale.transform(data.electrodes), dtype=torch.float32, device=device)
         with torch.no_grad():
             parts = [self.net(chunk) for chunk in x.split(batch_size)]
+        self.net.to("cpu")
         out = {}
         for k, scale in self.target_scales.items():
-            scaled = torch.cat([p[k] for p in parts]).numpy().astype(float).reshape(len(data), *self.target_shapes[k])
-            out[k] = scale.inverse(scaled)
+            scaled = torch.cat([p[k] for p in parts]).cpu().numpy().astype(float)
+            out[k] = scale.inverse(scaled.reshape(len(data), *self.target_shapes[k]))
         return out
 
     def get_state(self) -> dict:

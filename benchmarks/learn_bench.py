@@ -1,0 +1,207 @@
+"""Speed of learn/: training time to convergence on a ~30k-sample campaign, and inference samples/s.
+
+The campaign is synthetic (learn.synthetic: analytic dents read by the physics electrode model, 2 mm
+skin mesh) until FE campaigns exist; it is written once to --data and reused. Every model trains on the
+contiguous 80/20 split with early stopping (patience epochs without validation improvement) or the
+time limit, whichever comes first. "Time to convergence" is the wall time up to the best validation
+epoch; "converged" says whether early stopping (not the time limit) ended the run.
+
+    python benchmarks/learn_bench.py --device cpu --threads 2 --time-limit 900
+    python benchmarks/learn_bench.py --device cuda --batch-size 128
+    python benchmarks/learn_bench.py --device cuda --table 3 --samples 10000   # the paper's table
+
+Prints one JSON object (and writes it to --json when given).
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import math
+import platform
+import time
+from pathlib import Path
+
+import torch
+
+from learn.data import load
+from learn.experiment import SplitSpec, evaluate_checkpoint, train
+from learn.synthetic import write_synthetic_campaign
+from learn.train import NETWORKS, TrainConfig
+
+ROWS_PER_TRAJECTORY = 13.5
+"""Mean rows of a synthetic trajectory (depths 0.5-2 mm in 0.1 mm steps, plus the first contact)."""
+
+
+def campaign(folder: Path, samples: int, seed: int, sensor_id: int = 1) -> Path:
+    """The synthetic campaign of about ``samples`` rows in ``folder`` (written if missing)."""
+    path = folder / f"bench_{samples}_{seed}" / f"biotac{sensor_id}.hdf5"
+    if not path.exists():
+        path.parent.mkdir(parents=True, exist_ok=True)
+        start = time.perf_counter()
+        write_synthetic_campaign(path, math.ceil(samples / ROWS_PER_TRAJECTORY), sensor_id=sensor_id, seed=seed)
+        print(f"wrote {path} in {time.perf_counter() - start:.0f} s", flush=True)
+    return path
+
+
+def cpu_name() -> str:
+    """The processor's model name (Linux), else the platform's word for it."""
+    cpuinfo = Path("/proc/cpuinfo")
+    if cpuinfo.exists():
+        for line in cpuinfo.read_text().splitlines():
+            if line.startswith("model name"):
+                return line.split(":", 1)[1].strip()
+    return platform.processor() or "cpu"
+
+
+def inference_rate(estimator, data, device: str, repeats: int = 3) -> float:
+    """Best-of-``repeats`` samples/s of ``predict`` over the whole data set (host transfers included)."""
+    best = math.inf
+    for _ in range(repeats):
+        start = time.perf_counter()
+        estimator.predict(data, device=device)
+        if device == "cuda":
+            torch.cuda.synchronize()
+        best = min(best, time.perf_counter() - start)
+    return len(data) / best
+
+
+def paper_table(paths: list[Path], models: list[str], config: TrainConfig, held_out_indenter: str) -> list[dict]:
+    """The paper's protocol on several sensors: per-sensor and combined contiguous, non-contiguous
+    (leaky), leave one indenter out, cross-sensor (last two sensors both ways), pretrain on all then
+    fine-tune on the last (networks). One row per (model, split, training files)."""
+    rows = []
+
+    def add(model: str, split: str, trained_on: str, result: dict) -> None:
+        rows.append({"model": model, "split": split, "trained_on": trained_on, **result})
+        print(json.dumps(rows[-1]["combined"] | {"model": model, "split": split, "on": trained_on}), flush=True)
+
+    names = [p.stem for p in paths]
+    for model in models:
+        cfg = TrainConfig(**{**config.__dict__, "network": model if model in NETWORKS else "pointnet"})
+        for path, name in zip(paths, names, strict=True):
+            add(model, "contiguous", name, train([path], model, SplitSpec("contiguous"), cfg).metrics)
+        combined = train(paths, model, SplitSpec("contiguous"), cfg)
+        add(model, "contiguous", "all", combined.metrics)
+        add(model, "noncontiguous", "all", train(paths, model, SplitSpec("noncontiguous"), cfg).metrics)
+        held = SplitSpec(f"indenter:{held_out_indenter}")
+        add(model, f"leave out {held_out_indenter}", "all", train(paths, model, held, cfg).metrics)
+        for source, target in ((-2, -1), (-1, -2)):
+            alone = train([paths[source]], model, SplitSpec("none"), cfg)
+            unseen = evaluate_checkpoint(alone, [paths[target]], "all")
+            add(model, f"cross-sensor -> {names[target]}", names[source], unseen)
+        if model in NETWORKS:
+            tuned = train([paths[-1]], model, SplitSpec("contiguous"), cfg, init=combined)
+            add(model, "pretrain all + fine-tune", names[-1], tuned.metrics)
+    return rows
+
+
+COLUMNS = (
+    "contact_loc_mean_mm",
+    "contact_loc_median_mm",
+    "force_magnitude_median_N",
+    "force_angle_mean_rad",
+    "force_angle_median_rad",
+    "nodal_mean_mm",
+)
+
+
+def markdown(rows: list[dict]) -> str:
+    """The table rows as markdown: one line per (model, split, trained on, scored sensor)."""
+    lines = ["| model | split | trained on | scored on | " + " | ".join(COLUMNS) + " |"]
+    lines.append("|" + "---|" * (4 + len(COLUMNS)))
+    for row in rows:
+        scored = list(row["per_sensor"].items()) + (
+            [("combined", row["combined"])] if len(row["per_sensor"]) > 1 else []
+        )
+        for sensor, metrics in scored:
+            cells = [f"{metrics[c]:.2f}" if c in metrics else "-" for c in COLUMNS]
+            lines.append(
+                f"| {row['model']} | {row['split']} | {row['trained_on']} | {sensor} | " + " | ".join(cells) + " |"
+            )
+    return "\n".join(lines)
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--samples", type=int, default=30000)
+    parser.add_argument("--models", default="pointnet,mlp,classical,mean")
+    parser.add_argument("--device", default="cpu", choices=("cpu", "cuda"))
+    parser.add_argument("--threads", type=int, default=2)
+    parser.add_argument("--batch-size", type=int, default=128)
+    parser.add_argument("--learning-rate", type=float, default=1e-3)
+    parser.add_argument("--patience", type=int, default=10)
+    parser.add_argument("--max-epochs", type=int, default=300)
+    parser.add_argument("--time-limit", type=float, default=900.0, help="seconds per network")
+    parser.add_argument("--data", type=Path, default=Path("out/learn_bench"))
+    parser.add_argument("--seed", type=int, default=0)
+    parser.add_argument("--json", type=Path, default=None)
+    parser.add_argument("--table", type=int, default=0, help="run the paper's protocol on this many sensors")
+    parser.add_argument("--held-out-indenter", default="ring")
+    args = parser.parse_args()
+
+    torch.set_num_threads(args.threads)
+    if args.table:
+        paths = [campaign(args.data, args.samples, args.seed + k, k + 1) for k in range(args.table)]
+        config = TrainConfig(
+            max_epochs=args.max_epochs,
+            batch_size=args.batch_size,
+            learning_rate=args.learning_rate,
+            patience=args.patience,
+            time_limit_s=args.time_limit,
+            seed=args.seed,
+            threads=args.threads,
+            device=args.device,
+        )
+        rows = paper_table(paths, args.models.split(","), config, args.held_out_indenter)
+        print(markdown(rows))
+        if args.json is not None:
+            args.json.write_text(json.dumps(rows, indent=1))
+        return
+    path = campaign(args.data, args.samples, args.seed)
+    data = load(path)
+    report: dict = {
+        "samples": len(data),
+        "trajectories": int(len(set(data.trajectory.tolist()))),
+        "device": torch.cuda.get_device_name() if args.device == "cuda" else cpu_name(),
+        "threads": args.threads,
+        "torch": torch.__version__,
+        "data": "synthetic (learn.synthetic), contiguous 80/20 split",
+        "models": {},
+    }
+    for model in args.models.split(","):
+        config = TrainConfig(
+            network=model if model in NETWORKS else "pointnet",
+            max_epochs=args.max_epochs,
+            batch_size=args.batch_size,
+            learning_rate=args.learning_rate,
+            patience=args.patience,
+            time_limit_s=args.time_limit,
+            seed=args.seed,
+            threads=args.threads,
+            device=args.device,
+        )
+        start = time.perf_counter()
+        ckpt = train([path], model, SplitSpec("contiguous", 0.2, args.seed), config)
+        entry: dict = {"wall_s": time.perf_counter() - start, "metrics": ckpt.metrics["combined"]}
+        history = getattr(ckpt.estimator, "history", None)
+        if history:
+            best = min(history, key=lambda h: h.val_loss)
+            entry.update(
+                epochs=len(history),
+                best_epoch=best.epoch,
+                time_to_convergence_s=best.seconds,
+                seconds_per_epoch=history[-1].seconds / len(history),
+                converged=len(history) < args.max_epochs and history[-1].seconds <= args.time_limit,
+                inference_samples_per_s=inference_rate(ckpt.estimator, data, args.device),
+            )
+        report["models"][model] = entry
+        print(json.dumps({model: entry}), flush=True)
+    text = json.dumps(report, indent=1)
+    print(text)
+    if args.json is not None:
+        args.json.write_text(text)
+
+
+if __name__ == "__main__":
+    main()
