@@ -1,0 +1,62 @@
+"""The effect library: each effect does what its physics says, off means off, bad values are refused."""
+
+import numpy as np
+import pytest
+
+from fe.params import SkinParameters
+from twin.effects import EFFECTS, apply_path, apply_skin, check_values, measure_wrench
+
+
+def _step_load(times: np.ndarray) -> np.ndarray:
+    """A load that steps from 0 to 1 N (fz) at t = 1 s, plus a constant 0.5 N fx."""
+    wrench = np.zeros((len(times), 6))
+    wrench[:, 0] = 0.5
+    wrench[:, 2] = (times >= 1.0).astype(float)
+    return wrench
+
+
+def test_every_effect_is_off_at_its_off_values() -> None:
+    times = np.linspace(0, 3, 301)
+    skin = SkinParameters()
+    tips = np.array([[1e-3, 0.0, -7e-3]])
+    for name, effect in EFFECTS.items():
+        values = {name: {p.name: p.off for p in effect.parameters}}
+        assert effect.is_off(values[name])
+        np.testing.assert_array_equal(measure_wrench(times, _step_load, values), _step_load(times), err_msg=name)
+        assert apply_skin(skin, values) == skin
+        np.testing.assert_array_equal(apply_path(tips, values), tips)
+    assert len(EFFECTS) >= 8
+
+
+def test_time_delay_shifts_the_step() -> None:
+    times = np.linspace(0, 3, 301)
+    delayed = measure_wrench(times, _step_load, {"time_delay": {"seconds": 0.25}})
+    first = times[np.argmax(delayed[:, 2] > 0.5)]
+    assert first == pytest.approx(1.25, abs=0.011)
+
+
+def test_drift_grows_linearly_and_crosstalk_mixes_axes() -> None:
+    times = np.array([0.0, 10.0])
+    drift = measure_wrench(times, _step_load, {"ft_drift": {"fz_rate": 0.01}})
+    assert drift[1, 2] - _step_load(times)[1, 2] == pytest.approx(0.1)
+    mixed = measure_wrench(times, _step_load, {"ft_crosstalk": {"zx": 0.1}})
+    # fz picks up 10 % of fx; fx itself is unchanged
+    assert mixed[:, 2] - _step_load(times)[:, 2] == pytest.approx([0.05, 0.05])
+    assert mixed[:, 0] == pytest.approx([0.5, 0.5])
+
+
+def test_physics_effects_change_skin_and_path() -> None:
+    skin = apply_skin(SkinParameters(), {"skin_thickness": {"scale": 1.1}, "indenter_friction": {"scale": 2.0}})
+    assert skin.thickness == pytest.approx(1.1 * 1.57e-3)
+    assert skin.friction == pytest.approx(2 * 0.186)
+    shifted = apply_path(np.zeros((2, 3)), {"registration_offset": {"dx": 1e-3}})
+    assert shifted[:, 0] == pytest.approx([1e-3, 1e-3])
+
+
+def test_bad_effect_values_are_refused() -> None:
+    with pytest.raises(ValueError, match="unknown effect"):
+        check_values({"gremlins": {}})
+    with pytest.raises(ValueError, match="outside"):
+        check_values({"time_delay": {"seconds": -1.0}})
+    with pytest.raises(ValueError, match="no parameters"):
+        check_values({"time_delay": {"minutes": 1.0}})
