@@ -39,7 +39,7 @@ ROW_CHANNELS = (*FORCE_CHANNELS, "force", "pdc", "electrodes")
 """Channels of the per-covariate breakdowns of the rows table."""
 FULLRATE_CHANNELS = (*FORCE_CHANNELS, "force")
 """Channels of the per-phase breakdown of the full-rate table."""
-UNITS = {"force": "N", "pdc": "counts", "electrode": "counts", "depth": "mm", "contact": "mm", "time": "s"}
+UNITS = {"force": "N", "pdc": "counts", "electrode": "counts", "depth": "mm"}
 DEPTH_STEPS_MM = (0.1, 0.2, 0.25, 0.5, 1.0, 2.0, 5.0)
 MAX_DEPTH_BINS = 6
 MIN_BANDWIDTH = 1e-3
@@ -66,8 +66,8 @@ class ErrorStats:
 class ResidualField:
     """RMS force error on the skin mesh (unpressurised mid-surface, biotac frame).
 
-    values[v] = sqrt(sum_i w_iv |r_i|^2 / sum_i w_iv): a Gaussian-kernel (Nadaraya-Watson) estimate
-    of the mean squared force residual |r_i| (N) of the rows near vertex v, each row placed at the
+    values[v] = sqrt(sum_i w_iv |r_i|^2 / sum_i w_iv): the root of a Gaussian-kernel (Nadaraya-Watson)
+    estimate of the mean squared force residual |r_i| (N) of the rows near vertex v, each row placed at the
     skin vertex nearest its contact location; NaN where no row lies within KERNEL_REACH bandwidths.
     support[v] = sum_i w_iv, the effective number of rows behind values[v].
     """
@@ -121,7 +121,7 @@ def residuals(table: SampleTable) -> dict[str, np.ndarray]:
 
 
 def _trajectories(table: SampleTable) -> list[np.ndarray]:
-    """Sample indices of each (sensor, trajectory), time-ordered."""
+    """Sample indices of each (sensor, trajectory), in table order."""
     keys = np.column_stack([table.labels["sensor"], table.labels["trajectory"]])
     _, inverse = np.unique(keys, axis=0, return_inverse=True)
     return [np.flatnonzero(inverse.ravel() == k) for k in range(inverse.max() + 1)] if len(keys) else []
@@ -170,7 +170,7 @@ def row_groupings(rows: SampleTable) -> dict[str, tuple[np.ndarray, Callable]]:
 
 
 def breakdowns(comparison: Comparison) -> dict[str, dict[str, dict[str, ErrorStats]]]:
-    """{covariate: {channel: {group: stats}}}: rows by ROW_GROUPINGS, the full-rate table by phase."""
+    """{covariate: {channel: {group: stats}}}: rows by `row_groupings`, the full-rate table by phase."""
     rows_res, full_res = residuals(comparison.rows), residuals(comparison.fullrate)
     out = {
         by: {c: grouped_stats(rows_res[c], groups, name) for c in ROW_CHANNELS if c in rows_res}
