@@ -120,11 +120,14 @@ def build_residual(
 
 
 def _whitened(predicted: list[np.ndarray], masks: list[np.ndarray], sigma: np.ndarray) -> np.ndarray:
-    """Whitened, offset-projected predictions on the base model's sample set (for differences)."""
+    """Whitened, offset-projected predictions on the base model's sample set (for differences).
+
+    Samples where this prediction failed (fe not converged) are NaN; fits and scores skip them.
+    """
     out = []
     for p, m in zip(predicted, masks, strict=True):
-        w = np.nan_to_num(p[m]) / sigma
-        out.append((w - w.mean(axis=0)).ravel())
+        w = p[m] / sigma
+        out.append((w - np.nanmean(w, axis=0)).ravel())
     return np.concatenate(out)
 
 
@@ -163,6 +166,8 @@ def sensitivity(
 
 
 def _linear_fit(effect: Effect, current: dict[str, float], jac: np.ndarray, r: np.ndarray) -> np.ndarray:
+    finite = np.isfinite(jac).all(axis=1) & np.isfinite(r)
+    jac, r = jac[finite], r[finite]
     lower = np.array([p.lower - current[p.name] for p in effect.parameters])
     upper = np.array([p.upper - current[p.name] for p in effect.parameters])
     scale = np.array([p.scale for p in effect.parameters])
@@ -190,7 +195,7 @@ def diagnose(
     r = residual.values
     n = len(r)
     chi2 = float(r @ r)
-    excess = max(chi2 - n, 1e-12)
+    excess = chi2 - n
     base_rms = float(np.sqrt(chi2 / n))
     names = candidates if candidates is not None else [k for k in EFFECTS if k not in model.effects]
     ranked: list[tuple[Candidate, np.ndarray]] = []
@@ -199,14 +204,14 @@ def diagnose(
         jac = sensitivity(effect, model, predictor, trajectories, masks, sigma, base)
         current = effect.values(model.effects.get(name))
         delta = _linear_fit(effect, current, jac, r)
-        drop = chi2 - float(np.sum((r - jac @ delta) ** 2))
+        drop = chi2 - float(np.nansum((r - jac @ delta) ** 2))
         candidate = Candidate(
             name=name,
             kind=effect.kind,
             parameters={p.name: current[p.name] + d for p, d in zip(effect.parameters, delta, strict=True)},
             chi2_drop=drop,
             evidence=drop - len(delta) * np.log(n),
-            explained_fraction=drop / excess,
+            explained_fraction=drop / excess if excess > 0 else 0.0,
         )
         ranked.append((candidate, jac))
     ranked.sort(key=lambda item: -item[0].evidence)
@@ -234,15 +239,17 @@ def _heldout(
     for g in groups:
         train, test = indenter != g, indenter == g
         delta = _linear_fit(effect, current, jac[train], r[train])
-        squared += float(np.sum((r[test] - jac[test] @ delta) ** 2))
-        count += int(test.sum())
+        misfit = (r[test] - jac[test] @ delta) ** 2
+        squared += float(np.nansum(misfit))
+        count += int(np.isfinite(misfit).sum())
     candidate.heldout_rms = float(np.sqrt(squared / count))
 
 
 def _identifiability(candidate: Candidate, jac: np.ndarray) -> None:
     """Parameter correlations and the condition of J^T J (scaled); flag non-identifiable fits."""
     scale = np.array([p.scale for p in EFFECTS[candidate.name].parameters])
-    info = (jac * scale).T @ (jac * scale)
+    scaled = (jac * scale)[np.isfinite(jac).all(axis=1)]
+    info = scaled.T @ scaled
     eig = np.linalg.eigvalsh(info)
     candidate.condition = float(eig[-1] / max(eig[0], 1e-300))
     cov = np.linalg.pinv(info)
@@ -279,7 +286,7 @@ def _refit(
         predicted = _whitened(_fullrate_prediction(predictor, trial, trajectories), masks, sigma)
         residual = r - (predicted - base)
     candidate.refit_parameters = values
-    candidate.refit_rms = float(np.sqrt(np.mean(residual**2)))
+    candidate.refit_rms = float(np.sqrt(np.nanmean(residual**2)))
 
 
 def _verdict(base_rms: float, candidates: list[Candidate]) -> tuple[str, str]:
