@@ -125,3 +125,18 @@ def list_effects() -> None:
         params = "; ".join(f"{p.name}={p.off:g} [{p.lower:g}, {p.upper:g}] {p.units}" for p in e.parameters)
         table.add_row(e.name, e.kind, params, e.description)
     out_console.print(table)
+
+
+@loop_app.command()
+def demo(
+    out: Annotated[Path, typer.Option(help="Output folder.")] = Path("runs/demo"),
+    seed: Annotated[int, typer.Option(help="Seed of the hidden effect and of the campaign.")] = 0,
+) -> None:
+    """The loop end to end: hidden effect, quick campaign, report, diagnosis, the effect added, error falling."""
+    from twin.demo import run_demo
+
+    result = guarded(lambda: run_demo(out, seed, say=out_console.print))
+    found = result.diagnosis.verdict
+    mark = "[green]found[/green]" if found == result.hidden else "[red]missed[/red]"
+    out_console.print(f"diagnosis named {found!r}; hidden was {result.hidden!r}: {mark}")
+    out_console.print(f"reports: {out / 'report_before'}, {out / 'report_after'}")
