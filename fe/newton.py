@@ -75,6 +75,10 @@ class NewtonResult:
     message: str
 
 
+_ENERGY_RESOLUTION = 1e-12
+"""Relative size below which energy differences are round-off (sums over thousands of elements)."""
+
+
 def _residual(lin: Linearization, pressure: float) -> np.ndarray:
     return lin.gradient - pressure * lin.volume_gradient
 
@@ -164,18 +168,22 @@ def _line_search(
     rho = 3.0 * max(0.0, -curvature) / (c * c) if c != 0.0 else 0.0
     phi0 = _merit(lin, new_pressure, target_volume, rho)
     slope = float(_residual(lin, new_pressure) @ dq) - rho * c * c
-    step = 1.0
+    if -slope > _ENERGY_RESOLUTION * max(abs(phi0), abs(lin.energy)):
+        step = 1.0
+        for _ in range(settings.max_backtracks):
+            trial = problem.linearize(q + step * dq, new_pressure, want_matrix=False)
+            phi = _merit(trial, new_pressure, target_volume, rho)
+            if np.isfinite(phi) and phi <= phi0 + 1e-4 * step * slope:
+                return q + step * dq, pressure + step * dp
+            step *= 0.5
+    # The energy cannot resolve this step (round-off near the solution) or no step decreased it: backtrack
+    # on the Euclidean norm of the residual force, for which the Newton step is a descent direction too.
+    rnorm, step = float(np.linalg.norm(r)), 1.0
     for _ in range(settings.max_backtracks):
-        trial = problem.linearize(q + step * dq, new_pressure, want_matrix=False)
-        phi = _merit(trial, new_pressure, target_volume, rho)
-        if np.isfinite(phi) and phi <= phi0 + 1e-4 * step * min(slope, 0.0):
+        trial = problem.linearize(q + step * dq, pressure + step * dp, want_matrix=False)
+        if np.linalg.norm(_residual(trial, pressure + step * dp)) < (1.0 - 1e-4 * step) * rnorm:
             return q + step * dq, pressure + step * dp
         step *= 0.5
-    # Near the solution the merit function stalls at round-off; accept a full step that still reduces the
-    # residual force.
-    trial = problem.linearize(q + dq, new_pressure, want_matrix=False)
-    if np.max(np.abs(_residual(trial, new_pressure)), initial=0.0) < np.max(np.abs(r), initial=0.0):
-        return q + dq, new_pressure
     return None
 
 
