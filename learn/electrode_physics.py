@@ -33,8 +33,9 @@ from __future__ import annotations
 from dataclasses import dataclass, field, fields
 
 import numpy as np
+from scipy import sparse
 
-from assets.biotac import BioTacGeometry, Electrodes, electrode_table, vertex_normals
+from assets.biotac import BioTacGeometry, Electrodes, electrode_table
 
 N_ELECTRODES = 19
 ADC_MAX = 4095.0
@@ -204,6 +205,7 @@ class ElectrodeModel:
         self._positions = electrodes.positions
         self._normals = electrodes.normals
         self._patches = self._select_patches()
+        self._index_patches()
         self._areas = _vertex_areas(self.reference, self._triangles)
         self._rest_impedance = self.impedance(self.reference)
         if not np.all(np.isfinite(self._rest_impedance)):
@@ -228,6 +230,24 @@ class ElectrodeModel:
             patches.append(ids)
         return patches
 
+    def _index_patches(self) -> None:
+        """Flatten the patches for vectorised evaluation and restrict the normal computation to the
+        vertices they hold: a sparse (used vertex x adjacent triangle) incidence matrix."""
+        self._used = np.unique(np.concatenate(self._patches))
+        local = np.full(len(self.reference), -1)
+        local[self._used] = np.arange(len(self._used))
+        self._entry_vertex = np.concatenate(self._patches)  # global vertex id of each (electrode, vertex)
+        self._entry_local = local[self._entry_vertex]
+        self._entry_electrode = np.repeat(np.arange(N_ELECTRODES), [len(p) for p in self._patches])
+        touching = np.flatnonzero((local[self._triangles] >= 0).any(axis=1))
+        self._near_triangles = self._triangles[touching]
+        rows = local[self._near_triangles].ravel()
+        cols = np.repeat(np.arange(len(touching)), 3)
+        keep = rows >= 0
+        self._incidence = sparse.csr_matrix(
+            (np.ones(keep.sum()), (rows[keep], cols[keep])), shape=(len(self._used), len(touching))
+        )
+
     def impedance(self, vertices: np.ndarray) -> np.ndarray:
         """(19,) film impedance of each electrode up to the constant rho: mean_w(1 / h), 1/m.
 
@@ -236,19 +256,21 @@ class ElectrodeModel:
         """
         vertices = np.asarray(vertices, dtype=float)
         self._check_vertices(vertices)
-        normals = vertex_normals(vertices, self._triangles)
-        inner = vertices - 0.5 * self.skin_thickness * normals
+        p = vertices[self._near_triangles]
+        normals = self._incidence @ np.cross(p[:, 1] - p[:, 0], p[:, 2] - p[:, 0])  # area-weighted
+        normals /= np.linalg.norm(normals, axis=1, keepdims=True)
+        inner = vertices[self._used] - 0.5 * self.skin_thickness * normals
+        e = self._entry_electrode
+        rel = inner[self._entry_local] - self._positions[e]
+        along = np.einsum("ij,ij->i", rel, self._normals[e])
+        lateral2 = np.einsum("ij,ij->i", rel, rel) - along**2
         radius = self.params.footprint_radius
-        out = np.empty(N_ELECTRODES)
-        for e, ids in enumerate(self._patches):
-            rel = inner[ids] - self._positions[e]
-            along = rel @ self._normals[e]
-            lateral2 = np.einsum("ij,ij->i", rel, rel) - along**2
-            weight = self._areas[ids] * np.clip(1.0 - lateral2 / radius**2, 0.0, None) ** 2
-            total = weight.sum()
-            gap = np.maximum(along, self.params.min_gap)
-            out[e] = (weight / gap).sum() / total if total > 0.0 else np.inf
-        return out
+        weight = self._areas[self._entry_vertex] * np.clip(1.0 - lateral2 / radius**2, 0.0, None) ** 2
+        gap = np.maximum(along, self.params.min_gap)
+        total = np.bincount(e, weights=weight, minlength=N_ELECTRODES)
+        series = np.bincount(e, weights=weight / gap, minlength=N_ELECTRODES)
+        with np.errstate(divide="ignore", invalid="ignore"):
+            return np.where(total > 0.0, series / total, np.inf)
 
     def relative_impedance(self, vertices: np.ndarray) -> np.ndarray:
         """(19,) z_e = Z_e / Z_e,rest (1 at the reference skin, > 1 where the skin approaches)."""

@@ -169,3 +169,23 @@ def test_bad_inputs_are_rejected(geometry: BioTacGeometry, model: ElectrodeModel
 def test_import_is_cheap_and_torch_free() -> None:
     code = "import sys, learn, learn.electrode_physics, learn.synthetic; assert 'torch' not in sys.modules"
     subprocess.run([sys.executable, "-c", code], check=True)
+
+
+def test_vectorised_impedance_matches_a_direct_evaluation(geometry: BioTacGeometry, model: ElectrodeModel) -> None:
+    """The film impedance written out electrode by electrode from its definition (all vertex normals)."""
+    v = gaussian_dent(geometry, geometry.skin.vertices, skin_point_over(geometry, 12), 0.8e-3, shear=[3e-4, 0, 0])
+    inner = v - 0.5 * model.skin_thickness * vertex_normals(v, geometry.skin.triangles)
+    p = geometry.skin.vertices[geometry.skin.triangles]
+    area = 0.5 * np.linalg.norm(np.cross(p[:, 1] - p[:, 0], p[:, 2] - p[:, 0]), axis=1)
+    vertex_area = np.zeros(len(v))
+    np.add.at(vertex_area, geometry.skin.triangles.ravel(), np.repeat(area / 3.0, 3))
+    radius, floor = model.params.footprint_radius, model.params.min_gap
+    expected = []
+    for pos, n in zip(geometry.electrodes.positions, geometry.electrodes.normals, strict=True):
+        rel = inner - pos
+        along = rel @ n
+        lateral = np.linalg.norm(rel - along[:, None] * n, axis=1)
+        in_front = (geometry.skin.vertices - pos) @ n > 0.0  # the skin on the electrode's side
+        w = vertex_area * np.clip(1.0 - (lateral / radius) ** 2, 0.0, None) ** 2 * in_front
+        expected.append((w / np.maximum(along, floor)).sum() / w.sum())
+    np.testing.assert_allclose(model.impedance(v), expected, rtol=1e-9)
