@@ -1,20 +1,25 @@
-"""Discrete-shell bending energy on interior edges (hinges), in warp.
+"""Discrete Kirchhoff-Love bending from per-triangle shape operators built on edge dihedral angles, in warp.
 
-Per hinge: E = (D / 2) * 3 |e0|^2 / (A0_A + A0_B) * (theta - theta0)^2, with theta the signed dihedral
-angle, theta0 its rest value, |e0| and A0 the rest edge length and triangle areas (m, m^2) and
-D = mu t^3 / 3 the plate bending stiffness of an incompressible sheet (J). The hinge sum
-sum 3 |e|^2 / (A_A + A_B) theta^2 approximates the integral of (2H)^2 = (k1 + k2)^2 over the surface
-(exactly so for isotropic curvature), so E approximates the plate energy (D / 2) int (k1 + k2)^2 dA
-(Gaussian-curvature term omitted, as for clamped or closed shells). The hinge energy is anisotropic:
-curvature fields that vary across an irregular mesh come out stiffer than the plate (see docs/fe.md).
-The gradient of theta is analytic; the Hessian is the forward difference of that analytic gradient
-(step 1e-7 of the edge length, then symmetrised), accurate to ~1e-7 relative: plenty for Newton.
+Each triangle T with edges e_i (i = 0, 1, 2, opposite its vertex i) estimates the change of its second
+fundamental form from the changes of the dihedral angles across its edges,
+dS = sum_i (theta_i - theta0_i) |e0_i| / (2 A0) t_i t_i^T, with t_i the rest in-plane unit normal of
+edge i and |e0_i|, A0 rest lengths and areas (m, m^2); edges without a neighbour contribute nothing.
+The energy is the plate energy of an incompressible sheet (nu = 1/2, D = mu t^3 / 3 in J):
+E_T = (D / 2) A0 [nu (tr dS)^2 + (1 - nu) |dS|_F^2] = (D A0 / 2) dtheta^T M dtheta with the constant
+M_ij = c_i c_j [nu + (1 - nu) (t_i . t_j)^2], c_i = |e0_i| / (2 A0). Unlike a sum of squared hinge
+angles, which is exact for isotropic curvature only (and about 3x too stiff for cylindrical bending on
+an equilateral mesh), the shape operator is exact for any uniform curvature on such meshes.
+The gradient of theta is analytic; its Hessian is the forward difference of that analytic gradient
+(step 1e-7 of the edge length), accurate to ~1e-7 relative: plenty for Newton.
 """
 
 import numpy as np
 import warp as wp
 
-from fe.wptypes import mat1212d, vec12d
+from fe.wptypes import mat1818d, vec6i, vec12d
+
+POISSON = 0.5
+"""Poisson's ratio of the incompressible skin."""
 
 
 @wp.func
@@ -55,87 +60,147 @@ def dihedral_gradient(x0: wp.vec3d, x1: wp.vec3d, x2: wp.vec3d, x3: wp.vec3d) ->
 
 
 @wp.func
-def _hinge_energy_gradient(
-    x0: wp.vec3d, x1: wp.vec3d, x2: wp.vec3d, x3: wp.vec3d, stiffness: wp.float64, theta0: wp.float64
-) -> vec12d:
-    theta = dihedral_angle(x0, x1, x2, x3)
-    return dihedral_gradient(x0, x1, x2, x3) * (wp.float64(2.0) * stiffness * (theta - theta0))
+def _corner(xs: vec12d, k: int) -> wp.vec3d:
+    return wp.vec3d(xs[3 * k], xs[3 * k + 1], xs[3 * k + 2])
 
 
 @wp.func
-def _corner(xs: vec12d, k: int) -> wp.vec3d:
-    return wp.vec3d(xs[3 * k], xs[3 * k + 1], xs[3 * k + 2])
+def _edge_slots(i: int) -> wp.vec4i:
+    """Stencil slots (0-2 triangle vertices, 3-5 far vertices) of the hinge across edge i: (x0, x1, x2, x3)."""
+    return wp.vec4i((i + 1) % 3, (i + 2) % 3, i, 3 + i)
+
+
+@wp.func
+def _hinge_point(xs: wp.array2d(dtype=wp.vec3d), b: int, nodes: vec6i, slot: int) -> wp.vec3d:
+    return xs[b, nodes[slot]]
 
 
 @wp.kernel
 def bending_kernel(
     x: wp.array2d(dtype=wp.vec3d),
-    hinges: wp.array(dtype=wp.vec4i),
-    rest_angle: wp.array(dtype=wp.float64),
-    rest_weight: wp.array(dtype=wp.float64),
+    stencils: wp.array(dtype=vec6i),
+    has_edge: wp.array(dtype=wp.vec3i),
+    rest_angle: wp.array(dtype=wp.vec3d),
+    rest_area: wp.array(dtype=wp.float64),
+    coupling: wp.array(dtype=wp.mat33d),
     bending_stiffness: wp.array(dtype=wp.float64),
     want_hessian: int,
     energy: wp.array2d(dtype=wp.float64),
     gradient: wp.array2d(dtype=wp.vec3d),
-    hessian: wp.array2d(dtype=mat1212d),
+    hessian: wp.array2d(dtype=mat1818d),
 ):
-    """Energy, gradient (scattered to nodes) and 12x12 Hessian per (batch, hinge)."""
-    b, h = wp.tid()
-    idx = hinges[h]
-    k = rest_weight[h] * bending_stiffness[b]
-    xs = vec12d()
-    for c in range(4):
-        p = x[b, idx[c]]
-        for i in range(3):
-            xs[3 * c + i] = p[i]
-    theta = dihedral_angle(_corner(xs, 0), _corner(xs, 1), _corner(xs, 2), _corner(xs, 3))
-    d = theta - rest_angle[h]
-    energy[b, h] = k * d * d
-    g = _hinge_energy_gradient(_corner(xs, 0), _corner(xs, 1), _corner(xs, 2), _corner(xs, 3), k, rest_angle[h])
-    for c in range(4):
-        wp.atomic_add(gradient, b, idx[c], _corner(g, c))
-    if want_hessian != 0:
-        step = wp.float64(1e-7) * wp.length(_corner(xs, 1) - _corner(xs, 0))
-        H = mat1212d()
-        for j in range(12):
-            xp = xs
-            xp[j] = xs[j] + step
-            gp = _hinge_energy_gradient(
-                _corner(xp, 0), _corner(xp, 1), _corner(xp, 2), _corner(xp, 3), k, rest_angle[h]
+    """Energy, gradient (scattered to the 6 stencil nodes) and 18x18 Hessian per (batch, triangle)."""
+    b, t = wp.tid()
+    nodes = stencils[t]
+    present = has_edge[t]
+    k = bending_stiffness[b] * rest_area[t]
+    dtheta = wp.vec3d()
+    for i in range(3):
+        if present[i] != 0:
+            s = _edge_slots(i)
+            theta = dihedral_angle(
+                _hinge_point(x, b, nodes, s[0]),
+                _hinge_point(x, b, nodes, s[1]),
+                _hinge_point(x, b, nodes, s[2]),
+                _hinge_point(x, b, nodes, s[3]),
             )
-            for i in range(12):
-                H[i, j] = (gp[i] - g[i]) / step
-        for i in range(12):
-            for j in range(i + 1, 12):
-                s = wp.float64(0.5) * (H[i, j] + H[j, i])
-                H[i, j] = s
-                H[j, i] = s
-        hessian[b, h] = H
+            dtheta[i] = theta - rest_angle[t][i]
+    m = coupling[t]
+    lam = (m @ dtheta) * k  # dE / dtheta_i
+    energy[b, t] = wp.float64(0.5) * wp.dot(dtheta, lam)
+    # d theta_i / d x over the 18 stencil coordinates.
+    jac = mat1818d()  # rows 0-2 hold the three gradients; the rest stays zero
+    for i in range(3):
+        if present[i] != 0:
+            s = _edge_slots(i)
+            g = dihedral_gradient(
+                _hinge_point(x, b, nodes, s[0]),
+                _hinge_point(x, b, nodes, s[1]),
+                _hinge_point(x, b, nodes, s[2]),
+                _hinge_point(x, b, nodes, s[3]),
+            )
+            for c in range(4):
+                for d in range(3):
+                    jac[i, 3 * s[c] + d] = g[3 * c + d]
+    for slot in range(6):
+        f = wp.vec3d()
+        for d in range(3):
+            f[d] = lam[0] * jac[0, 3 * slot + d] + lam[1] * jac[1, 3 * slot + d] + lam[2] * jac[2, 3 * slot + d]
+        wp.atomic_add(gradient, b, nodes[slot], f)
+    if want_hessian != 0:
+        H = mat1818d()
+        for i in range(3):
+            for j in range(3):
+                kij = k * m[i, j]
+                for r in range(18):
+                    for c in range(18):
+                        H[r, c] = H[r, c] + kij * jac[i, r] * jac[j, c]
+        for i in range(3):
+            if present[i] != 0:
+                s = _edge_slots(i)
+                xs = vec12d()
+                for c in range(4):
+                    p = _hinge_point(x, b, nodes, s[c])
+                    for d in range(3):
+                        xs[3 * c + d] = p[d]
+                g0 = dihedral_gradient(_corner(xs, 0), _corner(xs, 1), _corner(xs, 2), _corner(xs, 3))
+                step = wp.float64(1e-7) * wp.length(_corner(xs, 1) - _corner(xs, 0))
+                for j in range(12):
+                    xp = xs
+                    xp[j] = xs[j] + step
+                    gp = dihedral_gradient(_corner(xp, 0), _corner(xp, 1), _corner(xp, 2), _corner(xp, 3))
+                    col = 3 * s[j // 3] + j % 3
+                    for r in range(12):
+                        row = 3 * s[r // 3] + r % 3
+                        H[row, col] = H[row, col] + lam[i] * (gp[r] - g0[r]) / step
+        for r in range(18):
+            for c in range(r + 1, 18):
+                avg = wp.float64(0.5) * (H[r, c] + H[c, r])
+                H[r, c] = avg
+                H[c, r] = avg
+        hessian[b, t] = H
 
 
-def build_hinges(triangles: np.ndarray) -> np.ndarray:
-    """Interior edges as (v0, v1, v2, v3).
-
-    Edge v0-v1 is ordered as in triangle (v0, v1, v2); (v1, v0, v3) is its neighbour.
-    """
-    directed = {}
+def build_stencils(triangles: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Per triangle (a, b, c): its vertices then the far vertex across each edge i (opposite vertex i),
+    (T, 6); and whether that neighbour exists, (T, 3). A missing far vertex repeats vertex i."""
+    far = {}
     for tri in triangles:
         for k in range(3):
-            a, b, c = tri[k], tri[(k + 1) % 3], tri[(k + 2) % 3]
-            directed[(int(a), int(b))] = int(c)
-    hinges = [(a, b, c, directed[(b, a)]) for (a, b), c in directed.items() if a < b and (b, a) in directed]
-    return np.asarray(hinges, dtype=np.int32).reshape(-1, 4)
+            far[(int(tri[k]), int(tri[(k + 1) % 3]))] = int(tri[(k + 2) % 3])
+    stencils = np.zeros((len(triangles), 6), dtype=np.int32)
+    present = np.zeros((len(triangles), 3), dtype=np.int32)
+    for n, tri in enumerate(triangles):
+        stencils[n, :3] = tri
+        for i in range(3):
+            # Edge i runs tri[i+1] -> tri[i+2] in this triangle; the neighbour holds it reversed.
+            other = far.get((int(tri[(i + 2) % 3]), int(tri[(i + 1) % 3])))
+            stencils[n, 3 + i] = tri[i] if other is None else other
+            present[n, i] = other is not None
+    return stencils, present
 
 
-def hinge_rest_state(vertices: np.ndarray, triangles: np.ndarray, hinges: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Rest dihedral angles (rad) and weights (1/2) 3|e0|^2/(A0_A + A0_B) (dimensionless) of each hinge,
-    so that the hinge energy is D * weight * (theta - theta0)^2."""
-    x0, x1, x2, x3 = (vertices[hinges[:, k]] for k in range(4))
-    e = x1 - x0
-    na = np.cross(e, x2 - x0)
-    nb = np.cross(x3 - x1, e)
-    len_e = np.linalg.norm(e, axis=1)
-    s = np.einsum("ij,ij->i", np.cross(na, nb), e) / len_e
-    angle = np.arctan2(s, np.einsum("ij,ij->i", na, nb))
-    areas = 0.5 * (np.linalg.norm(na, axis=1) + np.linalg.norm(nb, axis=1))
-    return angle, 1.5 * len_e**2 / areas
+def stencil_rest_state(
+    vertices: np.ndarray, stencils: np.ndarray, present: np.ndarray
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Rest dihedral angles (T,3) rad, rest areas (T,) m^2 and couplings M (T,3,3) 1/m^2 of each triangle."""
+    tri = vertices[stencils[:, :3]]
+    angles = np.zeros((len(stencils), 3))
+    normals = np.zeros((len(stencils), 3, 3))
+    lengths = np.zeros((len(stencils), 3))
+    face = np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0])
+    area = 0.5 * np.linalg.norm(face, axis=1)
+    unit = face / (2.0 * area[:, None])
+    for i in range(3):
+        x0, x1, x2 = tri[:, (i + 1) % 3], tri[:, (i + 2) % 3], tri[:, i]
+        x3 = vertices[stencils[:, 3 + i]]
+        e = x1 - x0
+        lengths[:, i] = np.linalg.norm(e, axis=1)
+        na, nb = np.cross(e, x2 - x0), np.cross(x3 - x1, e)
+        s = np.einsum("ij,ij->i", np.cross(na, nb), e) / lengths[:, i]
+        angles[:, i] = np.where(present[:, i] != 0, np.arctan2(s, np.einsum("ij,ij->i", na, nb)), 0.0)
+        normals[:, i] = np.cross(e / lengths[:, i, None], unit)  # in-plane, pointing away from vertex i
+    c = np.where(present != 0, lengths / (2.0 * area[:, None]), 0.0)
+    dots = np.einsum("tid,tjd->tij", normals, normals)
+    coupling = c[:, :, None] * c[:, None, :] * (POISSON + (1.0 - POISSON) * dots**2)
+    return angles, area, coupling

@@ -70,8 +70,8 @@ def hemisphere_mesh(radius: float, max_edge: float) -> ShellMesh:
 
 
 def disk_mesh(radius: float, max_edge: float, clamp_rings: int = 2) -> ShellMesh:
-    """Flat disk z = 0 (m) of concentric rings, normals +z, centre vertex first; the `clamp_rings` rings
-    beyond `radius` are held fixed, so the plate edge at `radius` is clamped (no deflection, no slope)."""
+    """Flat disk z = 0 (m) of concentric rings, normals +z, centre vertex first; the ring at `radius` and
+    `clamp_rings` rings beyond it are held fixed, so the plate edge is clamped (no deflection, no slope)."""
     if radius <= 0 or max_edge <= 0 or clamp_rings < 1:
         raise ValueError("radius and max_edge must be positive and clamp_rings at least 1")
     n_rings = max(2, int(np.ceil(radius / max_edge)))
@@ -89,7 +89,7 @@ def disk_mesh(radius: float, max_edge: float, clamp_rings: int = 2) -> ShellMesh
     t = np.asarray([tri for tri in tris if len(set(tri)) == 3], dtype=np.int32)
     flip = np.cross(v[t[:, 1]] - v[t[:, 0]], v[t[:, 2]] - v[t[:, 0]])[:, 2] < 0
     t[flip] = t[flip][:, ::-1]
-    fixed = np.linalg.norm(v[:, :2], axis=1) > radius * (1 + 1e-9)
+    fixed = np.linalg.norm(v[:, :2], axis=1) >= radius * (1 - 1e-9)
     return ShellMesh(v, t, fixed)
 
 

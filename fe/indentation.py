@@ -164,8 +164,7 @@ class IndentationStepper:
             # The inflated state is an equilibrium that the indenter does not touch: release to it.
             self._release()
             return self._free_result(depth, start)
-        result, iterations = self._solve(indenter)
-        return self._finish(indenter, result, iterations, depth, start)
+        return self._finish(indenter, self._solve(indenter), depth, start)
 
     def _release(self) -> None:
         """Put the skin back to the inflated reference state, keeping the indenter pose and depth origin."""
@@ -192,7 +191,7 @@ class IndentationStepper:
         x += np.maximum(depth - gap, 0.0)[:, None] * normal
         return x
 
-    def _solve(self, indenter: IndenterState) -> tuple[NewtonResult, int]:
+    def _solve(self, indenter: IndenterState) -> NewtonResult:
         """One Newton solve at the new pose from the predicted state, the friction normal forces and
         normals refreshed inside it (at most `friction_passes` times) until they settle."""
         system, cs = self.system, self.system.contact_settings
@@ -209,7 +208,7 @@ class IndentationStepper:
             passes += 1
             return self._lag_contact(system.positions(q))
 
-        result = solve_equilibrium(
+        return solve_equilibrium(
             system,
             system.free_coordinates(x0),
             self.pressure,
@@ -217,7 +216,6 @@ class IndentationStepper:
             self.newton,
             refresh=refresh if system.params.friction > 0.0 else None,
         )
-        return result, result.iterations
 
     def _lag_contact(self, x: np.ndarray) -> bool:
         """Set the lagged friction normal forces (N) and normals from positions x (V,3) m; returns whether
@@ -231,9 +229,7 @@ class IndentationStepper:
         system.lagged_force, system.lagged_normal = force, normal
         return True
 
-    def _finish(
-        self, indenter: IndenterState, result: NewtonResult, iterations: int, depth: float, start: float
-    ) -> IncrementResult:
+    def _finish(self, indenter: IndenterState, result: NewtonResult, depth: float, start: float) -> IncrementResult:
         """Accept a converged solve as the new state (or record the failure) and report it."""
         system = self.system
         x = system.positions(result.q)
@@ -258,7 +254,7 @@ class IndentationStepper:
             contact_area=float(lumped_areas(x, system.mesh.triangles)[in_contact].sum()),
             contact_radius=float(np.linalg.norm(radial[in_contact], axis=1).max(initial=0.0)),
             displacement=x - self.x_reference,
-            newton_iterations=iterations,
+            newton_iterations=result.iterations,
             residual=result.residual_norm,
             equilibrium_error=balance,
             converged=result.converged,

@@ -15,7 +15,7 @@ from fe.assembly import BlockAssembler, project_psd
 from fe.linsolve import SymmetricSolver
 from fe.newton import Linearization
 from fe.params import ContactSettings, SkinParameters
-from fe.wptypes import mat99d, mat1212d
+from fe.wptypes import mat99d, mat1818d, vec6i
 
 
 @dataclass(frozen=True)
@@ -93,20 +93,22 @@ class ShellSystem:
         self.free_dofs = free_dofs
         self.x = mesh.vertices.astype(np.float64).copy()
         dm_inv, rest_area = membrane.reference_frames(mesh.vertices, mesh.triangles)
-        self.hinges = bending.build_hinges(mesh.triangles)
-        rest_angle, rest_weight = bending.hinge_rest_state(mesh.vertices, mesh.triangles, self.hinges)
+        stencils, present = bending.build_stencils(mesh.triangles)
+        rest_angle, bend_area, coupling = bending.stencil_rest_state(mesh.vertices, stencils, present)
         self.vertex_area = lumped_areas(mesh.vertices, mesh.triangles)
         self._tri = wp.array(mesh.triangles.astype(np.int32), dtype=wp.vec3i)
         self._dm_inv = wp.array(dm_inv, dtype=wp.mat22d)
         self._rest_area = wp.array(rest_area, dtype=wp.float64)
-        self._hinges = wp.array(self.hinges, dtype=wp.vec4i)
-        self._rest_angle = wp.array(rest_angle, dtype=wp.float64)
-        self._rest_weight = wp.array(rest_weight, dtype=wp.float64)
+        self._stencils = wp.array(stencils, dtype=vec6i)
+        self._has_edge = wp.array(present, dtype=wp.vec3i)
+        self._rest_angle = wp.array(rest_angle, dtype=wp.vec3d)
+        self._bend_area = wp.array(bend_area, dtype=wp.float64)
+        self._coupling = wp.array(coupling, dtype=wp.mat33d)
         self._vertex_area = wp.array(self.vertex_area, dtype=wp.float64)
         vertex_nodes = np.arange(self.n_vertices)[:, None]
-        if not self.params.bending:
-            self.hinges = self.hinges[:0]
-        self.assembler = BlockAssembler([mesh.triangles, self.hinges, vertex_nodes], dof_map)
+        self.bending_stencils = stencils if self.params.bending else stencils[:0]
+        """(T,6) nodes of each triangle's bending stencil: its vertices, then the far vertex across each edge."""
+        self.assembler = BlockAssembler([mesh.triangles, self.bending_stencils, vertex_nodes], dof_map)
         self._core_mesh = None
         if self.core is not None:
             self._core_vertices = wp.array(self.core.vertices, dtype=wp.vec3d)
@@ -136,7 +138,7 @@ class ShellSystem:
     # -- evaluation --------------------------------------------------------------------------
     def _allocate(self) -> None:
         """Warp buffers reused by every evaluation (batch axis of 1)."""
-        nv, nt, nh = self.n_vertices, len(self.mesh.triangles), len(self.hinges)
+        nv, nt, nh = self.n_vertices, len(self.mesh.triangles), len(self.bending_stencils)
         zeros = wp.zeros
         self._buf = {
             "x": zeros((1, nv), dtype=wp.vec3d),
@@ -147,7 +149,7 @@ class ShellSystem:
             "membrane_energy": zeros((1, nt), dtype=wp.float64),
             "membrane_hessian": zeros((1, nt), dtype=mat99d),
             "bending_energy": zeros((1, nh), dtype=wp.float64),
-            "bending_hessian": zeros((1, nh), dtype=mat1212d),
+            "bending_hessian": zeros((1, nh), dtype=mat1818d),
             "volume": zeros((1, nt), dtype=wp.float64),
             "volume_gradient": zeros((1, nv), dtype=wp.vec3d),
             "volume_hessian": zeros((1, nt), dtype=mat99d),
@@ -170,11 +172,12 @@ class ShellSystem:
         return self._buf[name].numpy()[0].copy()
 
     def evaluate(self, x: np.ndarray, want_hessian: bool) -> dict[str, np.ndarray | float]:
-        """All terms at full positions x (m): energies (J), node gradients (V,3) (N), Hessian blocks.
+        """All terms at full positions x (m): energies (J; `bending_energies` per bending stencil), node
+        gradients (V,3) (N), Hessian blocks.
 
         Contact terms use the current `indenter` pose, `x_start`, `lagged_force` and `lagged_normal`.
         """
-        nv, nt, nh = self.n_vertices, len(self.mesh.triangles), len(self.hinges)
+        nv, nt, nh = self.n_vertices, len(self.mesh.triangles), len(self.bending_stencils)
         buf = self._buf
         buf["x"].numpy()[0] = x
         for name in ("elastic_gradient", "volume_gradient", "core_gradient", "indenter_gradient"):
@@ -191,7 +194,7 @@ class ShellSystem:
             wp.launch(
                 bending.bending_kernel,
                 (1, nh),
-                [xw, self._hinges, self._rest_angle, self._rest_weight, self._kb, flag]
+                [xw, self._stencils, self._has_edge, self._rest_angle, self._bend_area, self._coupling, self._kb, flag]
                 + [buf["bending_energy"], buf["elastic_gradient"], buf["bending_hessian"]],
             )
         wp.launch(
@@ -215,6 +218,7 @@ class ShellSystem:
             out["indenter_gap"], out["indenter_normal"] = np.ones(nv), np.zeros((nv, 3))
         if self._core_mesh is None:
             out["core_gap"] = np.ones(nv)
+        out["bending_energies"] = self._host("bending_energy")
         for name in ("membrane_hessian", "bending_hessian", "volume_hessian"):
             out[name] = self._host(name) if want_hessian else None
         out["contact_hessian"] = (self._host("core_hessian") + self._host("indenter_hessian")) if want_hessian else None

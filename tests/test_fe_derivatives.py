@@ -70,8 +70,8 @@ def test_total_energy_gradient_and_hessian_match_finite_differences(with_contact
         return e, (t["elastic_gradient"] + t["core_gradient"] + t["indenter_gradient"]).ravel()
 
     t = system.evaluate(x, want_hessian=True)
-    tri, hinges = system.mesh.triangles, system.hinges
-    H = _assemble_full(system, t["membrane_hessian"], tri) + _assemble_full(system, t["bending_hessian"], hinges)
+    tri, stencils = system.mesh.triangles, system.bending_stencils
+    H = _assemble_full(system, t["membrane_hessian"], tri) + _assemble_full(system, t["bending_hessian"], stencils)
     H += _assemble_full(system, t["contact_hessian"], np.arange(system.n_vertices)[:, None])
     _, g = energy_and_gradient(x)
     rng = np.random.default_rng(0)
