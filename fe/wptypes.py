@@ -2,7 +2,8 @@
 
 import warp as wp
 
-wp.config.quiet = True
+# Keep warp's start-up banner and module-load messages off stdout (the CLI prints JSON there).
+wp.config.log_level = wp.LOG_WARNING
 
 mat32d = wp.types.matrix(shape=(3, 2), dtype=wp.float64)
 mat99d = wp.types.matrix(shape=(9, 9), dtype=wp.float64)
