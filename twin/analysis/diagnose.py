@@ -22,7 +22,7 @@ from __future__ import annotations
 from dataclasses import dataclass, field
 
 import numpy as np
-from scipy.optimize import lsq_linear
+from scipy.optimize import lsq_linear, minimize, minimize_scalar
 
 from twin.analysis.compare import FORCE_CHANNELS, noise_estimate, time_in_increment
 from twin.analysis.data import CampaignData, TrajectoryRecord
@@ -272,9 +272,16 @@ def _refit(
     base: np.ndarray,
     iterations: int = 2,
 ) -> None:
-    """Chord iterations: linear steps with the base J, the residual re-predicted nonlinearly each time."""
+    """Chord iterations (linear steps with the base J, re-predicted nonlinearly each time), then, for
+    measurement effects whose predictions reuse cached fe replays, a nonlinear least-squares polish."""
     effect = EFFECTS[candidate.name]
     values = effect.values(model.effects.get(candidate.name))
+
+    def misfit(trial_values: dict[str, float]) -> np.ndarray:
+        trial = model.with_effects({candidate.name: trial_values})
+        predicted = _whitened(_fullrate_prediction(predictor, trial, trajectories), masks, sigma)
+        return r - (predicted - base)
+
     residual = r
     for _ in range(iterations):
         delta = _linear_fit(effect, values, jac, residual)
@@ -282,11 +289,36 @@ def _refit(
             p.name: float(np.clip(values[p.name] + d, p.lower, p.upper))
             for p, d in zip(effect.parameters, delta, strict=True)
         }
-        trial = model.with_effects({candidate.name: values})
-        predicted = _whitened(_fullrate_prediction(predictor, trial, trajectories), masks, sigma)
-        residual = r - (predicted - base)
+        residual = misfit(values)
+    if effect.kind == "measurement":
+        values, residual = _polish(effect, values, misfit)
     candidate.refit_parameters = values
     candidate.refit_rms = float(np.sqrt(np.nanmean(residual**2)))
+
+
+def _polish(effect: Effect, start: dict[str, float], misfit) -> tuple[dict[str, float], np.ndarray]:
+    """Bounded nonlinear least squares on the effect's parameters from `start` (derivative-free steps of
+    each parameter's scale, robust to signals that move in whole samples, like a delay)."""
+    names = [p.name for p in effect.parameters]
+
+    def as_values(x: np.ndarray) -> dict[str, float]:
+        return dict(zip(names, (float(v) for v in x), strict=True))
+
+    def cost(x: np.ndarray) -> float:
+        return float(np.nanmean(misfit(as_values(x)) ** 2))
+
+    x0 = np.array([start[n] for n in names])
+    bounds = [(p.lower, p.upper) for p in effect.parameters]
+    if len(names) == 1:
+        p = effect.parameters[0]
+        lo, hi = max(p.lower, x0[0] - 5 * p.scale), min(p.upper, x0[0] + 5 * p.scale)
+        best = minimize_scalar(lambda v: cost(np.array([v])), bounds=(lo, hi), method="bounded")
+        x = np.array([best.x]) if best.fun < cost(x0) else x0
+    else:
+        best = minimize(cost, x0, method="Powell", bounds=bounds, options={"maxfev": 60 * len(names), "xtol": 1e-3})
+        x = best.x if best.fun < cost(x0) else x0
+    values = as_values(x)
+    return values, misfit(values)
 
 
 def _verdict(base_rms: float, candidates: list[Candidate]) -> tuple[str, str]:
