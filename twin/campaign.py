@@ -332,12 +332,12 @@ def run_campaign(
         "registration_error_m": {f"{s}/{a}": v for (s, a), v in plan.registration_error.items()},
     }
     files = {}
-    triangles = make_biotac(config.mesh_max_edge).skin.triangles
+    skin = make_biotac(config.mesh_max_edge).skin
     for sid in config.sensors:
         parts = sorted((parts_dir / f"biotac{sid}").glob("trajectory_*.npz"))
         provenance_sid = {**provenance, "registration": {a: plan.registration[(sid, a)].tolist() for a in ARMS}}
         files[sid] = assemble_sensor_file(
-            parts, out_dir / f"biotac{sid}.hdf5", sid, list(INDENTERS), provenance_sid, triangles
+            parts, out_dir / f"biotac{sid}.hdf5", sid, list(INDENTERS), provenance_sid, skin.triangles, skin.ventral
         ).path
     return CampaignResult(files, plan.statistics(), len(todo), len(jobs) - len(todo), incomplete)
 

@@ -97,10 +97,12 @@ def assemble_sensor_file(
     indenter_names: list[str],
     provenance: dict,
     triangles: np.ndarray | None = None,
+    ventral: np.ndarray | None = None,
 ) -> SensorFileInfo:
     """Concatenate part files (sorted by trajectory id) into one schema-v1 HDF5 file, atomically.
 
     triangles: (T, 3) skin mesh of `nodal_res`; its inflated reference vertices come from the parts.
+    ventral: (V,) bool, the skin vertices of the ventral region (where indentation points are sampled).
     """
     loaded = sorted((read_part(p) for p in parts), key=lambda d: int(d["meta_trajectory_id"]))
     tmp = out_path.with_name(out_path.name + ".tmp")
@@ -145,6 +147,8 @@ def assemble_sensor_file(
         if triangles is not None and loaded:
             f.create_dataset("mesh/vertices", data=loaded[0]["mesh_reference"]).attrs["units"] = "m"
             f.create_dataset("mesh/triangles", data=triangles)
+            if ventral is not None:
+                f.create_dataset("mesh/ventral", data=np.asarray(ventral, dtype=bool))
         f.flush()
     os.replace(tmp, out_path)
     return SensorFileInfo(out_path, first_row, len(loaded))
