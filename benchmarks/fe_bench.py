@@ -60,8 +60,8 @@ def main() -> None:
         "s / increment",
         "Newton / incr.",
         "depth reached (mm)",
-        "|F| (N)",
-        "|dF| vs first",
+        "F (N), biotac frame",
+        "|dF| / |F| vs first",
     )
     reference = rows[0]["force"]
     for r in rows:
@@ -75,7 +75,7 @@ def main() -> None:
             f"{r['s_per_increment']:.2f}",
             f"{r['newton_per_increment']:.1f}",
             f"{r['reached_mm']:.2f}{'' if r['converged'] else ' (stopped)'}",
-            f"{np.linalg.norm(r['force']):.3f}",
+            "[" + ", ".join(f"{f:.3f}" for f in r["force"]) + "]",
             f"{change:.1%}",
         )
     console = Console(width=200)

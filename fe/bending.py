@@ -71,8 +71,25 @@ def _edge_slots(i: int) -> wp.vec4i:
 
 
 @wp.func
-def _hinge_point(xs: wp.array2d(dtype=wp.vec3d), b: int, nodes: vec6i, slot: int) -> wp.vec3d:
-    return xs[b, nodes[slot]]
+def _hinge_coordinates(x: wp.array2d(dtype=wp.vec3d), b: int, nodes: vec6i, i: int) -> vec12d:
+    """Stacked (x0, x1, x2, x3) of the hinge across edge i of the stencil `nodes`, batch b."""
+    s = _edge_slots(i)
+    xs = vec12d()
+    for c in range(4):
+        p = x[b, nodes[s[c]]]
+        for d in range(3):
+            xs[3 * c + d] = p[d]
+    return xs
+
+
+@wp.func
+def _angle(xs: vec12d) -> wp.float64:
+    return dihedral_angle(_corner(xs, 0), _corner(xs, 1), _corner(xs, 2), _corner(xs, 3))
+
+
+@wp.func
+def _angle_gradient(xs: vec12d) -> vec12d:
+    return dihedral_gradient(_corner(xs, 0), _corner(xs, 1), _corner(xs, 2), _corner(xs, 3))
 
 
 @wp.kernel
@@ -94,34 +111,19 @@ def bending_kernel(
     nodes = stencils[t]
     present = has_edge[t]
     k = bending_stiffness[b] * rest_area[t]
+    m = coupling[t]
     dtheta = wp.vec3d()
+    jac = mat1818d()  # rows 0-2: d theta_i / d (18 stencil coordinates); the other rows stay zero
     for i in range(3):
         if present[i] != 0:
+            xs = _hinge_coordinates(x, b, nodes, i)
+            dtheta[i] = _angle(xs) - rest_angle[t][i]
+            g = _angle_gradient(xs)
             s = _edge_slots(i)
-            theta = dihedral_angle(
-                _hinge_point(x, b, nodes, s[0]),
-                _hinge_point(x, b, nodes, s[1]),
-                _hinge_point(x, b, nodes, s[2]),
-                _hinge_point(x, b, nodes, s[3]),
-            )
-            dtheta[i] = theta - rest_angle[t][i]
-    m = coupling[t]
+            for j in range(12):
+                jac[i, 3 * s[j // 3] + j % 3] = g[j]
     lam = (m @ dtheta) * k  # dE / dtheta_i
     energy[b, t] = wp.float64(0.5) * wp.dot(dtheta, lam)
-    # d theta_i / d x over the 18 stencil coordinates.
-    jac = mat1818d()  # rows 0-2 hold the three gradients; the rest stays zero
-    for i in range(3):
-        if present[i] != 0:
-            s = _edge_slots(i)
-            g = dihedral_gradient(
-                _hinge_point(x, b, nodes, s[0]),
-                _hinge_point(x, b, nodes, s[1]),
-                _hinge_point(x, b, nodes, s[2]),
-                _hinge_point(x, b, nodes, s[3]),
-            )
-            for c in range(4):
-                for d in range(3):
-                    jac[i, 3 * s[c] + d] = g[3 * c + d]
     for slot in range(6):
         f = wp.vec3d()
         for d in range(3):
@@ -137,18 +139,14 @@ def bending_kernel(
                         H[r, c] = H[r, c] + kij * jac[i, r] * jac[j, c]
         for i in range(3):
             if present[i] != 0:
-                s = _edge_slots(i)
-                xs = vec12d()
-                for c in range(4):
-                    p = _hinge_point(x, b, nodes, s[c])
-                    for d in range(3):
-                        xs[3 * c + d] = p[d]
-                g0 = dihedral_gradient(_corner(xs, 0), _corner(xs, 1), _corner(xs, 2), _corner(xs, 3))
+                xs = _hinge_coordinates(x, b, nodes, i)
+                g0 = _angle_gradient(xs)
                 step = wp.float64(1e-7) * wp.length(_corner(xs, 1) - _corner(xs, 0))
+                s = _edge_slots(i)
                 for j in range(12):
                     xp = xs
                     xp[j] = xs[j] + step
-                    gp = dihedral_gradient(_corner(xp, 0), _corner(xp, 1), _corner(xp, 2), _corner(xp, 3))
+                    gp = _angle_gradient(xp)
                     col = 3 * s[j // 3] + j % 3
                     for r in range(12):
                         row = 3 * s[r // 3] + r % 3
