@@ -17,7 +17,16 @@ from assets.indenters import INDENTERS
 from twin.cli import app
 
 runner = CliRunner()
-SUBSAMPLED = ("electrode_vals", "pdc", "force", "contact_loc", "indenter_type", "trajectory_id", "depth", "joint_angles")
+SUBSAMPLED = (
+    "electrode_vals",
+    "pdc",
+    "force",
+    "contact_loc",
+    "indenter_type",
+    "trajectory_id",
+    "depth",
+    "joint_angles",
+)
 
 
 @pytest.fixture(scope="module")
@@ -42,12 +51,16 @@ def test_quick_three_sensor_campaign_writes_the_documented_features(quick_campai
             assert f["force/data"].attrs["units"] == "N" and f["force/data"].attrs["frame"] == "biotac"
             names = json.loads(f.attrs["indenter_names"])
             used = {names[k] for k in np.unique(f["indenter_type/data"][:])}
-            expected = {"sphere_small", "sphere_medium", "sphere_large"} if path.name == "biotac1.hdf5" else set(INDENTERS)
+            expected = (
+                {"sphere_small", "sphere_medium", "sphere_large"} if path.name == "biotac1.hdf5" else set(INDENTERS)
+            )
             assert used <= expected
             # every trajectory's rows are where its metadata says, and its raw recording is kept
             traj = f["trajectories"]
             ids = f["trajectory_id/data"][:]
-            for tid, first, count in zip(traj["trajectory_id"][:], traj["first_row"][:], traj["n_rows"][:], strict=True):
+            for tid, first, count in zip(
+                traj["trajectory_id"][:], traj["first_row"][:], traj["n_rows"][:], strict=True
+            ):
                 assert np.all(ids[first : first + count] == tid)
                 assert f[f"raw/{tid}/time"].shape[0] >= count
             # physics sanity: deeper loading rows push harder into the pad (+z force on the skin side)
