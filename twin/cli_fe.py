@@ -104,7 +104,7 @@ def dome(
         records = [
             {
                 "depth_mm": inc.depth * 1e3,
-                "force_n": float(-inc.force[2]),
+                "force_n": float(0.0 - inc.force[2]),  # no -0.0 at first touch
                 "pressure_pa": inc.pressure,
                 "volume_m3": inc.volume,
                 "contact_radius_mm": inc.contact_radius * 1e3,
