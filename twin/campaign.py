@@ -123,6 +123,7 @@ def plan_campaign(config: CampaignConfig, plant: Plant | None = None) -> Campaig
                 arm=arm,
                 clearance=plant.registration_clearance,
                 encoder_noise_rad=plant.registration_encoder_noise,
+                joint_offset_rad=plant.joint_offset(arm),
                 true_biotac_pose=truth,
             )
             registration[(sid, arm)] = result.transform @ _path_effect_transform(plant)
@@ -209,6 +210,7 @@ def _run_one(job: PlannedTrajectory, slot: int, registration: np.ndarray, parts_
         rng,
         slot * TRAJECTORY_SLOT_S,
         effects=worker.plant.effects,
+        joint_offsets={arm: worker.plant.joint_offset(arm) for arm in ARMS},
     )
     recording = execute(backend, spec, job.arm, job.joint_path, config.settings)
     tool_tip = scene_tool_tip(scene, spec.indenter)

@@ -15,8 +15,9 @@ import numpy as np
 
 from fe.params import SkinParameters
 from learn.electrode_physics import ElectrodeParameters
+from twin.backend import ARMS
 from twin.effects import EffectValues, check_values
-from twin.registration import ENCODER_NOISE_RAD
+from twin.registration import ENCODER_NOISE_RAD, PAPER_JOINT_OFFSET_STD
 
 
 @dataclass(frozen=True)
@@ -66,6 +67,12 @@ class Plant:
     effects: EffectValues = field(default_factory=dict)
     registration_clearance: float = 0.3e-3
     registration_encoder_noise: float = ENCODER_NOISE_RAD
+    joint_offsets: dict[str, np.ndarray] = field(default_factory=dict)
+    """arm -> (7,) real joint zero offsets (rad): the arm's true shape is the nominal model at reading + offset."""
+
+    def joint_offset(self, arm: str) -> np.ndarray:
+        """(7,) joint zero offsets of `arm` (zeros when the plant has none)."""
+        return np.asarray(self.joint_offsets.get(arm, np.zeros(7)), dtype=float)
 
     def __post_init__(self) -> None:
         check_values(self.effects)
@@ -102,12 +109,15 @@ def make_plant(
     mount_translation_error: float = 0.5e-3,
     effects: EffectValues | None = None,
     exact_registration: bool = False,
+    joint_offset_std: float = PAPER_JOINT_OFFSET_STD,
 ) -> Plant:
     """Draw a plant of sensors that differ from `nominal` by `variability` (relative, 1 sigma).
 
     Skin thickness and modulus vary by `variability`, friction by twice that; electrodes get their
     own gains and offsets; each mount is placed with errors of the given sizes (rad, m, 1 sigma).
-    `effects` are hidden in the plant; `exact_registration` removes the registration noise.
+    `effects` are hidden in the plant; each arm's joints have zero offsets of `joint_offset_std` (rad,
+    1 sigma; the size that puts registration error in the paper's 0.5-1.5 mm band); `exact_registration`
+    removes registration noise and joint offsets.
     """
     if not sensor_ids or len(set(sensor_ids)) != len(sensor_ids) or min(sensor_ids) < 1:
         raise ValueError(f"sensor ids must be distinct positive integers, got {sensor_ids!r}")
@@ -130,7 +140,8 @@ def make_plant(
         sensors[sid] = PlantSensor(sid, skin, ElectrodeParameters.sample(rng), mount_error, bias)
     if exact_registration:
         return Plant(sensors, noise, seed, dict(effects or {}), 0.0, 0.0)
-    return Plant(sensors, noise, seed, dict(effects or {}))
+    offsets = {arm: joint_offset_std * rng.standard_normal(7) for arm in ARMS}
+    return Plant(sensors, noise, seed, dict(effects or {}), joint_offsets=offsets)
 
 
 def rigid_transform(rotation_vector: np.ndarray, translation: np.ndarray) -> np.ndarray:

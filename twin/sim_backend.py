@@ -39,7 +39,11 @@ class SimSettings:
 
 
 class SimBackend:
-    """The `Backend` of the simulated testbed for one plant sensor; `time_s` starts at `start_time_s`."""
+    """The `Backend` of the simulated testbed for one plant sensor; `time_s` starts at `start_time_s`.
+
+    joint_offsets: arm -> (7,) real joint zero offsets (rad): joints are commanded and read in the
+    nominal model, while the arm's true shape (MuJoCo, the tool pose) is the model at joints + offset.
+    """
 
     def __init__(
         self,
@@ -53,6 +57,7 @@ class SimBackend:
         start_time_s: float = 0.0,
         settings: SimSettings = SimSettings(),
         effects: EffectValues | None = None,
+        joint_offsets: dict[str, np.ndarray] | None = None,
     ) -> None:
         if fe_model.reference is None:
             raise ValueError("the fe model must be inflated before it drives a SimBackend")
@@ -64,6 +69,7 @@ class SimBackend:
         self.rng = rng
         self.settings = settings
         self.time_s = start_time_s
+        self.joint_offsets = {arm: np.asarray((joint_offsets or {}).get(arm, np.zeros(7)), float) for arm in ARMS}
         self.true_biotac_pose = np.asarray(true_biotac_pose, dtype=float)
         self._sensor_in_biotac = np.linalg.inv(scene.biotac_pose) @ scene.ft_sensor_pose
         self._joints = {arm: scene.joints(arm) for arm in ARMS}
@@ -113,7 +119,7 @@ class SimBackend:
                 self._targets[arm] - self._joints[arm], -velocity_limits(arm) * dt, velocity_limits(arm) * dt
             )
             self._joints[arm] = self._joints[arm] + step
-            self.scene.set_joints(arm, self._joints[arm])
+            self.scene.set_joints(arm, self._joints[arm] + self.joint_offsets[arm])
         self.time_s += dt
         arm = self._stepper_arm
         if arm is not None and np.max(np.abs(self._targets[arm] - self._joints[arm])) <= self.settings.rest_tolerance:
