@@ -2,6 +2,7 @@
 
 import json
 
+import pytest
 from typer.testing import CliRunner
 
 from twin.cli import app
@@ -62,7 +63,7 @@ def test_dome_json_contract() -> None:
             "--json",
         ]
     )
-    assert [r["depth_mm"] for r in records] == [0.0, 0.5, 1.0]
+    assert [r["depth_mm"] for r in records] == pytest.approx([0.0, 0.5, 1.0], abs=1e-9)
     keys = {"depth_mm", "force_n", "pressure_pa", "volume_m3", "contact_radius_mm"}
     assert all(keys <= set(r) for r in records)
     assert records[0]["force_n"] == 0.0 < records[1]["force_n"] < records[2]["force_n"]
