@@ -160,16 +160,21 @@ def _version() -> str:
     return __version__
 
 
-def dataset_info(path: Path) -> dict:
-    """Features (shape, dtype, units, frame), trajectory counts and attributes of a campaign file."""
+def open_dataset(path: Path | str) -> h5py.File:
+    """Open an HDF5 file for reading, with a clear ValueError when it is missing or not HDF5."""
     path = Path(path)
     if not path.exists():
         raise ValueError(f"no such file: {path}")
     try:
-        handle = h5py.File(path, "r")
+        return h5py.File(path, "r")
     except OSError as exc:
         raise ValueError(f"{path} is not an HDF5 file ({exc})") from exc
-    with handle as f:
+
+
+def dataset_info(path: Path) -> dict:
+    """Features (shape, dtype, units, frame), trajectory counts and attributes of a campaign file."""
+    path = Path(path)
+    with open_dataset(path) as f:
         features = {}
         for name, item in f.items():
             if isinstance(item, h5py.Group) and "data" in item:

@@ -11,11 +11,10 @@ import json
 from dataclasses import dataclass
 from pathlib import Path
 
-import h5py
 import numpy as np
 
 from twin.controller import Recording
-from twin.dataset import RAW_FIELDS
+from twin.dataset import RAW_FIELDS, open_dataset
 
 ROW_FEATURES = ("force", "pdc", "electrode_vals", "depth", "phase", "contact_loc", "time", "trajectory_id")
 
@@ -78,13 +77,7 @@ def _digest(path: Path) -> str:
 def load_campaign(path: Path | str) -> CampaignData:
     """Load a campaign file for replay; ValueError when it lacks what replay needs."""
     path = Path(path)
-    if not path.exists():
-        raise ValueError(f"no such dataset: {path}")
-    try:
-        handle = h5py.File(path, "r")
-    except OSError as exc:
-        raise ValueError(f"{path} is not an HDF5 file ({exc})") from exc
-    with handle as f:
+    with open_dataset(path) as f:
         missing = [g for g in ("trajectories", "raw", "force") if g not in f]
         if missing:
             raise ValueError(f"{path} cannot be replayed: it has no {', '.join(missing)} (see docs/dataset.md)")

@@ -131,6 +131,18 @@ def _whitened(predicted: list[np.ndarray], masks: list[np.ndarray], sigma: np.nd
     return np.concatenate(out)
 
 
+def _base_residual(datasets: list[CampaignData], model: TwinModel, predictor: Predictor) -> tuple:
+    """Trajectories, noise sigma (3,), the base residual, its sample masks and whitened base prediction."""
+    trajectories = [t for d in datasets for t in d.trajectories]
+    if not trajectories:
+        raise ValueError("the datasets hold no trajectories")
+    noise = noise_estimate(trajectories)
+    sigma = np.array([max(noise[c], 1e-9) for c in FORCE_CHANNELS])
+    predicted = _fullrate_prediction(predictor, model, trajectories)
+    residual, masks = build_residual(trajectories, predicted, sigma)
+    return trajectories, sigma, residual, masks, _whitened(predicted, masks, sigma)
+
+
 def signatures(residual: Residual) -> dict[str, float]:
     """Correlation of the whitened residual (and of its magnitude) with each covariate."""
     r = residual.values
@@ -184,14 +196,7 @@ def diagnose(
 ) -> Diagnosis:
     """Rank the library's effects (off in `model`) by how well each explains the residual."""
     predictor = predictor or Predictor()
-    trajectories = [t for d in datasets for t in d.trajectories]
-    if not trajectories:
-        raise ValueError("no trajectories to diagnose")
-    noise = noise_estimate(trajectories)
-    sigma = np.array([max(noise[c], 1e-9) for c in FORCE_CHANNELS])
-    predicted = _fullrate_prediction(predictor, model, trajectories)
-    residual, masks = build_residual(trajectories, predicted, sigma)
-    base = _whitened(predicted, masks, sigma)
+    trajectories, sigma, residual, masks, base = _base_residual(datasets, model, predictor)
     r = residual.values
     n = len(r)
     chi2 = float(r @ r)
@@ -362,14 +367,7 @@ def fit_effect(
     effect = EFFECTS.get(name)
     if effect is None:
         raise ValueError(f"unknown effect {name!r}; the library has {sorted(EFFECTS)}")
-    trajectories = [t for d in datasets for t in d.trajectories]
-    if not trajectories:
-        raise ValueError("no trajectories to fit")
-    noise = noise_estimate(trajectories)
-    sigma = np.array([max(noise[c], 1e-9) for c in FORCE_CHANNELS])
-    predicted = _fullrate_prediction(predictor, model, trajectories)
-    residual, masks = build_residual(trajectories, predicted, sigma)
-    base = _whitened(predicted, masks, sigma)
+    trajectories, sigma, residual, masks, base = _base_residual(datasets, model, predictor)
     jac = sensitivity(effect, model, predictor, trajectories, masks, sigma, base)
     candidate = Candidate(name, effect.kind, {}, 0.0, 0.0, 0.0)
     _heldout(candidate, jac, residual.values, residual.indenter, effect.values(model.effects.get(name)))
