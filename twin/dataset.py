@@ -164,7 +164,7 @@ def open_dataset(path: Path | str) -> h5py.File:
     """Open an HDF5 file for reading, with a clear ValueError when it is missing or not HDF5."""
     path = Path(path)
     if not path.exists():
-        raise ValueError(f"no such file: {path}")
+        raise ValueError(f"no such dataset file: {path}")
     try:
         return h5py.File(path, "r")
     except OSError as exc:

@@ -119,7 +119,7 @@ class SimBackend:
                 self._targets[arm] - self._joints[arm], -velocity_limits(arm) * dt, velocity_limits(arm) * dt
             )
             self._joints[arm] = self._joints[arm] + step
-            self.scene.set_joints(arm, self._joints[arm] + self.joint_offsets[arm])
+            self.scene.set_joints(arm, self._true_joints(arm))
         self.time_s += dt
         arm = self._stepper_arm
         if arm is not None and np.max(np.abs(self._targets[arm] - self._joints[arm])) <= self.settings.rest_tolerance:
@@ -138,6 +138,15 @@ class SimBackend:
 
     def close(self) -> None:
         """Nothing to release in simulation."""
+
+    def _true_joints(self, arm: str) -> np.ndarray:
+        """The arm's true joint angles (reading + zero offset), kept inside the model's joint range.
+
+        At a joint limit the offset would carry the model past its range by a few mrad; the true arm
+        stops at its hard limit there, so the value is clipped.
+        """
+        limits = joint_limits(arm)
+        return np.clip(self._joints[arm] + self.joint_offsets[arm], limits[:, 0], limits[:, 1])
 
     def _measured_wrench(self) -> np.ndarray:
         """Noise-free F/T reading now: the clean load history through the plant's measurement effects."""
