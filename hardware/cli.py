@@ -5,11 +5,16 @@ from __future__ import annotations
 import json
 import time
 from pathlib import Path
-from typing import Annotated
+from typing import TYPE_CHECKING, Annotated
 
 import typer
+from rich.markup import escape
 
+from twin.cli_campaign import MeshMm, Quick, Seed, Sensors, _config
 from twin.cli_common import err_console, guarded
+
+if TYPE_CHECKING:
+    from hardware.twin_sources import TwinSources
 
 devices_app = typer.Typer(help="Simulated devices that speak the real wire protocols.", no_args_is_help=True)
 
@@ -37,24 +42,47 @@ def serve(
     egm_delay_ms: Annotated[float, typer.Option(help="Extra EGM latency each way (ms).")] = 0.0,
     config_out: Annotated[Path | None, typer.Option(help="Also write the matching hardware config here.")] = None,
     duration_s: Annotated[float | None, typer.Option(help="Stop after this many seconds (default: Ctrl-C).")] = None,
+    twin: Annotated[
+        bool, typer.Option("--twin", help="Stream the MuJoCo + fe twin's F/T and electrodes (else constants).")
+    ] = False,
+    quick: Quick = False,
+    sensors: Sensors = None,
+    seed: Seed = 0,
+    mesh_mm: MeshMm = None,
+    sensor: Annotated[
+        int | None, typer.Option(help="Twin: the mounted sensor (default: the first of --sensors).")
+    ] = None,
+    indenter: Annotated[str | None, typer.Option(help="Twin: the indenter on both flanges (required).")] = None,
 ) -> None:
-    """Run simulated devices; print the hardware config (TOML) that points a HardwareBackend at them."""
+    """Run simulated devices; print the hardware config (TOML) that points a HardwareBackend at them.
+
+    With --twin the arms start at home and the sensors stream the twin of the plant sensor that
+    `twin campaign run` with the same --quick/--sensors/--seed/--mesh-mm simulates.
+    """
     from hardware.config import config_to_toml
     from hardware.testbed import SimulatedTestbed
 
     left, right = _ports(egm_ports)
+    options = {
+        "host": host,
+        "rws_port": rws_port,
+        "kms40_port": kms40_port,
+        "egm_ports": (left, right),
+        "biotac_port": biotac_port,
+        "egm_loss": egm_loss,
+        "egm_delay_s": egm_delay_ms * 1e-3,
+    }
+    if not twin and (indenter is not None or sensor is not None):
+        raise typer.BadParameter("--sensor and --indenter configure the twin; add --twin")
+    twin_sources = guarded(lambda: _twin(quick, sensors, seed, mesh_mm, sensor, indenter)) if twin else None
 
     def start() -> SimulatedTestbed:
         try:
-            return SimulatedTestbed(
-                host=host,
-                rws_port=rws_port,
-                kms40_port=kms40_port,
-                egm_ports=(left, right),
-                biotac_port=biotac_port,
-                egm_loss=egm_loss,
-                egm_delay_s=egm_delay_ms * 1e-3,
-            )
+            if twin_sources is not None:
+                from hardware.twin_sources import twin_testbed
+
+                return twin_testbed(twin_sources, **options)
+            return SimulatedTestbed(**options)
         except PermissionError as exc:
             raise ValueError(
                 f"{exc}: ports below 1024 need root; pass unprivileged ones, e.g. --rws-port 8080"
@@ -80,6 +108,30 @@ def serve(
         pass
     finally:
         testbed.close()
+    if twin_sources is not None:
+        took = [solve.end - solve.start for solve in twin_sources.solves if solve.contact]
+        err_console.print(
+            f"twin: {len(took)} contact solves (slowest {max(took, default=0.0):.2f} s), "
+            f"{len(twin_sources.failures)} failed"
+        )
+        for failure in twin_sources.failures:
+            err_console.print(f"[red]twin solve failed:[/red] {escape(failure)}")
+
+
+def _twin(
+    quick: bool, sensors: str | None, seed: int, mesh_mm: float | None, sensor: int | None, indenter: str | None
+) -> TwinSources:
+    """The twin of the `twin campaign run` plant sensor (`--quick/--sensors/--seed/--mesh-mm`) `sensor`."""
+    from hardware.twin_sources import TwinSources
+
+    if indenter is None:
+        raise ValueError("--twin needs --indenter NAME: the indenter mounted on the arms")
+    config = _config(quick, sensors, None, seed, mesh_mm)
+    sensor_id = config.sensors[0] if sensor is None else sensor
+    if sensor_id not in config.sensors:
+        raise ValueError(f"--sensor {sensor_id} is not among the campaign's sensors {config.sensors}")
+    err_console.print(f"inflating the skin of sensor {sensor_id}'s twin ...")
+    return TwinSources.for_campaign(config, sensor_id, indenter)
 
 
 @devices_app.command("check")
@@ -98,7 +150,7 @@ def check(
     try:
         backend = HardwareBackend(cfg)
     except BackendError as exc:
-        err_console.print(f"[red]error:[/red] {exc}")
+        err_console.print(f"[red]error:[/red] {escape(str(exc))}")
         raise typer.Exit(code=1) from exc
     try:
         sample = backend.read()
@@ -110,7 +162,7 @@ def check(
             **backend.status(),
         }
     except BackendError as exc:
-        err_console.print(f"[red]error:[/red] {exc}")
+        err_console.print(f"[red]error:[/red] {escape(str(exc))}")
         raise typer.Exit(code=1) from exc
     finally:
         backend.close()

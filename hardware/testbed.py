@@ -6,9 +6,9 @@ the KMS40 and a BioTac on an SPI bus behind a TCP bridge. The sensors read two p
 - `wrench_source() -> (6,)`: the F/T reading (N, N·m, sensor frame, untared);
 - `electrode_source() -> ((19,), pdc)`: raw electrode and PDC counts;
 
-and the arms' joints are `testbed.arms[arm].joints` (rad, chain order). Until a twin drives them the
-sources are constants (`rest_wrench`, `rest_electrodes`). `hardware_config()` is the HardwareConfig
-that points `HardwareBackend` at these devices.
+and the arms' joints are `testbed.arms[arm].joints` (rad, chain order). By default the sources are
+constants (`rest_wrench`, `rest_electrodes`); `hardware.twin_sources` drives them from the twin.
+`hardware_config()` is the HardwareConfig that points `HardwareBackend` at these devices.
 """
 
 from __future__ import annotations
@@ -134,6 +134,10 @@ class SimulatedTestbed:
                 "select_mask": SELECT_MASKS[self.biotac_slot],
             },
         )
+
+    def add_closer(self, close: Callable[[], None]) -> None:
+        """Also call `close` when the testbed closes, before the devices stop (e.g. a twin driving them)."""
+        self._closers.append(close)
 
     def close(self) -> None:
         """Stop every device; safe to call twice."""

@@ -48,3 +48,60 @@ def test_check_reads_every_device_and_reports_failures(tmp_path) -> None:
     path.write_text(config_to_toml(dead))
     result = runner.invoke(app, ["devices", "check", str(path)])
     assert result.exit_code == 1 and "cannot connect" in " ".join(result.output.split())  # rich wraps lines
+
+
+def test_serve_twin_needs_an_indenter_and_streams_the_twin(tmp_path) -> None:
+    ports = ["--rws-port", "0", "--kms40-port", "0", "--egm-ports", "0,0", "--biotac-port", "0"]
+    twin = ["--twin", "--quick", "--sensors", "1", "--mesh-mm", "3"]
+    result = runner.invoke(app, ["devices", "serve", *ports, *twin, "--duration-s", "0.1"])
+    assert result.exit_code == 2 and "--indenter" in result.output
+    result = runner.invoke(app, ["devices", "serve", *ports, "--indenter", "sphere_small", "--duration-s", "0.1"])
+    assert result.exit_code == 2 and "add --twin" in _text(result.output)
+    result = runner.invoke(app, ["devices", "serve", *ports, *twin, "--indenter", "cone", "--duration-s", "0.1"])
+    assert result.exit_code == 2 and "not indented with 'cone'" in result.output  # sensor 1: spheres only
+    out = tmp_path / "sim.toml"
+    args = [*ports, *twin, "--indenter", "sphere_small", "--config-out", str(out), "--duration-s", "0.3"]
+    result = runner.invoke(app, ["devices", "serve", *args])
+    assert result.exit_code == 0, result.output
+    assert load_config(out).kms40.port != 0
+    assert "twin: 0 contact solves" in result.output and "0 failed" in result.output
+
+
+def test_campaign_run_on_hardware_refuses_what_one_robot_cannot_do(tmp_path) -> None:
+    config = tmp_path / "hw.toml"
+    config.write_text(config_to_toml(HardwareConfig()))
+    base = ["campaign", "run", "--out", str(tmp_path / "out"), "--quick"]
+    hardware = [*base, "--backend", "hardware", "--config", str(config)]
+    cases = {
+        "needs --config FILE": [*base, "--backend", "hardware"],
+        "it needs --backend hardware": [*base, "--config", str(config)],
+        "one robot, one trajectory at a time": [*hardware, "--workers", "2"],
+        "one mounted sensor": [*hardware, "--sensors", "1,2"],
+        "sim or hardware": [*base, "--backend", "robot"],
+    }
+    for message, args in cases.items():
+        result = runner.invoke(app, args)
+        assert result.exit_code == 2 and message in _text(result.output), (message, result.output)
+    config.write_text("[kms40]\nprot = 1000\n")
+    result = runner.invoke(app, [*hardware, "--sensors", "1"])
+    assert result.exit_code == 2 and "unknown key(s) in" in result.output and "prot" in result.output
+
+
+def test_campaign_run_on_hardware_says_which_device_does_not_answer(tmp_path) -> None:
+    with SimulatedTestbed(rws_port=0, kms40_port=0, egm_ports=(0, 0), biotac_port=0) as testbed:
+        dead = with_changes(testbed.hardware_config(), kms40={"timeout_s": 0.2})
+    config = tmp_path / "hw.toml"
+    config.write_text(config_to_toml(dead))
+    args = ["--quick", "--sensors", "1", "--indenters", "sphere_small", "--mesh-mm", "3", "--yes"]
+    result = runner.invoke(
+        app,
+        ["campaign", "run", "--out", str(tmp_path / "out"), "--backend", "hardware", "--config", str(config), *args],
+    )
+    assert result.exit_code == 1
+    assert "cannot open the hardware backend" in _text(result.output)
+    assert not (tmp_path / "out" / "biotac1.hdf5").exists()
+
+
+def _text(output: str) -> str:
+    """CLI output without rich's box drawing and line wrapping."""
+    return " ".join(output.translate({ord(c): " " for c in "│╭╮╰╯─"}).split())

@@ -73,12 +73,35 @@ def run(
     indenters: Indenters = None,
     seed: Seed = 0,
     mesh_mm: MeshMm = None,
-    workers: Annotated[int, typer.Option(help="Local worker processes.")] = 2,
+    workers: Annotated[int | None, typer.Option(help="Local worker processes (sim only; default 2).")] = None,
+    backend: Annotated[
+        str, typer.Option(help="sim: the simulated testbed; hardware: the devices of --config, one robot.")
+    ] = "sim",
+    hardware_config: Annotated[
+        Path | None, typer.Option("--config", help="Hardware config (.toml/.json) for --backend hardware.")
+    ] = None,
+    yes: Annotated[
+        bool, typer.Option("--yes", help="Hardware: do not stop to have indenters mounted (e.g. simulated devices).")
+    ] = False,
 ) -> None:
-    """Run a simulated campaign on local worker processes; a killed run resumes where it stopped."""
-    from twin.campaign import run_campaign
+    """Run a campaign, simulated on local workers or on the testbed's devices; a killed run resumes where it stopped.
 
-    if workers < 1:
+    With --backend hardware the same controller drives `HardwareBackend` (docs/hardware.md), one
+    trajectory at a time, on the one mounted sensor (--sensors N), in real time.
+    """
+    from rich.markup import escape
+
+    from twin.backend import BackendError
+
+    if backend not in ("sim", "hardware"):
+        raise typer.BadParameter(f"--backend must be sim or hardware, got {backend!r}")
+    if backend == "sim" and hardware_config is not None:
+        raise typer.BadParameter("--config is the hardware config; it needs --backend hardware")
+    if backend == "hardware" and hardware_config is None:
+        raise typer.BadParameter("--backend hardware needs --config FILE (see `twin devices config`)")
+    if backend == "hardware" and workers not in (None, 1):
+        raise typer.BadParameter("--workers: a hardware campaign runs on one robot, one trajectory at a time")
+    if workers is not None and workers < 1:
         raise typer.BadParameter("--workers must be >= 1")
     config = guarded(lambda: _config(quick, sensors, indenters, seed, mesh_mm))
     with progress_bar() as progress:
@@ -87,10 +110,31 @@ def run(
         def report(done: int, total: int) -> None:
             progress.update(task, completed=done, total=total)
 
-        result = guarded(lambda: run_campaign(config, out, workers, on_progress=report))
+        def mount(arm: str, indenter: str) -> None:
+            progress.stop()
+            typer.confirm(f"Mount the {indenter} indenter on the {arm} arm. Done?", abort=True, err=True)
+            progress.start()
+
+        stopped = None
+        if backend == "sim":
+            from twin.campaign import run_campaign
+
+            result = guarded(lambda: run_campaign(config, out, workers or 2, on_progress=report))
+        else:
+            from twin.campaign_hardware import run_from_config
+
+            try:
+                result = guarded(lambda: run_from_config(config, hardware_config, out, None if yes else mount, report))
+            except BackendError as exc:
+                err_console.print(f"[red]error:[/red] {escape(str(exc))}")
+                raise typer.Exit(code=1) from exc
+            stopped = result.stopped
     for sid, path in result.files.items():
         out_console.print(f"sensor {sid}: {path}")
     out_console.print(f"ran {result.ran}, resumed past {result.skipped}, incomplete {result.incomplete}")
+    if stopped:
+        err_console.print(f"[red]stopped:[/red] {escape(stopped)}")
+        raise typer.Exit(code=1)
 
 
 @dataset_app.command("info")
