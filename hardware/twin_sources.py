@@ -21,9 +21,8 @@ A contact solve takes 0.05-1 s on a busy desktop core (2 mm mesh; the first touc
 slowest, and its Newton iterations, 2 to 12, change with 1e-16 rad differences in the joints), so the
 twin's load lags the arm by that much: protocol pauses must be longer for the recorded rows to see
 the settled state; `solves` says when each solve ran. A solve
-that fails (no convergence, or the true arm, reading + the plant's zero offset, beyond a joint limit)
-is recorded in `failures`; the readings hold until the indenting arm moves on, and the skin restarts
-from rest there.
+that fails (no convergence) is recorded in `failures`; the readings hold until the indenting arm
+moves on, and the skin restarts from rest there.
 """
 
 from __future__ import annotations
@@ -172,8 +171,7 @@ class TwinSources:
         start = time.monotonic()
         try:
             self.backend.advance(dt)
-        except (BackendError, ValueError) as exc:  # no convergence, or the true arm beyond its limits
-            # the readings hold (a failed stepper stays stopped) until the indenting arm moves on
+        except BackendError as exc:  # the readings hold (the stepper stays stopped) until the arm moves on
             if self._failed_at is None:
                 self.failures.append(str(exc))
                 self._failed_at = np.array(joints[self._active])
