@@ -24,7 +24,7 @@ from fe.params import SkinParameters
 from fe.sensor import BioTacModel
 from learn.electrode_physics import ElectrodeModel
 from twin.backend import ARMS
-from twin.controller import execute
+from twin.controller import Recording, execute
 from twin.dataset import assemble_sensor_file, part_path, write_part
 from twin.effects import apply_path, apply_skin
 from twin.planning import PlannedTrajectory, plan_for_sensor, plan_statistics, scene_tool_tip
@@ -194,6 +194,42 @@ def _init_worker(config: CampaignConfig, plant: Plant) -> None:
     _WORKER = _Worker(config, plant)
 
 
+def trajectory_arrays(
+    job: PlannedTrajectory, recording: Recording, registration: np.ndarray, scene: TestbedScene, rate_hz: float
+) -> dict[str, np.ndarray]:
+    """A trajectory's part-file arrays (any backend): processed rows, raw recording, metadata.
+
+    registration: the estimated robot<-biotac 4x4 used for this trajectory's arm.
+    """
+    spec = job.spec
+    tool_tip = scene_tool_tip(scene, spec.indenter)
+    sensor_in_biotac = np.linalg.inv(scene.biotac_pose) @ scene.ft_sensor_pose
+    rows = process(recording, job.arm, tool_tip, np.linalg.inv(registration), sensor_in_biotac, rate_hz)
+    arrays = {f"row_{k}": v for k, v in asdict(rows).items() if k != "sample_index"}
+    n = len(rows.depth)
+    arrays["row_trajectory_id"] = np.full(n, spec.trajectory_id, dtype=np.int64)
+    arrays["row_indenter_type"] = np.full(n, list(INDENTERS).index(spec.indenter), dtype=np.int64)
+    arrays.update({f"raw_{k}": v for k, v in asdict(recording).items() if k not in ("complete", "message")})
+    meta = {
+        "trajectory_id": spec.trajectory_id,
+        "indenter_type": list(INDENTERS).index(spec.indenter),
+        "arm": 0 if job.arm == "left" else 1,
+        "angle": spec.angle,
+        "azimuth": spec.azimuth,
+        "point": spec.point,
+        "direction": spec.direction,
+        "rotation": spec.rotation,
+        "touch_point": spec.touch_point,
+        "complete": recording.complete,
+        "message": recording.message,
+        "tool_tip": tool_tip,
+        "registration": registration,
+        "sensor_in_biotac": sensor_in_biotac,
+    }
+    arrays.update({f"meta_{k}": np.asarray(v) for k, v in meta.items()})
+    return arrays
+
+
 def _run_one(job: PlannedTrajectory, slot: int, registration: np.ndarray, parts_dir: str) -> tuple[int, int, bool]:
     worker = _WORKER
     config, sid, spec = worker.config, job.sensor_id, job.spec
@@ -213,34 +249,8 @@ def _run_one(job: PlannedTrajectory, slot: int, registration: np.ndarray, parts_
         joint_offsets={arm: worker.plant.joint_offset(arm) for arm in ARMS},
     )
     recording = execute(backend, spec, job.arm, job.joint_path, config.settings)
-    tool_tip = scene_tool_tip(scene, spec.indenter)
-    sensor_in_biotac = np.linalg.inv(scene.biotac_pose) @ scene.ft_sensor_pose
-    rows = process(
-        recording, job.arm, tool_tip, np.linalg.inv(registration), sensor_in_biotac, config.settings.sample_rate_hz
-    )
-    arrays = {f"row_{k}": v for k, v in asdict(rows).items() if k != "sample_index"}
-    n = len(rows.depth)
-    arrays["row_trajectory_id"] = np.full(n, spec.trajectory_id, dtype=np.int64)
-    arrays["row_indenter_type"] = np.full(n, list(INDENTERS).index(spec.indenter), dtype=np.int64)
-    arrays.update(_fe_rows(backend, rows.time, model))
-    arrays.update({f"raw_{k}": v for k, v in asdict(recording).items() if k not in ("complete", "message")})
-    meta = {
-        "trajectory_id": spec.trajectory_id,
-        "indenter_type": list(INDENTERS).index(spec.indenter),
-        "arm": 0 if job.arm == "left" else 1,
-        "angle": spec.angle,
-        "azimuth": spec.azimuth,
-        "point": spec.point,
-        "direction": spec.direction,
-        "rotation": spec.rotation,
-        "touch_point": spec.touch_point,
-        "complete": recording.complete,
-        "message": recording.message,
-        "tool_tip": tool_tip,
-        "registration": registration,
-        "sensor_in_biotac": sensor_in_biotac,
-    }
-    arrays.update({f"meta_{k}": np.asarray(v) for k, v in meta.items()})
+    arrays = trajectory_arrays(job, recording, registration, scene, config.settings.sample_rate_hz)
+    arrays.update(_fe_rows(backend, arrays["row_time"], model))
     arrays["mesh_reference"] = model.reference
     write_part(part_path(Path(parts_dir), sid, spec.trajectory_id), arrays)
     return sid, spec.trajectory_id, recording.complete
@@ -328,7 +338,7 @@ def run_campaign(
                 if on_progress:
                     on_progress(done, len(jobs))
     provenance = {
-        "code_version": _code_version(),
+        "code_version": code_version(),
         "config": json.loads(json.dumps(asdict(config), default=str)),
         "plant_fingerprint": plant.fingerprint(),
         "registration_error_m": {f"{s}/{a}": v for (s, a), v in plan.registration_error.items()},
@@ -344,7 +354,8 @@ def run_campaign(
     return CampaignResult(files, plan.statistics(), len(todo), len(jobs) - len(todo), incomplete)
 
 
-def _code_version() -> str:
+def code_version() -> str:
+    """The package version plus the commit from BIOTAC_TWIN_COMMIT when set."""
     from twin import __version__
 
     return f"{__version__}+{os.environ.get('BIOTAC_TWIN_COMMIT', 'unknown')}"
