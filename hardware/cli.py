@@ -57,7 +57,8 @@ def serve(
     """Run simulated devices; print the hardware config (TOML) that points a HardwareBackend at them.
 
     With --twin the arms start at home and the sensors stream the twin of the plant sensor that
-    `twin campaign run` with the same --quick/--sensors/--seed/--mesh-mm simulates.
+    `twin campaign run` with the same --quick/--sensors/--seed/--mesh-mm simulates; the config has
+    0.5 s watchdogs (the twin's solves can hold up the streams for a few hundred ms).
     """
     from hardware.config import config_to_toml
     from hardware.testbed import SimulatedTestbed
@@ -92,7 +93,12 @@ def serve(
 
     testbed = guarded(start)
     try:
-        text = config_to_toml(testbed.hardware_config())
+        if twin_sources is not None:
+            from hardware.twin_sources import twin_hardware_config
+
+            text = config_to_toml(twin_hardware_config(testbed))
+        else:
+            text = config_to_toml(testbed.hardware_config())
         if config_out is not None:
             config_out.write_text(text)
         print(text, flush=True)

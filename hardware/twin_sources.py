@@ -36,6 +36,7 @@ from typing import NamedTuple
 import numpy as np
 
 from assets.biotac import make_biotac
+from hardware.config import HardwareConfig, with_changes
 from hardware.egm_sim import SimEgmArm
 from hardware.testbed import SimulatedTestbed
 from learn.electrode_physics import ElectrodeModel
@@ -56,6 +57,10 @@ ENGAGE_M = 0.1
 """An arm's indenter tip this close (m) to the BioTac frame's origin, and nearer than the other's, indents."""
 SOLVE_LOG = 100_000
 """How many of the latest solves `TwinSources.solves` keeps."""
+TWIN_WATCHDOG_S = 0.5
+"""Stale-data limit (s) for rehearsing against twin-driven devices: the twin solves in the devices'
+process, whose streams then wait on Python's GIL now and then (273 ms seen on a busy 2-core machine,
+where the bench's 0.1 s stops the arms)."""
 
 
 class Solve(NamedTuple):
@@ -197,6 +202,12 @@ class TwinSources:
         """Distance (m) from `arm`'s indenter tip at joints `q` to the BioTac frame's origin."""
         tip = forward(arm, q, self._tool_tip)[:3, 3]
         return float(np.linalg.norm(tip - self.backend.true_biotac_pose[:3, 3]))
+
+
+def twin_hardware_config(testbed: SimulatedTestbed) -> HardwareConfig:
+    """The config that reaches `testbed`, with watchdogs of TWIN_WATCHDOG_S for its twin-driven streams."""
+    wide = {"watchdog_s": TWIN_WATCHDOG_S}
+    return with_changes(testbed.hardware_config(), egm=wide, kms40=wide, biotac=wide)
 
 
 def twin_testbed(twin: TwinSources, **testbed_options: object) -> SimulatedTestbed:

@@ -36,7 +36,7 @@ import pytest
 from fe.params import SkinParameters
 from hardware.backend import HardwareBackend
 from hardware.config import with_changes
-from hardware.twin_sources import TwinSources, twin_testbed
+from hardware.twin_sources import TwinSources, twin_hardware_config, twin_testbed
 from twin.backend import Backend, BackendError
 from twin.campaign import QUICK_CONFIG, CampaignPlan, plan_campaign, run_campaign
 from twin.campaign_hardware import HardwareCampaignResult, campaign_jobs, run_hardware_campaign
@@ -73,13 +73,7 @@ class Runs:
 
 def _run_hardware(plan: CampaignPlan, twin: TwinSources, out: Path) -> HardwareCampaignResult:
     with twin_testbed(twin, rws_port=0, kms40_port=0, egm_ports=(0, 0), biotac_port=0) as testbed:
-        wide = {"watchdog_s": 0.5}  # the bench's 0.1 s is too tight for two shared, busy cores
-        config = with_changes(
-            testbed.hardware_config(),
-            egm={"startup_timeout_s": 5.0, "watchdog_s": 0.5, "max_speed": 2.0},
-            kms40=wide,
-            biotac=wide,
-        )
+        config = with_changes(twin_hardware_config(testbed), egm={"startup_timeout_s": 5.0, "max_speed": 2.0})
         backend = HardwareBackend(config)
         try:
             return run_hardware_campaign(plan, out, backend)

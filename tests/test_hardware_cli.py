@@ -63,7 +63,8 @@ def test_serve_twin_needs_an_indenter_and_streams_the_twin(tmp_path) -> None:
     args = [*ports, *twin, "--indenter", "sphere_small", "--config-out", str(out), "--duration-s", "0.3"]
     result = runner.invoke(app, ["devices", "serve", *args])
     assert result.exit_code == 0, result.output
-    assert load_config(out).kms40.port != 0
+    config = load_config(out)
+    assert config.kms40.port != 0 and config.egm.watchdog_s == config.biotac.watchdog_s == 0.5
     assert "twin: 0 contact solves" in result.output and "0 failed" in result.output
 
 
