@@ -65,9 +65,7 @@ def _concatenate(table: SampleTable) -> SampleTable:
 def sample_phase(trajectory: TrajectoryRecord, move_s: float) -> np.ndarray:
     """Per full-rate sample: 0 loading move, 1 settle pause, 2 unloading move (standoff samples: pause)."""
     raw = trajectory.raw
-    starts = np.r_[0, np.flatnonzero(np.diff(raw.increment)) + 1]
-    start_time = np.repeat(raw.time[starts], np.diff(np.r_[starts, len(raw.time)]))
-    in_move = (raw.time - start_time) < move_s
+    in_move = time_in_increment(trajectory) < move_s
     deepest = int(np.argmax(raw.depth_command))
     unloading = np.arange(len(raw.time)) > deepest
     phase = np.where(in_move, np.where(unloading, 2, 0), 1)
@@ -103,7 +101,7 @@ def noise_estimate(trajectories: list[TrajectoryRecord]) -> dict[str, float]:
 
 
 def compare(datasets: list[CampaignData], model: TwinModel, predictor: Predictor, move_s: float = 0.1) -> Comparison:
-    """Predict every complete trajectory of every dataset and tabulate measured vs predicted."""
+    """Predict every trajectory of every dataset (incomplete ones up to their cut) and tabulate both."""
     rows, full = SampleTable(), SampleTable()
     predictions = {}
     for data in datasets:
@@ -179,16 +177,3 @@ def _fit_electrodes(rows: SampleTable) -> None:
             coef, *_ = np.linalg.lstsq(design, rows.measured[key][mask], rcond=None)
             fitted[mask] = design @ coef
         rows.predicted[key] = fitted
-
-
-def rms(values: np.ndarray) -> float:
-    """Root mean square of the finite entries (nan when none)."""
-    finite = values[np.isfinite(values)]
-    return float(np.sqrt(np.mean(finite**2))) if len(finite) else float("nan")
-
-
-def breakdown(table: SampleTable, channel: str, by: str) -> dict[str, dict[str, float]]:
-    """RMS residual and sample count of `channel` grouped by the label `by`."""
-    residual = table.residual(channel)
-    groups = table.labels[by]
-    return {str(g): {"rms": rms(residual[groups == g]), "n": int((groups == g).sum())} for g in np.unique(groups)}
