@@ -22,13 +22,15 @@ from fe.linsolve import SingularMatrixError, SymmetricSolver
 
 @dataclass
 class Linearization:
-    """Energy (J), its gradient (N), volume (m^3), volume gradient (m^2), KKT matrix block K (N/m)."""
+    """Energy (J), its gradient (N), volume (m^3), volume gradient (m^2), KKT matrix block K (N/m), and the
+    derivative of the constrained volume with respect to the pressure (m^3/Pa; a trapped gas's compliance)."""
 
     energy: float
     gradient: np.ndarray
     volume: float
     volume_gradient: np.ndarray
     matrix: sp.csr_matrix | None
+    volume_compliance: float = 0.0
 
 
 class EquilibriumProblem(Protocol):
@@ -193,7 +195,7 @@ def _newton_step(
     """Solve the (bordered) Newton system; returns (dq, dp) or (None, 0) when singular.
 
     The bordered system is solved through its Schur complement: with K u1 = -r and K u2 = b,
-    dq = u1 + dp u2 and dp = -(c + b.u1) / (b.u2), so only K is factorised.
+    dq = u1 + dp u2 and dp = -(c + b.u1) / (b.u2 + s), so only K is factorised (s: `volume_compliance`).
     """
     try:
         solver.factorize(lin.matrix)
@@ -203,7 +205,7 @@ def _newton_step(
         u = solver.solve(np.column_stack([-r, b]))
     except SingularMatrixError:
         return None, 0.0
-    schur = float(b @ u[:, 1])
+    schur = float(b @ u[:, 1]) + lin.volume_compliance
     if not (np.isfinite(schur) and schur != 0.0):
         return None, 0.0
     dp = -(c + float(b @ u[:, 0])) / schur
