@@ -15,6 +15,8 @@ import numpy as np
 
 from fe.newton import NewtonResult, NewtonSettings, solve_equilibrium
 from fe.shell import IndenterState, ShellSystem, lumped_areas
+from fe.trapped_air import TrappedAir, TrappedAirProblem
+from fe.viscoelastic import SkinRelaxation
 
 
 @dataclass(frozen=True)
@@ -49,16 +51,20 @@ class IncrementResult:
 @dataclass(frozen=True)
 class Trajectory:
     """A straight indentation: first-touch tip position (m), unit direction (the indenter's local -z, i.e.
-    rotation[:, 2] = -direction), indenter rotation (3,3) body->sensor, depths past touch (m)."""
+    rotation[:, 2] = -direction), indenter rotation (3,3) body->sensor, depths past touch (m), and the time
+    (s) of each depth (None: untimed, only for a skin without viscoelastic relaxation)."""
 
     touch_point: np.ndarray
     direction: np.ndarray
     rotation: np.ndarray
     depths: np.ndarray
+    times: np.ndarray | None = None
 
     def __post_init__(self) -> None:
         if np.any(np.asarray(self.depths) < 0):
             raise ValueError("indentation depths must be non-negative")
+        if self.times is not None and np.shape(self.times) != np.shape(self.depths):
+            raise ValueError("a timed trajectory needs one time per depth")
         if not np.isclose(np.linalg.norm(self.direction), 1.0):
             raise ValueError("direction must be a unit vector")
         if not np.allclose(np.asarray(self.rotation)[:, 2], -np.asarray(self.direction), atol=1e-9):
@@ -99,8 +105,12 @@ class IndentationStepper:
     `step` solves quasi-static equilibrium with the fluid volume held at `target_volume` (m^3), warm-started
     from the previous state, friction lagged; the friction slip is measured relative to the indenter's
     motion since the previous pose. A pose with no skin vertex inside the contact band (gap < 0) while the
-    skin is free costs no Newton work. After a step that does not converge the stepper refuses further
-    steps until `reset()`.
+    skin is free and relaxed costs no Newton work. After a step that does not converge the stepper refuses
+    further steps until `reset()`.
+
+    Effects of the system's `SkinParameters`: viscoelastic relaxation (relaxation_fraction > 0) makes the
+    response depend on the time of each step (`time_s`), and `air` (a bubble in the fluid, see
+    `fe.trapped_air`) makes the held volume the liquid's, target_volume - air.volume(pressure_reference).
     """
 
     def __init__(
@@ -114,16 +124,25 @@ class IndentationStepper:
         offset: float,
         newton: NewtonSettings = NewtonSettings(),
         origin: np.ndarray | None = None,
+        air: TrappedAir | None = None,
     ) -> None:
         """`x_reference` (V,3) m and `pressure_reference` (Pa): the inflated state; `offset` (m): skin
         half-thickness outside the mid-surface; `origin` (3,) m: tip position of zero depth (None: the first
-        pose stepped after each reset)."""
+        pose stepped after each reset); `air`: trapped air in the cavity (None: none)."""
         self.system = system
         self.x_reference = np.array(x_reference, dtype=np.float64)
         self.pressure_reference = float(pressure_reference)
         self.target_volume = float(target_volume)
         self.kind, self.dims, self.offset, self.newton = kind, tuple(dims), float(offset), newton
         self._fixed_origin = None if origin is None else np.array(origin, dtype=np.float64)
+        self._problem = system if air is None else TrappedAirProblem(system, air)
+        if air is not None:
+            self.target_volume -= air.volume(self.pressure_reference)
+        p = system.params
+        self.relaxation = None
+        if p.relaxation_fraction > 0.0:
+            self.relaxation = SkinRelaxation(system, np.array([p.relaxation_fraction]), np.array([p.relaxation_time_s]))
+            self.relaxation.reset(self.x_reference)
         system.indenter = None
         terms = system.evaluate(self.x_reference, want_hessian=False)
         self._rest_volume = float(terms["volume"])
@@ -136,18 +155,28 @@ class IndentationStepper:
         """Back to the inflated reference state, indenter released, ready to step again.
 
         State kept between steps: `x` (V,3) skin mid-surface positions (m), `pressure` (Pa), `pose` (the
-        last (rotation, translation) or None), `in_contact`, and `failure` (message of a non-converged step).
+        last (rotation, translation) or None), `in_contact`, `time_s` (of the last step, None when untimed),
+        `failure` (message of a non-converged step), and the viscoelastic branches (relaxed again here).
         """
         self.pose: tuple[np.ndarray, np.ndarray] | None = None
         self.failure: str | None = None
+        self.time_s: float | None = None
         self._release()
+        if self.relaxation is not None:
+            self.relaxation.reset(self.x_reference)
         self._origin = None if self._fixed_origin is None else self._fixed_origin.copy()
 
-    def step(self, rotation: np.ndarray, translation: np.ndarray) -> IncrementResult:
-        """Move the indenter to the pose (rotation (3,3) body->sensor, tip position (3,) m) and re-solve."""
+    def step(self, rotation: np.ndarray, translation: np.ndarray, time_s: float | None = None) -> IncrementResult:
+        """Move the indenter to the pose (rotation (3,3) body->sensor, tip position (3,) m) at time `time_s`
+        (s, any clock, non-decreasing between steps; None: no time passes) and re-solve.
+
+        With viscoelastic relaxation `time_s` is required; the first step after a reset starts the clock
+        (the inflated state is fully relaxed). Stepping the same pose at a later time lets the skin relax.
+        """
         if self.failure is not None:
             raise RuntimeError(f"the last step did not converge ({self.failure}); call reset() before stepping again")
         rotation, translation = _check_pose(rotation, translation)
+        dt = self._clock(time_s)
         start = time.perf_counter()
         if self._origin is None:
             self._origin = translation.copy()
@@ -158,13 +187,36 @@ class IndentationStepper:
         self.pose = (rotation, translation)
         depth = float((self._origin - translation) @ rotation[:, 2])
         free_now = self.system.indenter_proximity(self.x, indenter)[0].min(initial=np.inf) >= 0.0
-        if free_now and not self.in_contact:
+        relaxed = self.relaxation is None or self.relaxation.at_rest
+        if free_now and not self.in_contact and relaxed:
             return self._free_result(depth, start)
-        if free_now and self.system.indenter_proximity(self.x_reference, indenter)[0].min(initial=np.inf) >= 0.0:
-            # The inflated state is an equilibrium that the indenter does not touch: release to it.
+        if (
+            free_now
+            and self.relaxation is None
+            and self.system.indenter_proximity(self.x_reference, indenter)[0].min(initial=np.inf) >= 0.0
+        ):
+            # The inflated state is an equilibrium that the indenter does not touch: release to it. (A skin
+            # with viscoelastic memory creeps back instead, which the solve follows.)
             self._release()
             return self._free_result(depth, start)
-        return self._finish(indenter, self._solve(indenter), depth, start)
+        if self.relaxation is not None:
+            self.relaxation.prepare(dt)
+        return self._finish(indenter, self._solve(indenter), depth, dt, start)
+
+    def _clock(self, time_s: float | None) -> float:
+        """Time (s) since the last step, validating and recording `time_s`."""
+        if time_s is None:
+            if self.relaxation is not None:
+                raise ValueError("a viscoelastic skin (relaxation_fraction > 0) needs the time_s of every step")
+            return 0.0
+        time_s = float(time_s)
+        if not np.isfinite(time_s):
+            raise ValueError(f"time_s={time_s} must be finite")
+        if self.time_s is not None and time_s < self.time_s:
+            raise ValueError(f"time_s={time_s} s goes back from the last step's {self.time_s} s")
+        dt = 0.0 if self.time_s is None else time_s - self.time_s
+        self.time_s = time_s
+        return dt
 
     def _release(self) -> None:
         """Put the skin back to the inflated reference state, keeping the indenter pose and depth origin."""
@@ -209,7 +261,7 @@ class IndentationStepper:
             return self._lag_contact(system.positions(q))
 
         return solve_equilibrium(
-            system,
+            self._problem,
             system.free_coordinates(x0),
             self.pressure,
             self.target_volume,
@@ -229,8 +281,11 @@ class IndentationStepper:
         system.lagged_force, system.lagged_normal = force, normal
         return True
 
-    def _finish(self, indenter: IndenterState, result: NewtonResult, depth: float, start: float) -> IncrementResult:
-        """Accept a converged solve as the new state (or record the failure) and report it."""
+    def _finish(
+        self, indenter: IndenterState, result: NewtonResult, depth: float, dt: float, start: float
+    ) -> IncrementResult:
+        """Accept a converged solve dt (s) after the last state as the new state (or record the failure) and
+        report it."""
         system = self.system
         x = system.positions(result.q)
         terms = system.evaluate(x, want_hessian=False)
@@ -241,6 +296,8 @@ class IndentationStepper:
             self._gap_change = np.minimum(terms["indenter_gap"], 0.0) - np.minimum(self._gap, 0.0)
             self._gap = terms["indenter_gap"]
             self.x, self.pressure, self.in_contact = x, result.pressure, bool(in_contact.any())
+            if self.relaxation is not None:
+                self.relaxation.advance(dt, x)
         else:
             self.failure = result.message
         axis = indenter.rotation[:, 2]
@@ -297,8 +354,15 @@ def indent(
     stepper = IndentationStepper(
         system, x_reference, pressure_reference, target_volume, kind, dims, offset, newton, trajectory.touch_point
     )
-    for depth in trajectory.depths:
-        result = stepper.step(trajectory.rotation, trajectory.touch_point + depth * trajectory.direction)
+    yield from drive(stepper, trajectory)
+
+
+def drive(stepper: IndentationStepper, trajectory: Trajectory) -> Iterator[IncrementResult]:
+    """Step `stepper` through the poses (and times) of a straight trajectory, yielding each increment;
+    stop after the first one that does not converge."""
+    for k, depth in enumerate(trajectory.depths):
+        time_s = None if trajectory.times is None else trajectory.times[k]
+        result = stepper.step(trajectory.rotation, trajectory.touch_point + depth * trajectory.direction, time_s)
         yield result
         if not result.converged:
             return

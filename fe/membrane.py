@@ -1,8 +1,10 @@
-"""Incompressible Neo-Hookean membrane energy of a triangle shell, in warp.
+"""Incompressible Neo-Hookean (optionally Gent) membrane energy of a triangle shell, in warp.
 
-Per unit reference area the energy density is (mu t / 2)(tr C + 1/det C - 3), where C = F^T F is the
-2x2 right Cauchy-Green tensor of the in-plane deformation gradient F (3x2) and the thickness stretch
-follows from incompressibility (lambda_3 = 1/sqrt(det C)). Positions in metres, energy in joules.
+Per unit reference area the energy density is (mu t / 2)(I1 - 3), I1 = tr C + 1/det C, where C = F^T F is
+the 2x2 right Cauchy-Green tensor of the in-plane deformation gradient F (3x2) and the thickness stretch
+follows from incompressibility (lambda_3 = 1/sqrt(det C)). With Gent stiffening (beta = 1/J_m > 0) it is
+-(mu t / 2)(1 / beta) ln(1 - beta (I1 - 3)), which tends to Neo-Hookean as beta -> 0 and stiffens without
+bound as I1 -> 3 + J_m. Positions in metres, energy in joules, stress resultants in N/m.
 """
 
 import numpy as np
@@ -14,7 +16,7 @@ _ZERO = wp.float64(0.0)
 
 
 @wp.func
-def _edge_gradient(a: int, dm_inv: wp.mat22d) -> wp.vec2d:
+def edge_gradient(a: int, dm_inv: wp.mat22d) -> wp.vec2d:
     """Row a of dF/dx for node a of the triangle: F = sum_a x_a (x) g_a."""
     g1 = wp.vec2d(dm_inv[0, 0], dm_inv[0, 1])
     g2 = wp.vec2d(dm_inv[1, 0], dm_inv[1, 1])
@@ -35,21 +37,9 @@ def _stress_variation(F: mat32d, c_inv: wp.mat22d, det_c: wp.float64, dF: mat32d
     return coeff * (dF - (dF @ c_inv + F @ d_c_inv) * inv_det + F @ c_inv * (d_det * inv_det * inv_det))
 
 
-@wp.kernel
-def membrane_kernel(
-    x: wp.array2d(dtype=wp.vec3d),
-    triangles: wp.array(dtype=wp.vec3i),
-    dm_inv: wp.array(dtype=wp.mat22d),
-    rest_area: wp.array(dtype=wp.float64),
-    mu_t: wp.array(dtype=wp.float64),
-    want_hessian: int,
-    energy: wp.array2d(dtype=wp.float64),
-    gradient: wp.array2d(dtype=wp.vec3d),
-    hessian: wp.array2d(dtype=mat99d),
-):
-    """Energy, gradient (atomically scattered to nodes) and 9x9 Hessian per (batch, triangle)."""
-    b, t = wp.tid()
-    tri = triangles[t]
+@wp.func
+def deformation_gradient(x: wp.array2d(dtype=wp.vec3d), b: int, tri: wp.vec3i, dm_inv: wp.mat22d) -> mat32d:
+    """In-plane deformation gradient F (3x2) of triangle `tri` in batch b."""
     x0 = x[b, tri[0]]
     ds = mat32d()
     e1 = x[b, tri[1]] - x0
@@ -57,33 +47,88 @@ def membrane_kernel(
     for i in range(3):
         ds[i, 0] = e1[i]
         ds[i, 1] = e2[i]
+    return ds @ dm_inv
+
+
+@wp.kernel
+def membrane_kernel(
+    x: wp.array2d(dtype=wp.vec3d),
+    triangles: wp.array(dtype=wp.vec3i),
+    dm_inv: wp.array(dtype=wp.mat22d),
+    rest_area: wp.array(dtype=wp.float64),
+    mu_t: wp.array(dtype=wp.float64),
+    gent_beta: wp.array(dtype=wp.float64),
+    want_hessian: int,
+    energy: wp.array2d(dtype=wp.float64),
+    gradient: wp.array2d(dtype=wp.vec3d),
+    hessian: wp.array2d(dtype=mat99d),
+):
+    """Energy, gradient (atomically scattered to nodes) and 9x9 Hessian per (batch, triangle).
+
+    `gent_beta` (per batch) is 1/J_m; 0 gives Neo-Hookean. Beyond the Gent limit the energy is +inf or nan.
+    """
+    b, t = wp.tid()
+    tri = triangles[t]
     Dinv = dm_inv[t]
-    F = ds @ Dinv
+    F = deformation_gradient(x, b, tri, Dinv)
     C = wp.transpose(F) @ F
     det_c = wp.determinant(C)
     c_inv = wp.inverse(C)
     area = rest_area[t]
     half = wp.float64(0.5)
-    energy[b, t] = area * half * mu_t[b] * (wp.trace(C) + wp.float64(1.0) / det_c - wp.float64(3.0))
-    coeff = area * mu_t[b]
-    P = coeff * (F - F @ c_inv / det_c)
+    one = wp.float64(1.0)
+    beta = gent_beta[b]
+    stiffening = one  # d(energy density)/d(I1) over its Neo-Hookean value mu t / 2
+    if beta > wp.float64(0.0):
+        slack = one - beta * (wp.trace(C) + one / det_c - wp.float64(3.0))
+        energy[b, t] = -area * half * mu_t[b] * wp.log(slack) / beta
+        stiffening = one / slack
+    else:
+        energy[b, t] = area * half * mu_t[b] * (wp.trace(C) + one / det_c - wp.float64(3.0))
+    coeff = area * mu_t[b] * stiffening
+    P_unit = F - F @ c_inv / det_c  # half of dI1/dF
+    P = coeff * P_unit
     for a in range(3):
-        ga = _edge_gradient(a, Dinv)
+        ga = edge_gradient(a, Dinv)
         wp.atomic_add(gradient, b, tri[a], P @ ga)
     if want_hessian != 0:
         H = mat99d()
         for nb in range(3):
-            gb = _edge_gradient(nb, Dinv)
+            gb = edge_gradient(nb, Dinv)
             for j in range(3):
                 dF = mat32d()
                 dF[j, 0] = gb[0]
                 dF[j, 1] = gb[1]
                 dP = _stress_variation(F, c_inv, det_c, dF, coeff)
                 for na in range(3):
-                    col = dP @ _edge_gradient(na, Dinv)
+                    col = dP @ edge_gradient(na, Dinv)
                     for i in range(3):
                         H[3 * na + i, 3 * nb + j] = col[i]
+        if beta > wp.float64(0.0):
+            # d(stiffening)/dI1 = beta stiffening^2 times (dI1/dx)(dI1/dx)^T, dI1/dx_a = 2 P_unit g_a.
+            k = wp.float64(2.0) * area * mu_t[b] * beta * stiffening * stiffening
+            for na in range(3):
+                ra = P_unit @ edge_gradient(na, Dinv)
+                for nb in range(3):
+                    rb = P_unit @ edge_gradient(nb, Dinv)
+                    for i in range(3):
+                        for j in range(3):
+                            H[3 * na + i, 3 * nb + j] = H[3 * na + i, 3 * nb + j] + k * ra[i] * rb[j]
         hessian[b, t] = H
+
+
+def membrane_stress(
+    x: np.ndarray, triangles: np.ndarray, dm_inv: np.ndarray, mu_t: float, gent_inverse_jm: float
+) -> np.ndarray:
+    """Second Piola-Kirchhoff membrane stress resultants N = 2 dW/dC (T,2,2) in N/m, in each triangle's
+    reference in-plane frame, at positions x (V,3) m: N = s mu t (I - C^-1 / det C), s the Gent factor."""
+    d1 = x[triangles[:, 1]] - x[triangles[:, 0]]
+    d2 = x[triangles[:, 2]] - x[triangles[:, 0]]
+    F = np.stack([d1, d2], axis=2) @ dm_inv
+    C = np.transpose(F, (0, 2, 1)) @ F
+    det_c = np.linalg.det(C)
+    stiffening = 1.0 / (1.0 - gent_inverse_jm * (np.trace(C, axis1=1, axis2=2) + 1.0 / det_c - 3.0))
+    return (stiffening * mu_t)[:, None, None] * (np.eye(2) - np.linalg.inv(C) / det_c[:, None, None])
 
 
 def reference_frames(vertices: np.ndarray, triangles: np.ndarray) -> tuple[np.ndarray, np.ndarray]:

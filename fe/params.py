@@ -21,6 +21,11 @@ _PHYSICAL_BOUNDS: dict[str, tuple[float, float]] = {
     "fluid_temperature": (-20.0, 150.0),
     "thermal_expansion": (0.0, 1.0),
     "reference_temperature": (-20.0, 150.0),
+    "inflation_volume_scale": (0.5, 2.0),
+    "relaxation_fraction": (0.0, 0.95),
+    "relaxation_time_s": (1e-3, 1e4),
+    "gent_inverse_jm": (0.0, 10.0),
+    "air_volume_fraction": (0.0, 0.5),
 }
 
 
@@ -42,6 +47,20 @@ class SkinParameters:
     """Temperature (C) at which the fluid fills the unpressurised cavity."""
     bending: bool = True
     """Include discrete-shell bending (plate stiffness mu t^3 / 3)."""
+    inflation_volume_scale: float = 1.0
+    """Fill (pretension) knob: the inflated sensor holds this multiple of the fluid volume that inflation adds
+    to the unpressurised cavity (to the 15.1 mm thickness, or by the thermal rule); 1 = off."""
+    relaxation_fraction: float = 0.0
+    """Prony fraction g of one quasi-linear-viscoelastic branch of the skin (membrane and bending): moduli
+    relax from mu_nh (instantaneous) to (1 - g) mu_nh (long-term) as exp(-t / relaxation_time_s); 0 = off."""
+    relaxation_time_s: float = 1.0
+    """Relaxation time tau (s) of the Prony branch (used only when relaxation_fraction > 0)."""
+    gent_inverse_jm: float = 0.0
+    """Gent strain stiffening 1/J_m (-): energy -(mu t / 2) J_m ln(1 - (I1 - 3) / J_m) per reference area,
+    I1 = tr C + 1/det C; the membrane locks at I1 = 3 + J_m. 0 = off (Neo-Hookean)."""
+    air_volume_fraction: float = 0.0
+    """Trapped air: gas volume as a fraction of the fluid cavity volume at the inflated reference state (at the
+    absolute pressure p_atm + p_ref), compressed isothermally (Boyle) during indentation; 0 = off."""
 
     def __post_init__(self) -> None:
         for f in fields(self):
@@ -51,6 +70,11 @@ class SkinParameters:
             value = getattr(self, f.name)
             if not (low <= value <= high):
                 raise ValueError(f"{f.name}={value!r} is outside its physical range [{low:g}, {high:g}]")
+
+    @property
+    def long_term_fraction(self) -> float:
+        """(1 - g): the share of the instantaneous moduli left after full relaxation."""
+        return 1.0 - self.relaxation_fraction
 
     @property
     def membrane_modulus(self) -> float:

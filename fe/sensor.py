@@ -6,17 +6,18 @@ paper's thermal parametrisation, by dV = beta_T (T_fl - T_ref) V_cavity.
 """
 
 from collections.abc import Iterator
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import numpy as np
 import trimesh
 
 from assets.biotac import BioTacGeometry, vertex_normals
 from assets.indenters import Indenter, get_indenter
-from fe.indentation import IncrementResult, IndentationStepper, Trajectory, indent
+from fe.indentation import IncrementResult, IndentationStepper, Trajectory, drive
 from fe.newton import NewtonResult, NewtonSettings, solve_equilibrium
 from fe.params import ContactSettings, SkinParameters
 from fe.shell import RigidSurface, ShellMesh, ShellSystem
+from fe.trapped_air import TrappedAir
 
 SENSOR_THICKNESS = 15.1e-3
 """Manufacturer's total sensor thickness after pressurisation (m)."""
@@ -89,25 +90,20 @@ class BioTacModel:
         return self._solve_volume(half.q, half.pressure, volume, middle, splits - 1)
 
     def inflate(self, target_thickness: float | None = SENSOR_THICKNESS, volume_step: float = 0.02) -> InflationResult:
-        """Inflate to `target_thickness` (m), or by the thermal rule when it is None.
+        """Inflate to `target_thickness` (m), or by the thermal rule when it is None; the added fluid volume is
+        then scaled by `SkinParameters.inflation_volume_scale` (the fill / pretension knob).
 
         Volume steps are `volume_step` of the initial enclosed volume until the thickness is bracketed,
-        then secant refinement to 1 um.
+        then secant refinement to 1 um. The skin has its long-term (fully relaxed) moduli.
         """
         beta_v = self.params.thermal_expansion * self.geometry.cavity_volume_reference
         q, pressure, v = self._q0.copy(), 0.0, self._volume0
+        self.system.set_relaxation(self.params.long_term_fraction)  # the long-term (relaxed) skin
         if target_thickness is None:
             if beta_v <= 0:
                 raise ValueError("thermal inflation needs a geometry with a positive cavity_volume_reference")
             dv_total = beta_v * (self.params.fluid_temperature - self.params.reference_temperature)
-            targets = np.linspace(v, v + dv_total, max(2, int(np.ceil(abs(dv_total) / (volume_step * abs(v)))) + 1))[1:]
-            result = None
-            for target in targets:
-                result = self._solve_volume(q, pressure, target, v)
-                if not result.converged:
-                    break
-                q, pressure, v = result.q, result.pressure, target
-            return self._finish(q, pressure, v, result.converged, result.message)
+            return self._fill(q, pressure, v, v + self.params.inflation_volume_scale * dv_total, volume_step)
         if target_thickness <= self.thickness(self.system.x):
             raise ValueError(f"target thickness {target_thickness * 1e3:.2f} mm is below the unpressurised one")
         lo_v, lo_t = v, self.thickness(self.system.x)
@@ -137,7 +133,22 @@ class BioTacModel:
                 lo_v, lo_t = v, t_now
             else:
                 hi_v, hi_t = v, t_now
-        return self._finish(*state, v, True, "converged")
+        if self.params.inflation_volume_scale == 1.0:
+            return self._finish(*state, v, True, "converged")
+        filled = self._volume0 + self.params.inflation_volume_scale * (v - self._volume0)
+        return self._fill(*state, v, filled, volume_step)
+
+    def _fill(self, q: np.ndarray, pressure: float, v: float, volume: float, volume_step: float) -> InflationResult:
+        """Walk from the state (q, pressure) at volume v to `volume` (m^3) in steps of at most `volume_step` of
+        the initial enclosed volume, and take the end as the inflated state."""
+        n_steps = max(1, int(np.ceil(abs(volume - v) / (volume_step * abs(self._volume0)))))
+        result = None
+        for target in np.linspace(v, volume, n_steps + 1)[1:]:
+            result = self._solve_volume(q, pressure, target, v)
+            if not result.converged:
+                break
+            q, pressure, v = result.q, result.pressure, target
+        return self._finish(q, pressure, v, result.converged, result.message)
 
     def _finish(self, q: np.ndarray, pressure: float, volume: float, converged: bool, message: str) -> InflationResult:
         self.reference = self.system.positions(q)
@@ -218,7 +229,10 @@ class BioTacModel:
 
         Its depth origin is the first pose stepped after each reset.
         """
-        indenter = get_indenter(indenter_name)
+        return self._stepper(get_indenter(indenter_name), None)
+
+    def _stepper(self, indenter: Indenter, origin: np.ndarray | None) -> IndentationStepper:
+        """A stepper for `indenter` with depth origin `origin` (m; None: the first pose after each reset)."""
         return IndentationStepper(
             self.system,
             self._require_reference(),
@@ -228,7 +242,22 @@ class BioTacModel:
             indenter.dims,
             0.5 * self.params.thickness,
             self.newton,
+            origin,
+            self.trapped_air(),
         )
+
+    def fluid_volume(self) -> float:
+        """Fluid (liquid + air) volume in the inflated cavity (m^3): the unpressurised cavity plus what
+        inflation added."""
+        return self.geometry.cavity_volume_reference + self.target_volume - self._volume0
+
+    def trapped_air(self) -> TrappedAir | None:
+        """The air bubble of `SkinParameters.air_volume_fraction` at the inflated state (None when off)."""
+        fraction = self.params.air_volume_fraction
+        if fraction == 0.0:
+            return None
+        self._require_reference()
+        return TrappedAir.at_reference(fraction, self.fluid_volume(), self.pressure)
 
     def indent(
         self,
@@ -238,18 +267,15 @@ class BioTacModel:
         step: float = 1e-4,
         angle_deg: float = 0.0,
         azimuth_deg: float = 0.0,
+        speed: float | None = None,
     ) -> Iterator[IncrementResult]:
-        """Indent from first touch to `depth` (m) past it in `step` (m) increments; yields each increment."""
+        """Indent from first touch to `depth` (m) past it in `step` (m) increments; yields each increment.
+
+        `speed` (m/s) times the increments (t = depth / speed); a viscoelastic skin needs it."""
+        if speed is not None and not speed > 0.0:
+            raise ValueError(f"speed={speed} m/s must be positive")
         indenter = get_indenter(indenter_name)
         trajectory = self.plan_trajectory(indenter, point, angle_deg, azimuth_deg, depth, step)
-        yield from indent(
-            self.system,
-            self._require_reference(),
-            self.pressure,
-            self.target_volume,
-            indenter.kind,
-            indenter.dims,
-            trajectory,
-            0.5 * self.params.thickness,
-            self.newton,
-        )
+        if speed is not None:
+            trajectory = replace(trajectory, times=trajectory.depths / speed)
+        yield from drive(self._stepper(indenter, trajectory.touch_point), trajectory)

@@ -10,7 +10,7 @@ from dataclasses import dataclass, field
 import numpy as np
 import warp as wp
 
-from fe import bending, contact, membrane, volume
+from fe import bending, contact, membrane, viscoelastic, volume
 from fe.assembly import BlockAssembler, project_psd
 from fe.linsolve import SymmetricSolver
 from fe.newton import Linearization
@@ -95,13 +95,13 @@ class ShellSystem:
         dm_inv, rest_area = membrane.reference_frames(mesh.vertices, mesh.triangles)
         stencils, present = bending.build_stencils(mesh.triangles)
         rest_angle, bend_area, coupling = bending.stencil_rest_state(mesh.vertices, stencils, present)
+        self._dm_inv_host, self._present, self.rest_angle = dm_inv, present, rest_angle
         self.vertex_area = lumped_areas(mesh.vertices, mesh.triangles)
         self._tri = wp.array(mesh.triangles.astype(np.int32), dtype=wp.vec3i)
         self._dm_inv = wp.array(dm_inv, dtype=wp.mat22d)
         self._rest_area = wp.array(rest_area, dtype=wp.float64)
         self._stencils = wp.array(stencils, dtype=vec6i)
         self._has_edge = wp.array(present, dtype=wp.vec3i)
-        self._rest_angle = wp.array(rest_angle, dtype=wp.vec3d)
         self._bend_area = wp.array(bend_area, dtype=wp.float64)
         self._coupling = wp.array(coupling, dtype=wp.mat33d)
         self._vertex_area = wp.array(self.vertex_area, dtype=wp.float64)
@@ -163,9 +163,32 @@ class ShellSystem:
             "indenter_gap": zeros((1, nv), dtype=wp.float64),
             "indenter_normal": zeros((1, nv), dtype=wp.vec3d),
         }
-        self._mu_t = wp.array([self.params.membrane_modulus], dtype=wp.float64)
-        self._kb = wp.array([self.params.bending_stiffness], dtype=wp.float64)
+        self._gent = wp.array([self.params.gent_inverse_jm], dtype=wp.float64)
         self._friction = wp.array([self.params.friction], dtype=wp.float64)
+        self.set_relaxation(self.params.long_term_fraction)
+
+    def set_relaxation(
+        self, scale: float, membrane_stress: np.ndarray | None = None, angle_shift: np.ndarray | None = None
+    ) -> None:
+        """Viscoelastic terms of the coming solve (`fe.viscoelastic`): membrane and bending moduli scaled by
+        `scale` (1: elastic, 1 - g: fully relaxed), a frozen membrane stress (T,2,2) N/m added as
+        (1/2) a : (C - I) per reference area, and bending rest angles shifted by `angle_shift` (T,3) rad.
+        A new system is fully relaxed (scale 1 - relaxation_fraction, nothing frozen)."""
+        self._mu_t = wp.array([scale * self.params.membrane_modulus], dtype=wp.float64)
+        self._kb = wp.array([scale * self.params.bending_stiffness], dtype=wp.float64)
+        self._frozen_stress = None if membrane_stress is None else wp.array(membrane_stress, dtype=wp.mat22d)
+        shifted = self.rest_angle if angle_shift is None or not len(angle_shift) else self.rest_angle + angle_shift
+        self._rest_angle = wp.array(shifted, dtype=wp.vec3d)
+
+    def membrane_stress(self, x: np.ndarray) -> np.ndarray:
+        """Elastic (instantaneous) membrane stress resultants (T,2,2) N/m at positions x (V,3) m."""
+        p, tri = self.params, self.mesh.triangles
+        return membrane.membrane_stress(x, tri, self._dm_inv_host, p.membrane_modulus, p.gent_inverse_jm)
+
+    def bending_angle_change(self, x: np.ndarray) -> np.ndarray:
+        """Dihedral-angle changes from the rest state (n_bending, 3) rad at positions x (V,3) m."""
+        angles = bending.stencil_rest_state(x, self.bending_stencils, self._present[: len(self.bending_stencils)])[0]
+        return angles - self.rest_angle[: len(self.bending_stencils)]
 
     def _host(self, name: str) -> np.ndarray:
         """A copy of buffer `name` for batch 0."""
@@ -187,9 +210,16 @@ class ShellSystem:
         wp.launch(
             membrane.membrane_kernel,
             (1, nt),
-            [xw, self._tri, self._dm_inv, self._rest_area, self._mu_t, flag]
+            [xw, self._tri, self._dm_inv, self._rest_area, self._mu_t, self._gent, flag]
             + [buf["membrane_energy"], buf["elastic_gradient"], buf["membrane_hessian"]],
         )
+        if self._frozen_stress is not None:
+            wp.launch(
+                viscoelastic.frozen_stress_kernel,
+                (1, nt),
+                [xw, self._tri, self._dm_inv, self._rest_area, self._frozen_stress, flag]
+                + [buf["membrane_energy"], buf["elastic_gradient"], buf["membrane_hessian"]],
+            )
         if nh:
             wp.launch(
                 bending.bending_kernel,
