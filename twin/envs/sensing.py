@@ -1,0 +1,48 @@
+"""What a real BioTac (and, optionally, a wrist F/T sensor) reports about an FE state.
+
+Electrodes and PDC come from `learn.electrode_physics.ElectrodeModel` on the FE's inflated skin (nominal
+read-out unless parameters are given), with the ADC's noise and rounding; both are tared at the start
+of each episode as a user of the real sensor would. The optional F/T reading is the FE indenter force
+plus white noise. Units: counts for electrodes and PDC, N (biotac frame) for the force.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from learn.electrode_physics import ElectrodeModel, ElectrodeParameters
+from twin.envs.fe_batch import IndentationBatch
+
+
+@dataclass(frozen=True)
+class Reading:
+    """One raw (untared) sample: electrodes (19,) counts, PDC counts, force (3,) N in the biotac frame."""
+
+    electrodes: np.ndarray
+    pdc: float
+    force: np.ndarray
+
+
+class TactileReadout:
+    """Turns a slot's FE state into sensor readings; shared by every slot of one `IndentationBatch`."""
+
+    def __init__(
+        self, fe: IndentationBatch, params: ElectrodeParameters | None = None, force_noise_n: float = 0.01
+    ) -> None:
+        if force_noise_n < 0.0:
+            raise ValueError(f"force_noise_n must be >= 0 N, got {force_noise_n!r}")
+        model = fe.model
+        self.reference = fe.reference
+        self.electrode_model = ElectrodeModel(model.geometry, params, model.reference, model.params.thickness)
+        self.electrode_positions = model.geometry.electrodes.positions
+        """(19, 3) electrode centres on the core (m, biotac frame)."""
+        self.force_noise_n = float(force_noise_n)
+
+    def read(self, displacement: np.ndarray, pressure: float, force: np.ndarray, rng: np.random.Generator) -> Reading:
+        """Noisy sensor readings for a skin displacement (V, 3) m, fluid pressure (Pa) and indenter force (3,) N."""
+        electrodes = self.electrode_model.counts(self.reference + displacement, 0.0, rng)
+        pdc = self.electrode_model.pdc_counts(pressure, rng)
+        noisy_force = np.asarray(force, dtype=float) + self.force_noise_n * rng.standard_normal(3)
+        return Reading(electrodes, pdc, noisy_force)
