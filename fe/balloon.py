@@ -1,7 +1,10 @@
-"""Closed spherical Neo-Hookean membrane inflated under volume control: the analytic check of fe/.
+"""Closed spherical Neo-Hookean (or Gent) membrane inflated under volume control: the analytic check of fe/.
 
-Membrane theory: p = 2 mu t / R (1/lambda - 1/lambda^7), lambda = (V / V0)^(1/3), with a pressure maximum
-at lambda = 7^(1/6) ~ 1.38 that volume control passes through.
+Membrane theory: with energy w(lambda) per reference area under equibiaxial stretch lambda, p dV = dE for
+E = 4 pi R^2 w and V = (4/3) pi R^3 lambda^3 gives p = w'(lambda) / (R lambda^2). For the incompressible
+Gent membrane, w = -(mu t / 2) J_m ln(1 - (I1 - 3) / J_m) with I1 = 2 lambda^2 + lambda^-4, so
+p = 2 mu t / R (1/lambda - 1/lambda^7) / (1 - (I1 - 3) / J_m); J_m -> infinity is Neo-Hookean, with a
+pressure maximum at lambda = 7^(1/6) ~ 1.38 that volume control passes through.
 """
 
 from dataclasses import dataclass
@@ -25,10 +28,13 @@ class BalloonPoint:
     converged: bool
 
 
-def analytic_balloon_pressure(stretch: np.ndarray | float, radius: float, thickness: float, mu: float) -> np.ndarray:
-    """p (Pa) of an incompressible Neo-Hookean spherical membrane at circumferential stretch lambda."""
+def analytic_balloon_pressure(
+    stretch: np.ndarray | float, radius: float, thickness: float, mu: float, gent_inverse_jm: float = 0.0
+) -> np.ndarray:
+    """p (Pa) of an incompressible Neo-Hookean (Gent with 1/J_m > 0) spherical membrane at stretch lambda."""
     lam = np.asarray(stretch, dtype=float)
-    return 2.0 * mu * thickness / radius * (1.0 / lam - 1.0 / lam**7)
+    i1 = 2.0 * lam**2 + lam**-4
+    return 2.0 * mu * thickness / radius * (1.0 / lam - 1.0 / lam**7) / (1.0 - gent_inverse_jm * (i1 - 3.0))
 
 
 def sphere_mesh(radius: float, subdivisions: int) -> ShellMesh:
@@ -51,8 +57,9 @@ def inflate_balloon(
     subdivisions: int = 3,
     bending: bool = False,
     max_volume_step: float = 0.1,
+    gent_inverse_jm: float = 0.0,
 ) -> list[BalloonPoint]:
-    """Inflate a closed sphere (radius m, thickness m, shear modulus Pa) to each volume ratio in turn.
+    """Inflate a closed sphere (radius m, thickness m, shear modulus Pa, Gent 1/J_m) to each volume ratio.
 
     Between requested ratios the volume is raised in steps of at most `max_volume_step` V0.
     """
@@ -60,7 +67,7 @@ def inflate_balloon(
         raise ValueError("radius, thickness and mu must be positive")
     if any(r <= 0 for r in volume_ratios):
         raise ValueError("volume ratios must be positive")
-    params = SkinParameters(thickness=thickness, mu_nh=mu, bending=bending)
+    params = SkinParameters(thickness=thickness, mu_nh=mu, bending=bending, gent_inverse_jm=gent_inverse_jm)
     system = ShellSystem(sphere_mesh(radius, subdivisions), params)
     q = system.free_coordinates(system.x)
     v0 = system.linearize(q, 0.0, want_matrix=False).volume
@@ -79,7 +86,7 @@ def inflate_balloon(
                 volume_ratio=ratio,
                 stretch=stretch,
                 pressure_pa=pressure,
-                analytic_pressure_pa=float(analytic_balloon_pressure(stretch, radius, thickness, mu)),
+                analytic_pressure_pa=float(analytic_balloon_pressure(stretch, radius, thickness, mu, gent_inverse_jm)),
                 converged=bool(result is None or result.converged),
             )
         )

@@ -38,6 +38,16 @@ def _stress_variation(F: mat32d, c_inv: wp.mat22d, det_c: wp.float64, dF: mat32d
 
 
 @wp.func
+def _gent_log_ratio(z: wp.float64) -> wp.float64:
+    """-ln(1 - z) / z (1 at z = 0): the Gent energy over its Neo-Hookean value, z = beta (I1 - 3); a series
+    below z = 1e-4, where the logarithm would cancel. Beyond the Gent limit (z >= 1) it is inf or nan."""
+    one = wp.float64(1.0)
+    if z < wp.float64(1e-4):
+        return one + z * (wp.float64(0.5) + z * (one / wp.float64(3.0) + z * wp.float64(0.25)))
+    return -wp.log(one - z) / z
+
+
+@wp.func
 def deformation_gradient(x: wp.array2d(dtype=wp.vec3d), b: int, tri: wp.vec3i, dm_inv: wp.mat22d) -> mat32d:
     """In-plane deformation gradient F (3x2) of triangle `tri` in batch b."""
     x0 = x[b, tri[0]]
@@ -78,13 +88,10 @@ def membrane_kernel(
     half = wp.float64(0.5)
     one = wp.float64(1.0)
     beta = gent_beta[b]
-    stiffening = one  # d(energy density)/d(I1) over its Neo-Hookean value mu t / 2
-    if beta > wp.float64(0.0):
-        slack = one - beta * (wp.trace(C) + one / det_c - wp.float64(3.0))
-        energy[b, t] = -area * half * mu_t[b] * wp.log(slack) / beta
-        stiffening = one / slack
-    else:
-        energy[b, t] = area * half * mu_t[b] * (wp.trace(C) + one / det_c - wp.float64(3.0))
+    i1_excess = wp.trace(C) + one / det_c - wp.float64(3.0)
+    z = beta * i1_excess
+    energy[b, t] = area * half * mu_t[b] * i1_excess * _gent_log_ratio(z)
+    stiffening = one / (one - z)  # d(energy density)/d(I1) over its Neo-Hookean value mu t / 2
     coeff = area * mu_t[b] * stiffening
     P_unit = F - F @ c_inv / det_c  # half of dI1/dF
     P = coeff * P_unit
