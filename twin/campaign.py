@@ -1,9 +1,10 @@
-"""Campaigns: plan, register, execute on local worker processes, process, write datasets; resumable.
+"""Campaigns: plan, register, execute on workers (local processes or Ray), process, write datasets; resumable.
 
 Every trajectory draws its randomness from `SeedSequence([seed, sensor, trajectory_id])` and starts
 from the same simulated state and clock time whatever the order or worker it runs in, so a killed
 and resumed campaign writes exactly the file an uninterrupted one writes. Finished trajectories are
-part files (written atomically); a resume skips them.
+part files (written atomically); a resume skips them. The same holds for the executor
+(`twin.executors`): a trajectory re-run after its worker died rewrites the same part file.
 """
 
 from __future__ import annotations
@@ -11,9 +12,7 @@ from __future__ import annotations
 import json
 import os
 from collections.abc import Callable
-from concurrent.futures import ProcessPoolExecutor, as_completed
 from dataclasses import asdict, dataclass, field
-from multiprocessing import get_context
 from pathlib import Path
 
 import numpy as np
@@ -27,6 +26,7 @@ from twin.backend import ARMS
 from twin.controller import Recording, execute
 from twin.dataset import assemble_sensor_file, part_path, write_part
 from twin.effects import apply_path, apply_skin
+from twin.executors import Executor, LocalExecutor
 from twin.planning import PlannedTrajectory, plan_for_sensor, plan_statistics, scene_tool_tip
 from twin.plant import Plant, make_plant, rigid_transform
 from twin.processing import process
@@ -299,9 +299,11 @@ def run_campaign(
     workers: int = 1,
     plant: Plant | None = None,
     on_progress: Callable[[int, int], None] | None = None,
+    executor: Executor | None = None,
 ) -> CampaignResult:
     """Plan and run the campaign into `out_dir` (one HDF5 per sensor); resumes from existing parts.
 
+    Trajectories run on `executor` (default: `workers` local processes); the files do not depend on it.
     on_progress(done, total) is called after each trajectory. Parts live in `out_dir/parts` until the
     sensor files are assembled; they are kept so that a later run can resume or re-assemble.
     """
@@ -318,25 +320,16 @@ def run_campaign(
     done, incomplete = len(jobs) - len(todo), 0
     if on_progress:
         on_progress(done, len(jobs))
-    if todo:
-        context = get_context("spawn")
-        with ProcessPoolExecutor(max(1, workers), context, _init_worker, (config, plant)) as pool:
-            futures = [
-                pool.submit(
-                    _run_one,
-                    j,
-                    slots[(j.sensor_id, j.spec.trajectory_id)],
-                    plan.registration[(j.sensor_id, j.arm)],
-                    str(parts_dir),
-                )
-                for j in todo
-            ]
-            for future in as_completed(futures):
-                _, _, complete = future.result()
-                incomplete += not complete
-                done += 1
-                if on_progress:
-                    on_progress(done, len(jobs))
+    executor = executor if executor is not None else LocalExecutor(max(1, workers))
+    tasks = [
+        (j, slots[(j.sensor_id, j.spec.trajectory_id)], plan.registration[(j.sensor_id, j.arm)], str(parts_dir))
+        for j in todo
+    ]
+    for _, _, complete in executor.map_unordered(_run_one, tasks, _init_worker, (config, plant)):
+        incomplete += not complete
+        done += 1
+        if on_progress:
+            on_progress(done, len(jobs))
     provenance = {
         "code_version": code_version(),
         "config": json.loads(json.dumps(asdict(config), default=str)),

@@ -65,6 +65,16 @@ def plan(
     out_console.print(f"kept {stats['kept_total']} trajectories ({stats['kept_unique']} unique)")
 
 
+def _executor(name: str, workers: int, address: str | None):
+    """The campaign executor, with its errors (unknown name, Ray missing or unreachable) as usage errors."""
+    from twin.executors import ExecutorUnavailable, make_executor
+
+    try:
+        return make_executor(name, workers, address)
+    except (ValueError, ExecutorUnavailable) as error:
+        raise typer.BadParameter(str(error)) from error
+
+
 @campaign_app.command("run")
 def run(
     out: Annotated[Path, typer.Option(help="Output folder (one HDF5 per sensor); resumes if it has parts.")],
@@ -73,7 +83,15 @@ def run(
     indenters: Indenters = None,
     seed: Seed = 0,
     mesh_mm: MeshMm = None,
-    workers: Annotated[int | None, typer.Option(help="Local worker processes (sim only; default 2).")] = None,
+    workers: Annotated[
+        int | None, typer.Option(help="Local worker processes, or CPUs of a locally started Ray (sim only; default 2).")
+    ] = None,
+    executor: Annotated[
+        str, typer.Option(help="Where sim trajectories run: local (worker processes) or ray (docs/scale.md).")
+    ] = "local",
+    address: Annotated[
+        str | None, typer.Option(help="Ray cluster address for --executor ray (default: start a local Ray).")
+    ] = None,
     backend: Annotated[
         str, typer.Option(help="sim: the simulated testbed; hardware: the devices of --config, one robot.")
     ] = "sim",
@@ -103,6 +121,9 @@ def run(
         raise typer.BadParameter("--workers: a hardware campaign runs on one robot, one trajectory at a time")
     if workers is not None and workers < 1:
         raise typer.BadParameter("--workers must be >= 1")
+    if backend == "hardware" and (executor != "local" or address is not None):
+        raise typer.BadParameter("--executor/--address: a hardware campaign runs on one robot, here")
+    pool = _executor(executor, workers or 2, address) if backend == "sim" else None
     config = guarded(lambda: _config(quick, sensors, indenters, seed, mesh_mm))
     with progress_bar() as progress:
         task = progress.add_task("trajectories", total=None)
@@ -119,7 +140,7 @@ def run(
         if backend == "sim":
             from twin.campaign import run_campaign
 
-            result = guarded(lambda: run_campaign(config, out, workers or 2, on_progress=report))
+            result = guarded(lambda: run_campaign(config, out, on_progress=report, executor=pool))
         else:
             from twin.campaign_hardware import run_from_config
 

@@ -1,0 +1,128 @@
+"""Where campaign trajectories run: local worker processes (the default) or a Ray cluster.
+
+An executor maps a task function over argument tuples and yields the results as they finish, in any
+order. Each worker process first runs `setup(*setup_args)` once (e.g. building the inflated FE models),
+then any number of tasks. Tasks must be idempotent: a campaign task writes its part file atomically, so
+a task that re-runs after its worker died writes exactly what the first attempt would have written.
+
+- `LocalExecutor`: a `ProcessPoolExecutor` over spawned processes; needs nothing extra.
+- `RayExecutor`: Ray tasks on a local or existing cluster (`pip install "biotac-twin[ray]"`); a task
+  whose worker dies is re-run by Ray (up to `max_retries` times), so a killed worker loses nothing.
+"""
+
+from __future__ import annotations
+
+from abc import ABC, abstractmethod
+from collections.abc import Callable, Iterator, Sequence
+from concurrent.futures import ProcessPoolExecutor, as_completed
+from multiprocessing import get_context
+from typing import Any
+
+EXECUTORS = ("local", "ray")
+"""Names accepted by `make_executor` (and `twin campaign run --executor`)."""
+
+
+class ExecutorUnavailable(RuntimeError):
+    """The chosen executor cannot run here (e.g. Ray is not installed or its cluster is unreachable)."""
+
+
+class Executor(ABC):
+    """Runs task functions on workers; see the module docstring for the contract."""
+
+    @abstractmethod
+    def map_unordered(
+        self,
+        task: Callable[..., Any],
+        jobs: Sequence[tuple],
+        setup: Callable[..., None],
+        setup_args: tuple,
+    ) -> Iterator[Any]:
+        """Yield `task(*job)` for every job, in completion order, each worker having run `setup(*setup_args)`.
+
+        A task that raises ends the iteration with that exception.
+        """
+
+
+class LocalExecutor(Executor):
+    """`workers` spawned local processes (spawn, so warp and MuJoCo start clean in each)."""
+
+    def __init__(self, workers: int = 2) -> None:
+        if workers < 1:
+            raise ValueError(f"workers must be >= 1, got {workers}")
+        self.workers = workers
+
+    def map_unordered(
+        self, task: Callable[..., Any], jobs: Sequence[tuple], setup: Callable[..., None], setup_args: tuple
+    ) -> Iterator[Any]:
+        if not jobs:
+            return
+        with ProcessPoolExecutor(self.workers, get_context("spawn"), setup, setup_args) as pool:
+            futures = [pool.submit(task, *job) for job in jobs]
+            for future in as_completed(futures):
+                yield future.result()
+
+
+_RAY_SETUP_DONE: set[str] = set()
+"""Setup keys already run in this (Ray worker) process."""
+
+
+def _ray_task(setup_key: str, setup: Callable[..., None], setup_args: tuple, task: Callable[..., Any], job: tuple):
+    """Body of every Ray task: run the worker's setup on first use in this process, then the task."""
+    if setup_key not in _RAY_SETUP_DONE:
+        setup(*setup_args)
+        _RAY_SETUP_DONE.add(setup_key)
+    return task(*job)
+
+
+class RayExecutor(Executor):
+    """Ray tasks, one CPU each, on the cluster at `address` (None: start or join a local Ray).
+
+    `num_cpus` limits a locally started Ray (ignored when joining a cluster). Tasks whose worker
+    process dies are retried up to `max_retries` times; a task that raises is not retried.
+    """
+
+    def __init__(self, address: str | None = None, num_cpus: int | None = None, max_retries: int = 3) -> None:
+        try:
+            import ray
+        except ImportError as error:
+            raise ExecutorUnavailable(
+                'the ray executor needs Ray: pip install "biotac-twin[ray]" (or pip install ray)'
+            ) from error
+        self._ray = ray
+        self.max_retries = max_retries
+        if not ray.is_initialized():
+            options: dict[str, Any] = {"address": address, "include_dashboard": False, "log_to_driver": False}
+            if address is None and num_cpus is not None:
+                options["num_cpus"] = num_cpus
+            try:
+                ray.init(**options)
+            except (ConnectionError, RuntimeError, ValueError) as error:
+                where = address or "a local cluster"
+                raise ExecutorUnavailable(f"cannot start or reach Ray at {where}: {error}") from error
+
+    def map_unordered(
+        self, task: Callable[..., Any], jobs: Sequence[tuple], setup: Callable[..., None], setup_args: tuple
+    ) -> Iterator[Any]:
+        ray = self._ray
+        if not jobs:
+            return
+        remote = ray.remote(num_cpus=1, max_retries=self.max_retries, retry_exceptions=False)(_ray_task)
+        setup_ref = ray.put(setup_args)
+        # Ray resolves top-level ObjectRef arguments only; pass the setup arguments that way.
+        key = f"{id(self)}-{setup_ref.hex()}"
+        pending = [remote.remote(key, setup, setup_ref, task, job) for job in jobs]
+        while pending:
+            ready, pending = ray.wait(pending, num_returns=1)
+            yield ray.get(ready[0])
+
+
+def make_executor(name: str, workers: int = 2, address: str | None = None) -> Executor:
+    """The executor called `name` ("local" or "ray"); `workers` sizes the local pool (and a locally started
+    Ray); `address` is the Ray cluster to join (ray only)."""
+    if name == "local":
+        if address is not None:
+            raise ValueError("--address is the Ray cluster address; it needs --executor ray")
+        return LocalExecutor(workers)
+    if name == "ray":
+        return RayExecutor(address, num_cpus=workers if address is None else None)
+    raise ValueError(f"unknown executor {name!r}; choose from {', '.join(EXECUTORS)}")
