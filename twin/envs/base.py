@@ -214,6 +214,11 @@ class TactileEnv(gym.Env[dict[str, np.ndarray], np.ndarray]):
     def render(self) -> None:
         """With render_mode "rerun" every reset and step is logged as it happens; nothing to do here."""
 
+    def close(self) -> None:
+        """Flush the rerun recording (render_mode "rerun") so that a saved .rrd is complete."""
+        if self._viewer is not None:
+            self._viewer.recording.flush()
+
     def _own_fe(self) -> IndentationBatch:
         if self.fe.n != 1:
             raise RuntimeError("this environment is a slot of a vector env: step it through TactileVectorEnv")

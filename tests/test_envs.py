@@ -1,0 +1,127 @@
+"""The BioTac gymnasium environments: registration, gymnasium's checker, seeding, physics of the
+observations and rewards, termination, and the vector env against stand-alone environments."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import gymnasium as gym
+import numpy as np
+import pytest
+from gymnasium.utils.env_checker import check_env
+from gymnasium.vector import VectorEnv
+
+import twin  # noqa: F401  (registers the environments)
+from twin.envs import ENV_IDS
+from twin.envs.edge import EdgeFollowEnv
+from twin.envs.press import PressEnv
+from twin.envs.vector import TactileVectorEnv
+
+PRESS = np.array([0.0, 0.0, 1.0])
+
+
+def test_importing_twin_registers_the_biotac_envs() -> None:
+    ids = [env_id for env_id in gym.registry if "BioTac" in env_id]
+    assert sorted(ids) == sorted(ENV_IDS) and len(ids) >= 2
+
+
+@pytest.mark.parametrize("env_id", sorted(ENV_IDS))
+def test_envs_pass_gymnasiums_checker(env_id: str, tmp_path: Path) -> None:
+    # The checker re-makes the env in every render mode: "rerun" goes to a file, not a spawned viewer.
+    env = gym.make(env_id, rerun_save=tmp_path / "check.rrd")
+    check_env(env.unwrapped)
+    assert (tmp_path / "check.rrd").stat().st_size > 0
+    obs, _ = env.reset(seed=0)
+    assert "force" not in obs and obs["electrodes"].shape == (19,) and obs["pdc"].shape == (1,)
+
+
+def test_seeding_repeats_episodes_and_different_seeds_differ() -> None:
+    env = PressEnv(max_steps=4)
+    first = [env.reset(seed=7)[0]] + [env.step(PRESS)[0] for _ in range(3)]
+    target = env.target_point.copy()
+    again = [env.reset(seed=7)[0]] + [env.step(PRESS)[0] for _ in range(3)]
+    assert np.array_equal(env.target_point, target)
+    for a, b in zip(first, again, strict=True):
+        for key in a:
+            assert np.array_equal(a[key], b[key]), key
+    env.reset(seed=8)
+    assert not np.array_equal(env.target_point, target)
+
+
+def test_pressing_raises_pressure_lowers_electrodes_and_the_reward_tracks_the_force() -> None:
+    env = PressEnv(max_steps=30, standoff_mm=(0.3, 0.3), start_offset_mm=0.0, ft=True)
+    obs, _ = env.reset(seed=3)
+    assert np.all(obs["electrodes"] == 0.0) and obs["pdc"][0] == 0.0  # tared at the start
+    forces, pdcs, rewards = [], [], []
+    terminated = False
+    while not terminated:
+        obs, reward, terminated, truncated, info = env.step(PRESS)
+        assert not truncated and not info.get("fe_failed")
+        forces.append(np.linalg.norm(info["force_n"]))
+        pdcs.append(obs["pdc"][0])
+        rewards.append(reward)
+        if not terminated:
+            assert obs["force"] == pytest.approx(info["force_n"], abs=0.06)  # F/T: FE force + 0.01 N noise
+            expected = -abs(forces[-1] - env.target_force) - env.lateral_weight * info["lateral_mm"]
+            assert reward == pytest.approx(expected)
+    assert forces[-1] > env.force_limit_n and rewards[-1] < -env.limit_penalty + 1e-9  # force limit ends it
+    loaded = [f for f in forces if f > 0.0]
+    assert len(loaded) >= 3 and np.all(np.diff(loaded) > 0.0)  # the force grows with depth
+    assert pdcs[-2] > pdcs[0] + 50  # and so does the fluid pressure
+    assert obs["electrodes"].min() < -100  # the skin approaches the electrodes: counts go down
+    assert obs["tip"][2] == pytest.approx(-0.3 + len(forces) * env.max_step_mm, abs=1e-4)
+
+
+def test_episodes_truncate_at_max_steps_and_bad_input_is_refused() -> None:
+    env = PressEnv(max_steps=2)
+    with pytest.raises(RuntimeError, match="reset"):
+        env.step(PRESS)
+    env.reset(seed=1)
+    assert not env.step(-PRESS)[3]
+    assert env.step(-PRESS)[3]
+    with pytest.raises(ValueError, match="3 finite"):
+        env.step(np.array([0.0, np.nan, 1.0]))
+    with pytest.raises(ValueError, match="target_force_n"):
+        PressEnv(target_force_n=(2.0, 1.0))
+    with pytest.raises(ValueError, match="render_mode"):
+        PressEnv(render_mode="human")
+
+
+def test_edge_env_hides_the_edge_direction_and_rewards_progress_along_it() -> None:
+    env = EdgeFollowEnv(max_steps=12, standoff_mm=(0.2, 0.2))
+    obs, _ = env.reset(seed=5)
+    assert set(obs) == {"electrodes", "pdc", "tip"}  # nothing reveals the yaw
+    axis = env._rotation[:, 0]
+    for _ in range(3):  # press up into light contact
+        obs, reward, terminated, _, info = env.step(np.array([0.0, 0.0, 0.5]))
+    assert not terminated and info["in_window"] and obs["electrodes"].min() < -20
+    along = np.array([axis[0], axis[1], 0.0]) / np.abs(axis[:2]).max()
+    obs, reward, terminated, _, info = env.step(along)
+    assert info["in_window"] and reward == pytest.approx(env.max_step_mm * np.linalg.norm(along), rel=1e-6)
+
+
+def test_vector_env_matches_stand_alone_envs_and_autoresets_next_step() -> None:
+    n, seed = 3, 11
+    actions = np.array([[0.0, 0.0, 1.0], [0.5, -0.5, 1.0], [0.0, 0.0, -1.0]])
+    vec = gym.make_vec("BioTacPress-v0", num_envs=n, vectorization_mode="vector_entry_point", max_steps=3)
+    assert isinstance(vec, TactileVectorEnv) and isinstance(vec, VectorEnv)
+    vec_obs, _ = vec.reset(seed=seed)
+    vec_rewards, vec_done = [], []
+    for _ in range(3):
+        vec_obs, reward, terminated, truncated, _ = vec.step(actions)
+        vec_rewards.append(reward)
+        vec_done.append(terminated | truncated)
+    assert np.all(vec_done[-1]) and not np.any(vec_done[0])
+    for k in range(n):  # each sub-env alone, on its own FE slot: the same numbers
+        env = PressEnv(max_steps=3)
+        env.reset(seed=seed + k)
+        for step in range(3):
+            obs, reward, *_ = env.step(actions[k])
+            assert reward == pytest.approx(vec_rewards[step][k], rel=1e-6, abs=1e-9)
+        assert np.allclose(obs["electrodes"], vec_obs["electrodes"][k], atol=1e-3)
+    # NEXT_STEP autoreset: the step after the end starts new episodes, reward 0, tip back off the skin.
+    obs, reward, terminated, truncated, _ = vec.step(actions)
+    assert np.all(reward == 0.0) and not np.any(terminated | truncated)
+    assert np.all(obs["tip"][:, 2] < 0.0) and np.all(obs["pdc"] == 0.0)
+    with pytest.raises(ValueError, match="actions must be"):
+        vec.step(actions[:2])
