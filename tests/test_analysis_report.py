@@ -28,7 +28,7 @@ from twin.analysis.report import (
     write_report,
 )
 from twin.cli import app
-from twin.cli_analysis import _load_model
+from twin.cli_analysis import model_or_nominal
 from twin.processing import lowpass
 
 MESH = 2e-3
@@ -271,8 +271,8 @@ def test_load_model_reads_a_model_json(tmp_path: Path) -> None:
     model = replace(model, skin=replace(model.skin, mu_nh=3.1e5))
     path = tmp_path / "model.json"
     path.write_text(json.dumps(model.to_dict()))
-    assert _load_model(path, 2e-3) == model
-    assert _load_model(None, 2e-3) == TwinModel(mesh_max_edge=2e-3)
+    assert model_or_nominal(path, 2e-3) == model
+    assert model_or_nominal(None, 2e-3) == TwinModel(mesh_max_edge=2e-3)
 
 
 def test_compare_rejects_bad_datasets(tmp_path: Path) -> None:

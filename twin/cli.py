@@ -5,6 +5,7 @@ import typer
 from hardware.cli import devices_app
 from learn.cli import learn_app
 from twin.cli_analysis import analysis_app
+from twin.cli_calibrate import calibrate_app
 from twin.cli_campaign import campaign_app, dataset_app
 from twin.cli_fe import fe_app
 from twin.cli_loop import loop_app
@@ -18,4 +19,5 @@ app.add_typer(campaign_app, name="campaign")
 app.add_typer(dataset_app, name="dataset")
 app.registered_commands += analysis_app.registered_commands
 app.registered_commands += loop_app.registered_commands
+app.registered_commands += calibrate_app.registered_commands
 app.registered_commands += view_app.registered_commands

@@ -33,7 +33,7 @@ class _CountingPredictor:
         return prediction
 
 
-def _load_model(path: Path | None, mesh_max_edge: float) -> TwinModel:
+def model_or_nominal(path: Path | None, mesh_max_edge: float) -> TwinModel:
     """The TwinModel of a `TwinModel.to_dict()` JSON file, or the nominal model at `mesh_max_edge` (m)."""
     from twin.analysis.predict import TwinModel
 
@@ -47,7 +47,7 @@ def _load_model(path: Path | None, mesh_max_edge: float) -> TwinModel:
         raise ValueError(f"{path} is not a model JSON (TwinModel.to_dict()): {exc!r}") from exc
 
 
-def _load_datasets(paths: list[Path]) -> list[CampaignData]:
+def load_datasets(paths: list[Path]) -> list[CampaignData]:
     """The campaign files; ValueError when they disagree on the mesh size the default model needs."""
     from twin.analysis.data import load_campaign
 
@@ -90,8 +90,8 @@ def compare_command(
     from twin.analysis.predict import Predictor
     from twin.analysis.report import DEFAULT_TITLE, write_report
 
-    data = guarded(lambda: _load_datasets(datasets))
-    twin_model = guarded(lambda: _load_model(model, data[0].mesh_max_edge))
+    data = guarded(lambda: load_datasets(datasets))
+    twin_model = guarded(lambda: model_or_nominal(model, data[0].mesh_max_edge))
     total = sum(len(d.trajectories) for d in data)
     with progress_bar() as progress:
         task = progress.add_task("predicting", total=total)

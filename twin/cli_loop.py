@@ -136,7 +136,6 @@ def demo(
     from twin.demo import run_demo
 
     result = guarded(lambda: run_demo(out, seed, say=out_console.print))
-    found = result.diagnosis.verdict
-    mark = "[green]found[/green]" if found == result.hidden else "[red]missed[/red]"
-    out_console.print(f"diagnosis named {found!r}; hidden was {result.hidden!r}: {mark}")
+    mark = "[green]found[/green]" if result.found == result.hidden else "[red]missed[/red]"
+    out_console.print(f"the loop added {result.found!r}; hidden was {result.hidden!r}: {mark}")
     out_console.print(f"reports: {out / 'report_before'}, {out / 'report_after'}")

@@ -11,7 +11,7 @@ Values are plain dicts: {effect name: {parameter name: value}}; missing effects 
 from __future__ import annotations
 
 from collections.abc import Callable
-from dataclasses import dataclass, replace
+from dataclasses import dataclass, field, replace
 
 import numpy as np
 
@@ -47,6 +47,9 @@ class Effect:
     skin: Callable[[SkinParameters, dict[str, float]], SkinParameters] | None = None
     path: Callable[[np.ndarray, dict[str, float]], np.ndarray] | None = None
     wrench: Callable[[np.ndarray, CleanWrench, dict[str, float]], np.ndarray] | None = None
+    probe: dict[str, float] = field(default_factory=dict)
+    """Values at which to linearise while the effect is off, for parameters that do nothing at the off
+    point (a relaxation time while the relaxing fraction is zero); empty: linearise at the off point."""
 
     def values(self, given: dict[str, float] | None = None) -> dict[str, float]:
         """Every parameter's value: `given` where present, the off value otherwise (bounds checked)."""
@@ -81,6 +84,22 @@ def _modulus(skin: SkinParameters, v: dict[str, float]) -> SkinParameters:
     return replace(skin, mu_nh=skin.mu_nh * v["scale"])
 
 
+def _relaxation(skin: SkinParameters, v: dict[str, float]) -> SkinParameters:
+    return replace(skin, relaxation_fraction=v["fraction"], relaxation_time_s=v["time_s"])
+
+
+def _stiffening(skin: SkinParameters, v: dict[str, float]) -> SkinParameters:
+    return replace(skin, gent_inverse_jm=v["inverse_jm"])
+
+
+def _trapped_air(skin: SkinParameters, v: dict[str, float]) -> SkinParameters:
+    return replace(skin, air_volume_fraction=v["fraction"])
+
+
+def _fill_volume(skin: SkinParameters, v: dict[str, float]) -> SkinParameters:
+    return replace(skin, inflation_volume_scale=skin.inflation_volume_scale * v["scale"])
+
+
 def _registration(tips: np.ndarray, v: dict[str, float]) -> np.ndarray:
     return tips + np.array([v["dx"], v["dy"], v["dz"]])
 
@@ -109,6 +128,13 @@ def _crosstalk(times: np.ndarray, clean: CleanWrench, v: dict[str, float]) -> np
 def _gain(times: np.ndarray, clean: CleanWrench, v: dict[str, float]) -> np.ndarray:
     wrench = np.array(clean(times), dtype=float)
     wrench[:, :3] *= v["scale"]
+    return wrench
+
+
+def _quadratic(times: np.ndarray, clean: CleanWrench, v: dict[str, float]) -> np.ndarray:
+    wrench = np.array(clean(times), dtype=float)
+    force = wrench[:, :3]
+    wrench[:, :3] = force + v["coefficient"] * force * np.abs(force)
     return wrench
 
 
@@ -142,6 +168,42 @@ EFFECTS: dict[str, Effect] = {
             (EffectParameter("scale", 1.0, 0.0, 5.0, 0.25, "1"),),
             ("force",),
             skin=_friction,
+        ),
+        Effect(
+            "skin_relaxation",
+            "The skin is viscoelastic: one Prony branch relaxes a fraction of its moduli with a time constant.",
+            "physics",
+            (
+                EffectParameter("fraction", 0.0, 0.0, 0.6, 0.05, "1"),
+                EffectParameter("time_s", 1.0, 0.05, 10.0, 0.2, "s"),
+            ),
+            ("force", "pdc", "electrodes"),
+            skin=_relaxation,
+            probe={"fraction": 0.15},
+        ),
+        Effect(
+            "skin_stiffening",
+            "The skin stiffens with strain beyond Neo-Hookean (Gent, parameter 1/J_m).",
+            "physics",
+            (EffectParameter("inverse_jm", 0.0, 0.0, 5.0, 0.1, "1"),),
+            ("force", "pdc", "electrodes"),
+            skin=_stiffening,
+        ),
+        Effect(
+            "trapped_air",
+            "A gas bubble in the fluid (volume fraction of the cavity) makes the fluid compressible (Boyle).",
+            "physics",
+            (EffectParameter("fraction", 0.0, 0.0, 0.2, 0.01, "1"),),
+            ("force", "pdc", "electrodes"),
+            skin=_trapped_air,
+        ),
+        Effect(
+            "fill_volume",
+            "The sensor holds more or less fluid than the model (skin pretension; scale on the inflation volume).",
+            "physics",
+            (EffectParameter("scale", 1.0, 0.7, 1.4, 0.03, "1"),),
+            ("force", "pdc", "electrodes"),
+            skin=_fill_volume,
         ),
         Effect(
             "registration_offset",
@@ -187,15 +249,29 @@ EFFECTS: dict[str, Effect] = {
 }
 """The effect library, keyed by name."""
 
-MEASUREMENT_ORDER = ("time_delay", "ft_crosstalk", "ft_gain", "ft_drift")
+UNLISTED_EFFECTS: dict[str, Effect] = {
+    "ft_nonlinearity": Effect(
+        "ft_nonlinearity",
+        "F/T strain-gauge nonlinearity: each force axis reads f + c f |f| (untared load, sensor frame).",
+        "measurement",
+        (EffectParameter("coefficient", 0.0, -0.5, 0.5, 0.01, "1/N"),),
+        ("force",),
+        wrench=_quadratic,
+    ),
+}
+"""Effects a plant can carry but the library (what diagnosis tries) does not list: tests and benchmarks
+use them to check that an effect outside the library comes out "unexplained"."""
+
+MEASUREMENT_ORDER = ("time_delay", "ft_crosstalk", "ft_gain", "ft_nonlinearity", "ft_drift")
 """Order of the F/T signal chain: the sensor sees a delayed load, mixes and scales it, then drifts."""
 
 
 def get_effect(name: str) -> Effect:
-    """The effect called `name`, or a ValueError listing the library."""
-    if name not in EFFECTS:
+    """The effect called `name` (library or unlisted), or a ValueError listing the library."""
+    effect = EFFECTS.get(name) or UNLISTED_EFFECTS.get(name)
+    if effect is None:
         raise ValueError(f"unknown effect {name!r}; the library has {sorted(EFFECTS)}")
-    return EFFECTS[name]
+    return effect
 
 
 def check_values(values: EffectValues) -> EffectValues:
@@ -206,7 +282,7 @@ def check_values(values: EffectValues) -> EffectValues:
 def apply_skin(skin: SkinParameters, values: EffectValues) -> SkinParameters:
     """Skin parameters with every physics effect on the skin applied."""
     for name, v in check_values(values).items():
-        effect = EFFECTS[name]
+        effect = get_effect(name)
         if effect.skin is not None:
             skin = effect.skin(skin, v)
     return skin
@@ -215,7 +291,7 @@ def apply_skin(skin: SkinParameters, values: EffectValues) -> SkinParameters:
 def apply_path(tips: np.ndarray, values: EffectValues) -> np.ndarray:
     """Indenter tip positions (K, 3) m, biotac frame, with path effects applied."""
     for name, v in check_values(values).items():
-        effect = EFFECTS[name]
+        effect = get_effect(name)
         if effect.path is not None:
             tips = effect.path(tips, v)
     return tips
@@ -227,7 +303,7 @@ def measure_wrench(times: np.ndarray, clean: CleanWrench, values: EffectValues) 
     chain = clean
     for name in MEASUREMENT_ORDER:
         if name in checked:
-            effect, v = EFFECTS[name], checked[name]
+            effect, v = get_effect(name), checked[name]
             chain = _bind(effect, chain, v)
     return np.asarray(chain(np.asarray(times, dtype=float)))
 

@@ -38,6 +38,11 @@ class SimSettings:
     """Mass (kg) of BioTac + fixture carried by the F/T sensor (seen untared as a constant load)."""
 
 
+RELAXATION_SOLVE_INTERVAL_S = 0.1
+"""While the skin relaxes (a viscoelastic skin model), it is re-solved at a held pose this often (s): here
+and in the model's replay (twin.analysis.predict) alike."""
+
+
 class SimBackend:
     """The `Backend` of the simulated testbed for one plant sensor; `time_s` starts at `start_time_s`.
 
@@ -172,10 +177,16 @@ class SimBackend:
 
     def _solve_if_moved(self, arm: str) -> None:
         pose = self.tip_pose_biotac(arm)
-        if self._last_tip is not None and np.linalg.norm(pose[:3, 3] - self._last_tip) <= self.settings.pose_tolerance:
+        moved = self._last_tip is None or np.linalg.norm(pose[:3, 3] - self._last_tip) > self.settings.pose_tolerance
+        relaxing = (
+            self._stepper.relaxation is not None
+            and bool(self.solve_log)
+            and self.time_s - self.solve_log[-1][0] >= RELAXATION_SOLVE_INTERVAL_S - 1e-9
+        )
+        if not (moved or relaxing):
             return
         try:
-            result = self._stepper.step(pose[:3, :3], pose[:3, 3])
+            result = self._stepper.step(pose[:3, :3], pose[:3, 3], self.time_s)
         except RuntimeError as exc:  # the stepper refuses to go on after a failed step
             raise BackendError(f"the skin model is stopped: {exc}") from exc
         if not result.converged:

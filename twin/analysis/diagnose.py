@@ -1,9 +1,14 @@
 """Which effect is missing? Residual signatures, score-type evidence, held-out refits, identifiability.
 
-The residual is the full-rate tared force (N, biotac frame; x, y, z) of every sample where the model
-converged, whitened by the noise estimated from the data itself, with each trajectory's constant
-offset projected out (the tare sample carries one noise draw the model cannot know). For a model that
-lacks nothing, the whitened residual has unit variance.
+The residual holds four full-rate channels of every sample where the model converged: the tared
+force (N, biotac frame; x, y, z) and the tared PDC (counts), each whitened by the noise estimated from
+the data itself, with each trajectory's constant offset projected out (the tare sample carries one
+noise draw the model cannot know). A real sensor's PDC gain is unknown to about 5 %, so each sensor's
+PDC gain is a nuisance parameter with that prior, profiled out of the residual and of every
+sensitivity. The PDC channel separates effects that scale the force alike (a stiffer skin raises the
+fluid pressure; an F/T gain error does not). Electrodes are left out: their read-out is nonlinear with
+per-sensor parameters the model does not know. For a model that lacks nothing, the whitened residual
+has unit variance.
 
 Evidence without refitting: for each candidate effect (off in the model), the sensitivity J of the
 whitened prediction to the effect's parameters is taken by finite differences at the model (cheap for
@@ -19,20 +24,25 @@ down to 1.3 times the noise, and is identifiable; otherwise it says "unexplained
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 
 import numpy as np
 from scipy.optimize import lsq_linear, minimize, minimize_scalar
 
 from twin.analysis.compare import FORCE_CHANNELS, noise_estimate, time_in_increment
 from twin.analysis.data import CampaignData, TrajectoryRecord
-from twin.analysis.predict import Predictor, TwinModel, measured_force_fullrate
+from twin.analysis.predict import Predictor, TwinModel, measured_force_fullrate, measured_pdc_fullrate
 from twin.effects import EFFECTS, Effect
 
 NOISE_TOLERANCE = 1.3
 """An explanation must bring the whitened residual RMS to at most this multiple of the noise."""
-DOMINANCE = 1.5
-"""The best candidate's evidence must exceed the runner-up's by this factor to be named."""
+EVIDENCE_MARGIN = 10.0
+"""The best candidate's evidence (2 ln Bayes factor, BIC approximation) must exceed the runner-up's by
+this much to be named alone: "very strong" on the Kass-Raftery scale. Below it the two are tied."""
+CHANNELS = (*FORCE_CHANNELS, "pdc")
+"""Residual channels, in the order of the last axis of every signal array."""
+PDC_GAIN_PRIOR = 0.05
+"""Relative 1-sigma spread of a sensor's PDC gain about nominal (the plant's unit-to-unit prior)."""
 
 
 @dataclass(frozen=True)
@@ -42,8 +52,8 @@ class Residual:
     values: np.ndarray  # (N,) whitened residual
     trajectory_index: np.ndarray  # (N,) index into the trajectory list
     indenter: np.ndarray  # (N,) indenter name per sample
-    covariates: dict[str, np.ndarray]  # (N,) each
-    sigma: np.ndarray  # (3,) noise per force axis (N)
+    covariates: dict[str, np.ndarray]  # (N,) each; "axis" indexes CHANNELS
+    sigma: np.ndarray  # (4,) noise per channel (N, N, N, counts)
 
 
 @dataclass
@@ -71,8 +81,9 @@ class Diagnosis:
     base_rms: float  # whitened RMS of the base residual (1 = noise)
     signatures: dict[str, float]
     candidates: list[Candidate]
-    verdict: str  # "nothing", an effect name, or "unexplained"
+    verdict: str  # "nothing", an effect name, "ambiguous" or "unexplained"
     reason: str
+    tied: list[str] = field(default_factory=list)  # with "ambiguous": the effects that explain it equally
 
     def to_dict(self) -> dict:
         """JSON-ready form (the `twin diagnose --json` shape)."""
@@ -80,35 +91,85 @@ class Diagnosis:
             "base_rms_over_noise": self.base_rms,
             "verdict": self.verdict,
             "reason": self.reason,
+            "tied": self.tied,
             "signatures": self.signatures,
             "candidates": [c.__dict__ for c in self.candidates],
         }
 
 
 def _fullrate_prediction(predictor: Predictor, model: TwinModel, trajectories: list[TrajectoryRecord]) -> list:
-    return [predictor.predict(model, t).force_fullrate for t in trajectories]
+    """Per trajectory (T, 4): predicted tared force x, y, z (N) and PDC (counts)."""
+    out = []
+    for t in trajectories:
+        p = predictor.predict(model, t)
+        out.append(np.column_stack([p.force_fullrate, p.pdc_fullrate]))
+    return out
+
+
+def _measured(trajectory: TrajectoryRecord) -> np.ndarray:
+    """(T, 4) measured tared force x, y, z (N) and PDC (counts)."""
+    return np.column_stack([measured_force_fullrate(trajectory), measured_pdc_fullrate(trajectory)])
+
+
+class GainNuisance:
+    """Profiles each sensor's PDC gain (prior `PDC_GAIN_PRIOR`) out of whitened residual vectors.
+
+    With n the whitened base PDC prediction of a sensor's samples, a relative gain error g adds g n to
+    the residual; minimising |r - g n|^2 + (g / prior)^2 over g leaves r - n (n.r) / (n.n + prior^-2).
+    """
+
+    def __init__(self, base: np.ndarray, axis: np.ndarray, sensor: np.ndarray) -> None:
+        pdc = CHANNELS.index("pdc")
+        self._groups = []
+        for s in np.unique(sensor):
+            index = np.flatnonzero((axis == pdc) & (sensor == s))
+            n = np.nan_to_num(base[index])
+            self._groups.append((index, n, float(n @ n) + PDC_GAIN_PRIOR**-2))
+
+    def penalty(self, projected: np.ndarray) -> float:
+        """Prior cost sum (g / prior)^2 of the gains profiled out of a projected residual (N,).
+
+        For the projected vector v = P r, n.v = prior^-2 g, so the cost is (n.v)^2 prior^2."""
+        return float(sum(np.nansum(n * projected[index]) ** 2 * PDC_GAIN_PRIOR**2 for index, n, _ in self._groups))
+
+    def chi2(self, projected: np.ndarray) -> float:
+        """Profiled chi-square of a projected whitened residual: its squares plus the gains' prior cost."""
+        return float(np.nansum(projected**2)) + self.penalty(projected)
+
+    def project(self, values: np.ndarray) -> np.ndarray:
+        """The vector (N,) or the columns of (N, k) with the gain directions profiled out."""
+        out = np.array(values, dtype=float)
+        for index, n, denominator in self._groups:
+            part = out[index]
+            gain = np.nansum(n[:, None] * part.reshape(len(index), -1), axis=0) / denominator
+            out[index] = part - (n[:, None] * gain).reshape(part.shape)
+        return out
 
 
 def build_residual(
     trajectories: list[TrajectoryRecord], predicted: list[np.ndarray], sigma: np.ndarray
-) -> tuple[Residual, np.ndarray]:
-    """The whitened residual and the boolean mask of samples used (valid predictions)."""
+) -> tuple[Residual, list[np.ndarray]]:
+    """The whitened residual (channel gains not yet profiled) and each trajectory's mask of samples
+    used (valid predictions)."""
     values, index, indenter, masks = [], [], [], []
-    cov: dict[str, list] = {k: [] for k in ("depth", "time_in_increment", "time", "axis", "angled")}
+    names = ("depth", "time_in_increment", "time", "axis", "angled", "sensor")
+    cov: dict[str, list] = {k: [] for k in names}
+    k = len(CHANNELS)
     for i, (t, p) in enumerate(zip(trajectories, predicted, strict=True)):
         valid = np.isfinite(p).all(axis=1)
         masks.append(valid)
-        r = (measured_force_fullrate(t) - p)[valid] / sigma
+        r = (_measured(t) - p)[valid] / sigma
         r = r - r.mean(axis=0)
         values.append(r.ravel())
         n = valid.sum()
-        index.append(np.full(3 * n, i))
-        indenter.append(np.full(3 * n, t.indenter, dtype=object))
-        cov["depth"].append(np.repeat(t.raw.depth_command[valid], 3))
-        cov["time_in_increment"].append(np.repeat(time_in_increment(t)[valid], 3))
-        cov["time"].append(np.repeat(t.raw.time[valid], 3))
-        cov["axis"].append(np.tile(np.arange(3), n))
-        cov["angled"].append(np.full(3 * n, not t.normal))
+        index.append(np.full(k * n, i))
+        indenter.append(np.full(k * n, t.indenter, dtype=object))
+        cov["depth"].append(np.repeat(t.raw.depth_command[valid], k))
+        cov["time_in_increment"].append(np.repeat(time_in_increment(t)[valid], k))
+        cov["time"].append(np.repeat(t.raw.time[valid], k))
+        cov["axis"].append(np.tile(np.arange(k), n))
+        cov["angled"].append(np.full(k * n, not t.normal))
+        cov["sensor"].append(np.full(k * n, t.sensor_id))
     residual = Residual(
         np.concatenate(values),
         np.concatenate(index),
@@ -131,16 +192,37 @@ def _whitened(predicted: list[np.ndarray], masks: list[np.ndarray], sigma: np.nd
     return np.concatenate(out)
 
 
-def _base_residual(datasets: list[CampaignData], model: TwinModel, predictor: Predictor) -> tuple:
-    """Trajectories, noise sigma (3,), the base residual, its sample masks and whitened base prediction."""
+@dataclass(frozen=True)
+class _Base:
+    """Everything the base model's residual needs: trajectories, noise, residual, masks, whitened base
+    prediction and the PDC-gain nuisance projector."""
+
+    trajectories: list[TrajectoryRecord]
+    sigma: np.ndarray
+    residual: Residual
+    masks: list[np.ndarray]
+    prediction: np.ndarray
+    nuisance: GainNuisance
+
+    def shifted(self, predictor: Predictor, model: TwinModel) -> np.ndarray:
+        """Profiled change of the whitened prediction from the base to `model` (NaN where it failed)."""
+        predicted = _whitened(_fullrate_prediction(predictor, model, self.trajectories), self.masks, self.sigma)
+        return self.nuisance.project(predicted - self.prediction)
+
+
+def _base_residual(datasets: list[CampaignData], model: TwinModel, predictor: Predictor) -> _Base:
     trajectories = [t for d in datasets for t in d.trajectories]
     if not trajectories:
         raise ValueError("the datasets hold no trajectories")
     noise = noise_estimate(trajectories)
-    sigma = np.array([max(noise[c], 1e-9) for c in FORCE_CHANNELS])
+    quantum = 1.0 / np.sqrt(12.0)  # PDC counts are integers: never trust less noise than rounding gives
+    sigma = np.array([max(noise[c], 1e-9) for c in FORCE_CHANNELS] + [max(noise["pdc"], quantum)])
     predicted = _fullrate_prediction(predictor, model, trajectories)
     residual, masks = build_residual(trajectories, predicted, sigma)
-    return trajectories, sigma, residual, masks, _whitened(predicted, masks, sigma)
+    base = _whitened(predicted, masks, sigma)
+    nuisance = GainNuisance(base, residual.covariates["axis"], residual.covariates["sensor"])
+    residual = replace(residual, values=nuisance.project(residual.values))
+    return _Base(trajectories, sigma, residual, masks, base, nuisance)
 
 
 def signatures(residual: Residual) -> dict[str, float]:
@@ -157,24 +239,31 @@ def signatures(residual: Residual) -> dict[str, float]:
     return out
 
 
-def sensitivity(
-    effect: Effect,
-    model: TwinModel,
-    predictor: Predictor,
-    trajectories: list[TrajectoryRecord],
-    masks: list[np.ndarray],
-    sigma: np.ndarray,
-    base: np.ndarray,
-) -> np.ndarray:
-    """(N, k) finite-difference sensitivity of the whitened prediction to the effect's parameters."""
+@dataclass(frozen=True)
+class Linearisation:
+    """An effect's prediction change to first order about `point` (its parameter values):
+    shifted(values) ~ offset + jac (values - point), in profiled whitened units."""
+
+    point: dict[str, float]
+    offset: np.ndarray  # (N,) profiled change of the prediction from the base model to `point`
+    jac: np.ndarray  # (N, k) finite-difference sensitivity at `point`
+
+
+def sensitivity(effect: Effect, model: TwinModel, predictor: Predictor, base: _Base) -> Linearisation:
+    """Linearise the effect's change of the profiled whitened prediction at the model's values, or, when
+    the effect is off there and declares a probe (parameters that act only once it is on), at the probe."""
     current = effect.values(model.effects.get(effect.name))
+    point = current
+    offset = np.zeros_like(base.residual.values)
+    if effect.probe and effect.is_off(current):
+        point = {**current, **effect.probe}
+        offset = base.shifted(predictor, model.with_effects({effect.name: point}))
     columns = []
     for p in effect.parameters:
-        step = p.scale if current[p.name] + p.scale <= p.upper else -p.scale
-        changed = model.with_effects({effect.name: {**current, p.name: current[p.name] + step}})
-        shifted = _whitened(_fullrate_prediction(predictor, changed, trajectories), masks, sigma)
-        columns.append((shifted - base) / step)
-    return np.column_stack(columns)
+        step = p.scale if point[p.name] + p.scale <= p.upper else -p.scale
+        changed = model.with_effects({effect.name: {**point, p.name: point[p.name] + step}})
+        columns.append((base.shifted(predictor, changed) - offset) / step)
+    return Linearisation(point, offset, np.column_stack(columns))
 
 
 def _linear_fit(effect: Effect, current: dict[str, float], jac: np.ndarray, r: np.ndarray) -> np.ndarray:
@@ -196,55 +285,52 @@ def diagnose(
 ) -> Diagnosis:
     """Rank the library's effects (off in `model`) by how well each explains the residual."""
     predictor = predictor or Predictor()
-    trajectories, sigma, residual, masks, base = _base_residual(datasets, model, predictor)
+    base = _base_residual(datasets, model, predictor)
+    residual = base.residual
     r = residual.values
     n = len(r)
-    chi2 = float(r @ r)
+    chi2 = base.nuisance.chi2(r)
     excess = chi2 - n
     base_rms = float(np.sqrt(chi2 / n))
     names = candidates if candidates is not None else [k for k in EFFECTS if k not in model.effects]
-    ranked: list[tuple[Candidate, np.ndarray]] = []
+    ranked: list[tuple[Candidate, Linearisation]] = []
     for name in names:
         effect = EFFECTS[name]
-        jac = sensitivity(effect, model, predictor, trajectories, masks, sigma, base)
-        current = effect.values(model.effects.get(name))
-        delta = _linear_fit(effect, current, jac, r)
-        drop = chi2 - float(np.nansum((r - jac @ delta) ** 2))
+        lin = sensitivity(effect, model, predictor, base)
+        delta = _linear_fit(effect, lin.point, lin.jac, r - lin.offset)
+        drop = chi2 - base.nuisance.chi2(r - lin.offset - lin.jac @ delta)
         candidate = Candidate(
             name=name,
             kind=effect.kind,
-            parameters={p.name: current[p.name] + d for p, d in zip(effect.parameters, delta, strict=True)},
+            parameters={p.name: lin.point[p.name] + d for p, d in zip(effect.parameters, delta, strict=True)},
             chi2_drop=drop,
             evidence=drop - len(delta) * np.log(n),
             explained_fraction=drop / excess if excess > 0 else 0.0,
         )
-        ranked.append((candidate, jac))
+        ranked.append((candidate, lin))
     ranked.sort(key=lambda item: -item[0].evidence)
-    for candidate, jac in ranked[:top]:
-        _heldout(
-            candidate, jac, r, residual.indenter, EFFECTS[candidate.name].values(model.effects.get(candidate.name))
-        )
-        _identifiability(candidate, jac)
-        _refit(candidate, model, predictor, trajectories, masks, sigma, jac, r, base)
+    for candidate, lin in ranked[:top]:
+        _heldout(candidate, lin, r, residual.indenter)
+        _identifiability(candidate, lin.jac)
+        _refit(candidate, model, predictor, base, lin)
     ordered = [c for c, _ in ranked]
-    verdict, reason = _verdict(base_rms, ordered)
-    return Diagnosis(base_rms, signatures(residual), ordered, verdict, reason)
+    verdict, reason, tied = _verdict(base_rms, ordered)
+    return Diagnosis(base_rms, signatures(residual), ordered, verdict, reason, tied)
 
 
-def _heldout(
-    candidate: Candidate, jac: np.ndarray, r: np.ndarray, indenter: np.ndarray, current: dict[str, float]
-) -> None:
+def _heldout(candidate: Candidate, lin: Linearisation, r: np.ndarray, indenter: np.ndarray) -> None:
     """Leave-one-indenter-out: fit the linearised effect on the rest, score the whitened RMS on the left-out."""
     effect = EFFECTS[candidate.name]
     groups = np.unique(indenter)
     if len(groups) < 2:
         candidate.heldout_rms = None
         return
+    target = r - lin.offset
     squared, count = 0.0, 0
     for g in groups:
         train, test = indenter != g, indenter == g
-        delta = _linear_fit(effect, current, jac[train], r[train])
-        misfit = (r[test] - jac[test] @ delta) ** 2
+        delta = _linear_fit(effect, lin.point, lin.jac[train], target[train])
+        misfit = (target[test] - lin.jac[test] @ delta) ** 2
         squared += float(np.nansum(misfit))
         count += int(np.isfinite(misfit).sum())
     candidate.heldout_rms = float(np.sqrt(squared / count))
@@ -266,30 +352,19 @@ def _identifiability(candidate: Candidate, jac: np.ndarray) -> None:
 
 
 def _refit(
-    candidate: Candidate,
-    model: TwinModel,
-    predictor: Predictor,
-    trajectories: list[TrajectoryRecord],
-    masks: list[np.ndarray],
-    sigma: np.ndarray,
-    jac: np.ndarray,
-    r: np.ndarray,
-    base: np.ndarray,
-    iterations: int = 2,
+    candidate: Candidate, model: TwinModel, predictor: Predictor, base: _Base, lin: Linearisation, iterations: int = 2
 ) -> None:
     """Chord iterations (linear steps with the base J, re-predicted nonlinearly each time), then, for
     measurement effects whose predictions reuse cached fe replays, a nonlinear least-squares polish."""
     effect = EFFECTS[candidate.name]
-    values = effect.values(model.effects.get(candidate.name))
+    values = lin.point
 
     def misfit(trial_values: dict[str, float]) -> np.ndarray:
-        trial = model.with_effects({candidate.name: trial_values})
-        predicted = _whitened(_fullrate_prediction(predictor, trial, trajectories), masks, sigma)
-        return r - (predicted - base)
+        return base.residual.values - base.shifted(predictor, model.with_effects({candidate.name: trial_values}))
 
-    residual = r
+    residual = base.residual.values - lin.offset
     for _ in range(iterations):
-        delta = _linear_fit(effect, values, jac, residual)
+        delta = _linear_fit(effect, values, lin.jac, residual)
         values = {
             p.name: float(np.clip(values[p.name] + d, p.lower, p.upper))
             for p, d in zip(effect.parameters, delta, strict=True)
@@ -326,24 +401,40 @@ def _polish(effect: Effect, start: dict[str, float], misfit) -> tuple[dict[str, 
     return values, misfit(values)
 
 
-def _verdict(base_rms: float, candidates: list[Candidate]) -> tuple[str, str]:
+def _verdict(base_rms: float, candidates: list[Candidate]) -> tuple[str, str, list[str]]:
+    """(verdict, reason, tied): "nothing", an effect's name, "ambiguous" (the first few explain the data
+    equally well: `tied` names them, best first) or "unexplained"."""
     if base_rms <= NOISE_TOLERANCE:
-        return "nothing", f"the residual is already within {NOISE_TOLERANCE}x the noise ({base_rms:.2f}x)"
+        return "nothing", f"the residual is already within {NOISE_TOLERANCE}x the noise ({base_rms:.2f}x)", []
     if not candidates or candidates[0].evidence <= 0:
-        return "unexplained", "no candidate effect explains a significant part of the residual"
+        return "unexplained", "no candidate effect explains a significant part of the residual", []
     best = candidates[0]
-    runner = candidates[1].evidence if len(candidates) > 1 else 0.0
     if best.refit_rms is None or best.refit_rms > NOISE_TOLERANCE:
-        return "unexplained", (
-            f"the best candidate ({best.name}) leaves {best.refit_rms:.2f}x the noise after refitting"
+        return (
+            "unexplained",
+            f"the best candidate ({best.name}) leaves {best.refit_rms:.2f}x the noise after refitting",
+            [],
         )
-    if runner > 0 and best.evidence < DOMINANCE * runner:
-        return "unexplained", f"{best.name} and {candidates[1].name} explain the residual about equally well"
     if not best.identifiable:
-        return "unexplained", f"{best.name} fits, but its parameters are not identifiable from these data"
-    return best.name, (
-        f"{best.name} explains {best.explained_fraction:.0%} of the excess residual; "
-        f"refitted RMS {best.refit_rms:.2f}x noise (held-out {best.heldout_rms or float('nan'):.2f}x)"
+        return "unexplained", f"{best.name} fits, but its parameters are not identifiable from these data", []
+    tied = [c.name for c in candidates if best.evidence - c.evidence < EVIDENCE_MARGIN]
+    if len(tied) > 1:
+        margins = ", ".join(f"{c.name} {best.evidence - c.evidence:.1f}" for c in candidates[1 : len(tied)])
+        return (
+            "ambiguous",
+            (
+                f"{' and '.join(tied)} explain the residual about equally well (evidence behind {best.name}: "
+                f"{margins}; {EVIDENCE_MARGIN:g} is needed); {best.name} ranks first"
+            ),
+            tied,
+        )
+    return (
+        best.name,
+        (
+            f"{best.name} explains {best.explained_fraction:.0%} of the excess residual; "
+            f"refitted RMS {best.refit_rms:.2f}x noise (held-out {best.heldout_rms or float('nan'):.2f}x)"
+        ),
+        [],
     )
 
 
@@ -367,11 +458,12 @@ def fit_effect(
     effect = EFFECTS.get(name)
     if effect is None:
         raise ValueError(f"unknown effect {name!r}; the library has {sorted(EFFECTS)}")
-    trajectories, sigma, residual, masks, base = _base_residual(datasets, model, predictor)
-    jac = sensitivity(effect, model, predictor, trajectories, masks, sigma, base)
+    base = _base_residual(datasets, model, predictor)
+    residual = base.residual
+    lin = sensitivity(effect, model, predictor, base)
     candidate = Candidate(name, effect.kind, {}, 0.0, 0.0, 0.0)
-    _heldout(candidate, jac, residual.values, residual.indenter, effect.values(model.effects.get(name)))
-    _refit(candidate, model, predictor, trajectories, masks, sigma, jac, residual.values, base, iterations=3)
+    _heldout(candidate, lin, residual.values, residual.indenter)
+    _refit(candidate, model, predictor, base, lin, iterations=3)
     rms_before = float(np.sqrt(np.mean(residual.values**2)))
     improved = model.with_effects({name: candidate.refit_parameters})
     return EffectFit(name, candidate.refit_parameters, rms_before, candidate.refit_rms, candidate.heldout_rms, improved)

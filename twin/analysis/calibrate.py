@@ -1,0 +1,241 @@
+"""Calibrate the skin like the paper: SLSQP over t_s, mu_NH, mu_fr, T_fl on one angled trajectory.
+
+Cost (Narang et al., Eq. 1): J = w1 J_force + w2 J_thick with w1 = 1, w2 = 1e4.
+- J_force = sum over the three axes of the RMS force error (N) over the trajectory's rows (the
+  filtered, increment-end samples). Rows the model does not reach (fe non-convergence) count with a
+  predicted force of zero, so failing early never lowers the cost.
+- J_thick: the paper writes w2 (t_sim - 0.0151), which rewards a thinner sensor without bound. Here it is
+  a proper penalty of the same weight and units, smooth for SLSQP: w2 sqrt((t_sim - 0.0151)^2 + eps^2)
+  - w2 eps with eps = 10 um (a pseudo-Huber absolute value: |dt| away from zero, quadratic within eps).
+The skin is inflated by the paper's thermal rule (fluid at T_fl), so the sensor thickness t_sim is an
+output. Parameters are scaled to [0, 1] inside the paper's bounds.
+
+Uncertainty: the force residual r (3 x rows, N) is linearised at the optimum by central differences;
+cov = s^2 (J^T J)^-1 with s^2 = |r|^2 / (n - p). Rows are low-pass filtered, hence correlated, so these
+intervals are optimistic; they serve to flag parameters the trajectory cannot identify (a warning when
+the scaled J^T J is ill-conditioned, two parameters correlate beyond 0.95, or an interval spans more
+than the bounds).
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+from dataclasses import dataclass, field, replace
+
+import numpy as np
+from scipy.optimize import minimize
+
+from fe.params import PAPER_CALIBRATION_BOUNDS, SkinParameters
+from fe.sensor import SENSOR_THICKNESS
+from twin.analysis.data import CampaignData, TrajectoryRecord
+from twin.analysis.predict import Predictor, TwinModel
+from twin.effects import apply_skin
+
+CALIBRATED = ("thickness", "mu_nh", "friction", "fluid_temperature")
+"""SkinParameters fields the calibration moves (the paper's t_s, mu_NH, mu_fr, T_fl)."""
+FORCE_WEIGHT = 1.0
+THICKNESS_WEIGHT = 1e4
+THICKNESS_SMOOTHING = 10e-6
+"""eps (m) of the pseudo-Huber thickness penalty."""
+
+
+@dataclass(frozen=True)
+class CalibrationSettings:
+    """SLSQP settings; `step` is the finite-difference step in scaled units (fraction of each bound range)."""
+
+    max_iterations: int = 20
+    tolerance: float = 1e-4
+    step: float = 0.02
+    bounds: dict[str, tuple[float, float]] = field(default_factory=lambda: dict(PAPER_CALIBRATION_BOUNDS))
+
+
+@dataclass
+class Calibration:
+    """The optimum with its uncertainty (SI units; intervals are 95 %, +- 1.96 sigma)."""
+
+    parameters: dict[str, float]
+    start: dict[str, float]
+    cost: float
+    force_cost: float
+    thickness_cost: float
+    thickness: float  # m, sensor thickness after inflation at the optimum
+    std: dict[str, float]
+    intervals: dict[str, tuple[float, float]]
+    correlation: list[list[float]]
+    condition: float
+    warnings: list[str]
+    trajectories: list[tuple[int, int]]  # (sensor, trajectory id) used
+    evaluations: int
+    converged: bool
+    message: str
+    history: list[dict[str, float]] = field(default_factory=list)
+
+    def model(self, base: TwinModel) -> TwinModel:
+        """`base` with the calibrated skin (thermal inflation, as calibrated)."""
+        return replace(base, skin=replace(base.skin, **self.parameters), inflation="thermal")
+
+    def to_dict(self) -> dict:
+        """JSON-ready form (the `twin calibrate --json` shape)."""
+        out = dict(self.__dict__)
+        out["intervals"] = {k: list(v) for k, v in self.intervals.items()}
+        out["trajectories"] = [list(t) for t in self.trajectories]
+        return out
+
+
+def default_trajectories(datasets: list[CampaignData], indenter: str = "sphere_medium") -> list[TrajectoryRecord]:
+    """The paper's choice: per sensor, the first angled trajectory of `indenter` (complete ones first)."""
+    chosen = []
+    for data in datasets:
+        angled = [t for t in data.trajectories if t.indenter == indenter and not t.normal]
+        angled.sort(key=lambda t: (not t.complete, t.trajectory_id))
+        if angled:
+            chosen.append(angled[0])
+    if not chosen:
+        raise ValueError(f"no angled {indenter} trajectory in the datasets; pick one with --trajectory")
+    return chosen
+
+
+def force_residual(predictor: Predictor, model: TwinModel, trajectories: list[TrajectoryRecord]) -> np.ndarray:
+    """(rows, 3) predicted minus measured row force (N, biotac frame); unreached rows predict zero force."""
+    parts = []
+    for t in trajectories:
+        predicted = np.nan_to_num(predictor.predict(model, t).rows.force, nan=0.0)
+        parts.append(predicted - t.rows["force"])
+    return np.concatenate(parts)
+
+
+def thickness_penalty(thickness: float) -> float:
+    """w2 times the pseudo-Huber distance (m) of the sensor thickness from 15.1 mm (see module docstring)."""
+    d = thickness - SENSOR_THICKNESS
+    return THICKNESS_WEIGHT * (np.hypot(d, THICKNESS_SMOOTHING) - THICKNESS_SMOOTHING)
+
+
+def calibrate(
+    trajectories: list[TrajectoryRecord],
+    base: TwinModel,
+    predictor: Predictor | None = None,
+    settings: CalibrationSettings = CalibrationSettings(),
+    progress: Callable[[int, float], None] | None = None,
+) -> Calibration:
+    """Minimise the paper's cost over the calibrated parameters from `base.skin` (see module docstring).
+
+    progress(evaluation, cost) is called after every cost evaluation.
+    """
+    if not trajectories:
+        raise ValueError("calibration needs at least one trajectory")
+    predictor = predictor or Predictor()
+    low = np.array([settings.bounds[n][0] for n in CALIBRATED])
+    high = np.array([settings.bounds[n][1] for n in CALIBRATED])
+    start = np.array([getattr(base.skin, n) for n in CALIBRATED])
+    if np.any(start < low) or np.any(start > high):
+        raise ValueError(f"the starting skin {dict(zip(CALIBRATED, start, strict=True))} is outside the bounds")
+    history: list[dict[str, float]] = []
+
+    def model_at(z: np.ndarray) -> TwinModel:
+        values = low + np.clip(z, 0.0, 1.0) * (high - low)
+        skin = replace(base.skin, **dict(zip(CALIBRATED, (float(v) for v in values), strict=True)))
+        return replace(base, skin=skin, inflation="thermal")
+
+    def terms(z: np.ndarray) -> tuple[float, float, float]:
+        model = model_at(z)
+        try:
+            skin = apply_skin(model.skin, model.effects)
+            thickness = predictor.inflated(skin, model.mesh_max_edge, "thermal")[1].thickness
+            residual = force_residual(predictor, model, trajectories)
+        except (RuntimeError, ValueError):
+            return np.inf, np.inf, np.nan
+        force_cost = FORCE_WEIGHT * float(np.sum(np.sqrt(np.mean(residual**2, axis=0))))
+        return force_cost, float(thickness_penalty(thickness)), thickness
+
+    def cost(z: np.ndarray) -> float:
+        force_cost, thick_cost, thickness = terms(z)
+        total = force_cost + thick_cost
+        history.append({**_calibrated_values(model_at(z).skin), "cost": total, "thickness": thickness})
+        if progress is not None:
+            progress(len(history), total)
+        return total if np.isfinite(total) else 1e6
+
+    z0 = (start - low) / (high - low)
+    result = minimize(
+        cost,
+        z0,
+        method="SLSQP",
+        bounds=[(0.0, 1.0)] * len(CALIBRATED),
+        options={"maxiter": settings.max_iterations, "ftol": settings.tolerance, "eps": settings.step},
+    )
+    best = model_at(result.x)
+    force_cost, thick_cost, thickness = terms(result.x)
+    jac = _residual_jacobian(predictor, model_at, result.x, trajectories, settings.step)
+    residual = force_residual(predictor, best, trajectories).ravel()
+    std, corr, condition = _uncertainty(jac, residual, high - low)
+    parameters = _calibrated_values(best.skin)
+    intervals = {n: (parameters[n] - 1.96 * std[n], parameters[n] + 1.96 * std[n]) for n in CALIBRATED}
+    return Calibration(
+        parameters=parameters,
+        start=dict(zip(CALIBRATED, (float(v) for v in start), strict=True)),
+        cost=force_cost + thick_cost,
+        force_cost=force_cost,
+        thickness_cost=thick_cost,
+        thickness=thickness,
+        std=std,
+        intervals=intervals,
+        correlation=corr.round(4).tolist(),
+        condition=condition,
+        warnings=_warnings(std, corr, condition, low, high),
+        trajectories=[(t.sensor_id, t.trajectory_id) for t in trajectories],
+        evaluations=len(history),
+        converged=bool(result.success),
+        message=str(result.message),
+        history=history,
+    )
+
+
+def _calibrated_values(skin: SkinParameters) -> dict[str, float]:
+    return {n: float(getattr(skin, n)) for n in CALIBRATED}
+
+
+def _residual_jacobian(
+    predictor: Predictor,
+    model_at: Callable[[np.ndarray], TwinModel],
+    z: np.ndarray,
+    trajectories: list[TrajectoryRecord],
+    step: float,
+) -> np.ndarray:
+    """(3 rows, p) central-difference Jacobian of the force residual in scaled parameters (one-sided at a
+    bound)."""
+    columns = []
+    for i in range(len(z)):
+        up, down = z.copy(), z.copy()
+        up[i] = min(z[i] + step, 1.0)
+        down[i] = max(z[i] - step, 0.0)
+        r_up = force_residual(predictor, model_at(up), trajectories).ravel()
+        r_down = force_residual(predictor, model_at(down), trajectories).ravel()
+        columns.append((r_up - r_down) / (up[i] - down[i]))
+    return np.column_stack(columns)
+
+
+def _uncertainty(jac: np.ndarray, residual: np.ndarray, ranges: np.ndarray) -> tuple[dict, np.ndarray, float]:
+    """Per-parameter standard deviation (SI), correlation matrix and condition of the scaled J^T J."""
+    info = jac.T @ jac
+    eig = np.linalg.eigvalsh(info)
+    condition = float(eig[-1] / max(eig[0], 1e-300))
+    dof = max(len(residual) - jac.shape[1], 1)
+    cov_scaled = float(residual @ residual) / dof * np.linalg.pinv(info)
+    sd_scaled = np.sqrt(np.clip(np.diag(cov_scaled), 0.0, None))
+    denominator = np.outer(sd_scaled, sd_scaled)
+    corr = np.divide(cov_scaled, denominator, out=np.zeros_like(cov_scaled), where=denominator > 0)
+    std = {n: float(s * r) for n, s, r in zip(CALIBRATED, sd_scaled, ranges, strict=True)}
+    return std, corr, condition
+
+
+def _warnings(std: dict, corr: np.ndarray, condition: float, low: np.ndarray, high: np.ndarray) -> list[str]:
+    out = []
+    if condition > 1e6:
+        out.append(f"J^T J is ill-conditioned ({condition:.1e}): some parameter combination is not identified")
+    for i, a in enumerate(CALIBRATED):
+        if 3.92 * std[a] > high[i] - low[i]:
+            out.append(f"{a} is not identifiable: its 95 % interval is wider than its bounds")
+        for j in range(i + 1, len(CALIBRATED)):
+            if abs(corr[i, j]) > 0.95:
+                out.append(f"{a} and {CALIBRATED[j]} are correlated ({corr[i, j]:+.2f}): only a combination is fitted")
+    return out
