@@ -20,10 +20,12 @@ def project_psd(blocks: np.ndarray, floor: float = 0.0) -> np.ndarray:
 
 @dataclass
 class BlockAssembler:
-    """Scatters element blocks into a CSR matrix over free DOFs with a pattern computed once.
+    """Scatters symmetric element blocks into a CSR matrix over free DOFs with a pattern computed once.
 
     `connectivities` lists node-index arrays (E_k, n_k) of each element family; `dof_map` maps every
-    global DOF (3 * node + axis) to its free index or -1 when fixed.
+    global DOF (3 * node + axis) to its free index or -1 when fixed. Only the block entries that land on
+    or above the diagonal are summed (the ones a symmetric factorisation reads); the lower triangle is
+    their mirror image.
     """
 
     connectivities: list[np.ndarray]
@@ -31,30 +33,38 @@ class BlockAssembler:
 
     def __post_init__(self) -> None:
         self.n_free = int(self.dof_map.max()) + 1 if self.dof_map.size else 0
-        keys, self._selectors = [], []
+        n = max(self.n_free, 1)
+        keys, upper_keys, self._selectors = [], [], []
         for nodes in self.connectivities:
             dofs = (3 * nodes[:, :, None] + np.arange(3)).reshape(len(nodes), 3 * nodes.shape[1])
             free = self.dof_map[dofs]
-            rows = np.broadcast_to(free[:, :, None], (*free.shape, free.shape[1]))
-            cols = np.broadcast_to(free[:, None, :], rows.shape)
-            keep = ((rows >= 0) & (cols >= 0)).ravel()
-            keys.append(rows.ravel()[keep].astype(np.int64) * self.n_free + cols.ravel()[keep])
-            self._selectors.append(np.flatnonzero(keep))
-        all_keys = np.concatenate(keys) if keys else np.zeros(0, dtype=np.int64)
-        unique, inverse = np.unique(all_keys, return_inverse=True)
-        self._rows = unique // max(self.n_free, 1)
-        self._cols = unique % max(self.n_free, 1)
+            rows = np.broadcast_to(free[:, :, None], (*free.shape, free.shape[1])).ravel()
+            cols = np.broadcast_to(free[:, None, :], (*free.shape, free.shape[1])).ravel()
+            keep = (rows >= 0) & (cols >= 0)
+            keys.append(rows[keep].astype(np.int64) * n + cols[keep])
+            upper = np.flatnonzero(keep & (rows <= cols))
+            upper_keys.append(rows[upper].astype(np.int64) * n + cols[upper])
+            self._selectors.append(upper)
+        all_keys = np.unique(np.concatenate(keys)) if keys else np.zeros(0, dtype=np.int64)
+        self._rows = all_keys // n
+        self._cols = all_keys % n
         self._indptr = np.searchsorted(self._rows, np.arange(self.n_free + 1))
-        # One 0/1 scatter matrix per family maps its flattened blocks onto the CSR data array.
-        self._scatter, start = [], 0
-        for nodes, selector in zip(self.connectivities, self._selectors, strict=True):
+        upper_pattern = all_keys[self._rows <= self._cols]
+        # Each stored entry (i, j) takes its value from the upper-triangle entry (min(i, j), max(i, j)).
+        mirrored = np.minimum(self._rows, self._cols) * n + np.maximum(self._rows, self._cols)
+        self._source = np.searchsorted(upper_pattern, mirrored)
+        # One 0/1 scatter matrix per family maps its flattened blocks onto the upper-triangle values; stored
+        # by columns where a family has fewer block entries than the triangle has values (cheaper product).
+        self._scatter = []
+        for nodes, selector, family_keys in zip(self.connectivities, self._selectors, upper_keys, strict=True):
             size = len(nodes) * (3 * nodes.shape[1]) ** 2
-            target = inverse[start : start + len(selector)]
-            ones = np.ones(len(selector))
-            self._scatter.append(sp.csr_matrix((ones, (target, selector)), shape=(len(unique), size)))
-            start += len(selector)
+            target = np.searchsorted(upper_pattern, family_keys)
+            scatter = sp.coo_matrix((np.ones(len(selector)), (target, selector)), shape=(len(upper_pattern), size))
+            self._scatter.append(scatter.tocsc() if size < len(upper_pattern) else scatter.tocsr())
 
     def assemble(self, blocks: list[np.ndarray]) -> sp.csr_matrix:
-        """Sum blocks (one (E_k, 3 n_k, 3 n_k) array per family, in order) into an (n_free, n_free) CSR matrix."""
-        data = sum(s @ b.reshape(-1) for s, b in zip(self._scatter, blocks, strict=True))
+        """Sum symmetric blocks (one (E_k, 3 n_k, 3 n_k) array per family, in order) into an (n_free, n_free)
+        symmetric CSR matrix."""
+        upper = sum(s @ b.reshape(-1) for s, b in zip(self._scatter, blocks, strict=True))
+        data = upper[self._source] if len(self._source) else np.zeros(0)
         return sp.csr_matrix((data, self._cols.copy(), self._indptr.copy()), shape=(self.n_free, self.n_free))
