@@ -40,5 +40,6 @@ def view_command(
         kind = guarded(lambda p=path: log_path(recording, p, trajectory or None))
         err_console.print(f"logged {kind} {path}")
     recording.flush()
+    recording.disconnect()
     if save is not None:
         err_console.print(f"recording: {save}")

@@ -215,9 +215,11 @@ class TactileEnv(gym.Env[dict[str, np.ndarray], np.ndarray]):
         """With render_mode "rerun" every reset and step is logged as it happens; nothing to do here."""
 
     def close(self) -> None:
-        """Flush the rerun recording (render_mode "rerun") so that a saved .rrd is complete."""
+        """Finish the rerun recording (render_mode "rerun") so that a saved .rrd is complete."""
         if self._viewer is not None:
             self._viewer.recording.flush()
+            self._viewer.recording.disconnect()
+            self._viewer = None
 
     def _own_fe(self) -> IndentationBatch:
         if self.fe.n != 1:

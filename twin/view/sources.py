@@ -4,7 +4,7 @@ A trajectory is logged row by row (the dataset's subsampled rows: one per depth 
 timelines `row` (sequence, running on across trajectories) and `time` (the backend clock, s). The skin
 displacement is the file's `nodal_res` where it has it (simulated campaigns); otherwise the trajectory's
 planned path (touch point + depth * direction) is replayed through the nominal FE model of the file's
-mesh size, the same replay `twin compare` predicts with.
+mesh size (nominal skin parameters, as `twin compare`'s default model).
 """
 
 from __future__ import annotations
@@ -17,9 +17,8 @@ import rerun as rr
 
 from assets.biotac import electrode_table
 from assets.indenters import INDENTERS
-from fe.params import SkinParameters
-from twin.analysis.predict import Predictor
 from twin.dataset import open_dataset
+from twin.envs.fe_batch import shared_model
 from twin.view.scene import SkinScene, log_residual_field
 
 ROW_FEATURES = ("time", "depth", "contact_loc", "force", "electrode_vals", "pdc", "fe_pressure", "nodal_res")
@@ -53,11 +52,11 @@ def log_rows(scene: SkinScene, rows: dict[str, np.ndarray], rotation: np.ndarray
 
 
 def _replayed_displacement(
-    predictor: Predictor, mesh_max_edge: float, indenter: str, rotation: np.ndarray, tips: np.ndarray
+    mesh_max_edge: float, indenter: str, rotation: np.ndarray, tips: np.ndarray
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """FE replay of tip positions (N, 3) m: (N, V, 3) displacement (NaN after a failed increment),
     reference (V, 3) m and triangles of the nominal model with `mesh_max_edge` (m)."""
-    model = predictor.fe_model(SkinParameters(), mesh_max_edge)
+    model = shared_model(mesh_max_edge * 1e3)
     stepper = model.stepper(indenter)
     out = np.full((len(tips), *model.reference.shape), np.nan)
     for k, tip in enumerate(tips):
@@ -87,7 +86,6 @@ def log_dataset(
         mesh_max_edge = float(json.loads(f.attrs.get("provenance", "{}")).get("config", {}).get("mesh_max_edge", 2e-3))
         stored = "nodal_res" in f and "mesh" in f
         features = {name: f[f"{name}/data"] for name in ROW_FEATURES if name in f}
-        predictor = Predictor()
         scene: SkinScene | None = None
         row = 0
         for tid in chosen:
@@ -100,7 +98,7 @@ def log_dataset(
             else:
                 tips = meta["touch_point"][i] + np.outer(rows["depth"], meta["direction"][i])
                 rows["nodal_res"], reference, triangles = _replayed_displacement(
-                    predictor, mesh_max_edge, indenter, rotation, tips
+                    mesh_max_edge, indenter, rotation, tips
                 )
             if scene is None:
                 scene = SkinScene(recording, reference, triangles, electrode_table().positions, root)
@@ -149,6 +147,11 @@ class CampaignViewer:
         self.triangles = np.asarray(triangles)
         self._scenes: dict[int, SkinScene] = {}
         self._next_row: dict[int, int] = {}
+
+    def close(self) -> None:
+        """Finish the recording (a saved .rrd is complete after this)."""
+        self.recording.flush()
+        self.recording.disconnect()
 
     def log_trajectory(self, sensor_id: int, arrays: dict[str, np.ndarray]) -> None:
         """Log one finished trajectory of sensor `sensor_id` (its rows, on the `row` and `time` timelines)."""
