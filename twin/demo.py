@@ -55,12 +55,16 @@ def run_loop(
     workers: int = 2,
     reports: bool = True,
     say: Callable[[str], None] = print,
+    predictor: Predictor | None = None,
+    top: int = 3,
 ) -> LoopResult:
     """Hide `hidden` (None: nothing) in a plant, run `config`'s campaign into `out_dir`, then compare,
     diagnose and, when the diagnosis names an effect (or ranks one first among tied ones), add it.
 
     The plant has no unit-to-unit variability and exact registration, so the hidden effect is the only
     difference between it and the nominal model besides noise and the sensor's electrode read-out.
+    `predictor` may be shared between runs on the same paths (its fe replays are cached); `top`
+    candidates are refitted.
     """
     out_dir = Path(out_dir)
     out_dir.mkdir(parents=True, exist_ok=True)
@@ -82,13 +86,13 @@ def run_loop(
     path = next(iter(result.files.values()))
     seconds["campaign"] = time.perf_counter() - start
     data = load_campaign(path)
-    predictor = Predictor()
+    predictor = predictor or Predictor()
     model = TwinModel(mesh_max_edge=data.mesh_max_edge)
     say("2/4 comparing and diagnosing the nominal model against the measurements ...")
     start = time.perf_counter()
     if reports:
         write_report(compare([data], model, predictor), out_dir / "report_before")
-    diagnosis = diagnose([data], model, predictor)
+    diagnosis = diagnose([data], model, predictor, top=top)
     seconds["diagnose"] = time.perf_counter() - start
     say(f"    verdict: {diagnosis.verdict} ({diagnosis.reason})")
     fit = None

@@ -185,7 +185,7 @@ EFFECTS: dict[str, Effect] = {
             "skin_stiffening",
             "The skin stiffens with strain beyond Neo-Hookean (Gent, parameter 1/J_m).",
             "physics",
-            (EffectParameter("inverse_jm", 0.0, 0.0, 5.0, 0.1, "1"),),
+            (EffectParameter("inverse_jm", 0.0, 0.0, 2.0, 0.1, "1"),),
             ("force", "pdc", "electrodes"),
             skin=_stiffening,
         ),

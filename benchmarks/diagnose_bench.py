@@ -1,0 +1,111 @@
+"""Confusion matrix of the compare-diagnose-improve loop over hidden effects.
+
+For each seed and each effect (the library's, none, and the unlisted ones), a plant hides the effect
+with a size drawn from the seed (twin.hidden), a small campaign runs, and the loop diagnoses and, when
+it names an effect, adds it. Prints a per-case table (rank of the hidden effect, verdict, RMS / noise
+before, after and held out, wall seconds per stage) and the confusion matrix hidden -> added.
+
+    python benchmarks/diagnose_bench.py [--seeds 5,6] [--effects a,b] [--out runs/diagnose_bench] [--json FILE]
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import time
+from dataclasses import replace
+from pathlib import Path
+
+from twin.analysis.predict import Predictor
+from twin.campaign import QUICK_CONFIG
+from twin.demo import run_loop
+from twin.effects import EFFECTS, UNLISTED_EFFECTS
+
+CONFIG = replace(QUICK_CONFIG, sensors=(2,), indenters=("sphere_small", "cylinder_long"))
+NONE = "none"
+
+
+def _case(out: Path, hidden: str, seed: int, predictor: Predictor) -> dict:
+    start = time.perf_counter()
+    result = run_loop(
+        out / f"seed{seed}_{hidden}",
+        None if hidden == NONE else hidden,
+        seed,
+        CONFIG,
+        reports=False,
+        say=lambda _: None,
+        predictor=predictor,
+        top=1,
+    )
+    names = [c.name for c in result.diagnosis.candidates]
+    fit = result.fit
+    return {
+        "seed": seed,
+        "hidden": hidden,
+        "added": result.found,
+        "verdict": result.diagnosis.verdict,
+        "rank_of_hidden": names.index(hidden) + 1 if hidden in names else None,
+        "runner_up": names[1] if len(names) > 1 else None,
+        "evidence_margin": result.diagnosis.candidates[0].evidence - result.diagnosis.candidates[1].evidence,
+        "rms_before": result.diagnosis.base_rms,
+        "rms_after": fit.rms_after if fit else None,
+        "heldout_rms": fit.heldout_rms if fit else None,
+        "seconds": {**result.seconds, "total": time.perf_counter() - start},
+        "reason": result.diagnosis.reason,
+    }
+
+
+def _print(cases: list[dict], effects: list[str]) -> None:
+    header = ("seed", "hidden", "rank", "verdict", "added", "before", "after", "held", "s")
+    print(f"{header[0]:>4} {header[1]:20} {header[2]:>4} {header[3]:20} {header[4]:20}", end="")
+    print("".join(f" {h:>7}" for h in header[5:]))
+    for c in cases:
+
+        def fmt(v: float | None) -> str:
+            return "-" if v is None else f"{v:.2f}"
+
+        print(
+            f"{c['seed']:>4} {c['hidden']:20} {c['rank_of_hidden'] or '-':>4} {c['verdict']:20} {c['added']:20} "
+            f"{fmt(c['rms_before']):>7} {fmt(c['rms_after']):>7} {fmt(c['heldout_rms']):>7} "
+            f"{c['seconds']['total']:7.0f}"
+        )
+    columns = sorted({c["added"] for c in cases})
+    print("\nconfusion (rows: hidden, columns: what the loop added or said)")
+    print(" " * 20 + " ".join(f"{c[:10]:>10}" for c in columns))
+    for hidden in effects:
+        counts = [sum(1 for c in cases if c["hidden"] == hidden and c["added"] == col) for col in columns]
+        print(f"{hidden:20}" + " ".join(f"{n:>10}" for n in counts))
+    correct = sum(
+        1
+        for c in cases
+        if c["added"] == c["hidden"]
+        or (c["hidden"] == NONE and c["added"] == "nothing")
+        or (c["hidden"] in UNLISTED_EFFECTS and c["added"] == "unexplained")
+    )
+    print(f"\ncorrect: {correct}/{len(cases)}")
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("--seeds", default="5", help="comma-separated seeds")
+    parser.add_argument("--effects", default=None, help="comma-separated effects (default: all, none, unlisted)")
+    parser.add_argument("--out", type=Path, default=Path("runs/diagnose_bench"))
+    parser.add_argument("--json", type=Path, default=None, help="write every case here")
+    args = parser.parse_args()
+    effects = args.effects.split(",") if args.effects else [*sorted(EFFECTS), NONE, *sorted(UNLISTED_EFFECTS)]
+    unknown = set(effects) - set(EFFECTS) - set(UNLISTED_EFFECTS) - {NONE}
+    if unknown:
+        parser.error(f"unknown effects {sorted(unknown)}")
+    cases = []
+    for seed in (int(s) for s in args.seeds.split(",")):
+        predictor = Predictor()  # same seed, same paths: fe replays are shared between its cases
+        for hidden in effects:
+            cases.append(_case(args.out, hidden, seed, predictor))
+            print(json.dumps(cases[-1]), flush=True)
+            if args.json:
+                args.json.write_text(json.dumps(cases, indent=2))
+    _print(cases, effects)
+
+
+if __name__ == "__main__":
+    main()

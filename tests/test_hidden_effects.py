@@ -1,0 +1,63 @@
+"""The loop on plants with hidden effects: every library effect is found and fixed; nothing is claimed
+when nothing is hidden; an effect outside the library comes out "unexplained".
+
+Each case hides one effect, drawn with its size from a seed inside `twin.hidden`, in a plant; the
+diagnosis sees only the campaign file. The seed can be changed with BIOTAC_TWIN_HIDDEN_SEED to draw
+other sizes. The fe replays of the nominal model and its finite-difference neighbours are shared
+between cases (same paths), so each case pays for its campaign and its refits.
+"""
+
+import os
+from dataclasses import replace
+from pathlib import Path
+
+import pytest
+
+from twin.analysis.diagnose import NOISE_TOLERANCE
+from twin.analysis.predict import Predictor
+from twin.campaign import QUICK_CONFIG
+from twin.demo import LoopResult, run_loop
+from twin.effects import EFFECTS, UNLISTED_EFFECTS
+
+CONFIG = replace(QUICK_CONFIG, sensors=(2,), indenters=("sphere_small", "cylinder_long"))
+SEED = int(os.environ.get("BIOTAC_TWIN_HIDDEN_SEED", "5"))
+
+
+@pytest.fixture(scope="module")
+def predictor() -> Predictor:
+    return Predictor()
+
+
+def _loop(tmp_path: Path, hidden: str | None, predictor: Predictor) -> LoopResult:
+    return run_loop(
+        tmp_path, hidden, SEED, CONFIG, workers=2, reports=False, say=lambda _: None, predictor=predictor, top=1
+    )
+
+
+@pytest.mark.parametrize("hidden", sorted(EFFECTS))
+def test_a_hidden_library_effect_ranks_first_and_adding_it_brings_the_error_to_the_noise(
+    hidden: str, tmp_path: Path, predictor: Predictor
+) -> None:
+    result = _loop(tmp_path, hidden, predictor)
+    diagnosis = result.diagnosis
+    ranking = [(c.name, round(c.evidence, 1)) for c in diagnosis.candidates[:4]]
+    assert diagnosis.base_rms > NOISE_TOLERANCE, f"the hidden {hidden} must show in the residual: {diagnosis.reason}"
+    assert diagnosis.candidates[0].name == hidden, (ranking, diagnosis.reason)
+    assert diagnosis.verdict in (hidden, "ambiguous"), diagnosis.reason
+    assert result.fit is not None and result.fit.name == hidden
+    assert result.fit.rms_after <= NOISE_TOLERANCE < result.fit.rms_before, result.fit
+    assert result.fit.heldout_rms is not None and result.fit.heldout_rms <= NOISE_TOLERANCE, result.fit
+
+
+def test_with_nothing_hidden_nothing_is_claimed(tmp_path: Path, predictor: Predictor) -> None:
+    result = _loop(tmp_path, None, predictor)
+    assert result.diagnosis.verdict == "nothing", result.diagnosis.reason
+    assert result.fit is None
+
+
+@pytest.mark.parametrize("hidden", sorted(UNLISTED_EFFECTS))
+def test_an_effect_outside_the_library_is_unexplained(hidden: str, tmp_path: Path, predictor: Predictor) -> None:
+    result = _loop(tmp_path, hidden, predictor)
+    assert result.diagnosis.base_rms > NOISE_TOLERANCE, "the unlisted effect must show in the residual"
+    assert result.diagnosis.verdict == "unexplained", result.diagnosis.reason
+    assert result.fit is None
