@@ -1,15 +1,17 @@
 """Train a linear press policy on BioTacPress-v0 with the cross-entropy method; plot its learning curve.
 
 The policy sees only the environment's observation (tared electrodes and PDC, commanded tip in the
-target frame, target force) through seven features and outputs clip(W phi, -1, 1), W (3, 7). Each CEM
-iteration evaluates `--population` candidate W, one per sub-environment of one vector env (so each
-step is one batched FE call), on the same episode seeds (common random numbers), and refits the
-Gaussian over W to the best `--elites`. A random policy (uniform actions) on held-out seeds is the
-baseline; the final mean W is evaluated on the same held-out seeds.
+target frame, target force) through seven features and outputs clip(W phi, -1, 1), W (3, 7) sparse
+(`MASK`: sideways increments from the sideways offsets, the press increment from PDC, electrodes, target
+force and depth). Each CEM iteration evaluates `--population` candidate W (the first is the current
+mean) on the same `--episodes` episodes, all candidates x episodes as the sub-environments of one vector
+env (so each step is one batched FE call), and refits the Gaussian over W to the best `--elites`. A
+random policy (uniform actions) on held-out seeds is the baseline; the final mean W is evaluated on the
+same held-out seeds.
 
     python3 scripts/train_press_policy.py --out docs/img/press_training.png
 
-Cost: about population x iterations x max_steps FE increments on the coarse mesh (a few minutes on
+Cost: about population x episodes x iterations x max_steps FE increments on the coarse mesh (a few minutes on
 two CPU cores with the defaults).
 """
 
@@ -28,6 +30,15 @@ from matplotlib.figure import Figure
 import twin  # noqa: F401  (registers the environments)
 
 N_FEATURES = 7
+MASK = np.array(
+    [
+        [0, 0, 0, 1, 0, 0, 1],  # t1 increment: from the tip's t1 offset
+        [0, 0, 0, 0, 1, 0, 1],  # t2 increment: from the tip's t2 offset
+        [1, 1, 1, 0, 0, 1, 1],  # press increment: from PDC, electrodes, target force, press depth
+    ],
+    dtype=bool,
+)
+"""The weights CEM searches (9 of 3 x 7); the others are 0."""
 Policy = Callable[[dict[str, np.ndarray]], np.ndarray]
 
 
@@ -56,9 +67,9 @@ def random_policy(rng: np.random.Generator, n: int) -> Policy:
     return lambda obs: rng.uniform(-1.0, 1.0, (n, 3))
 
 
-def episode_returns(env: gym.vector.VectorEnv, policy: Policy, seed: int, max_steps: int) -> np.ndarray:
-    """One episode per sub-environment (seeds seed + k); the return of each up to its first end."""
-    obs, _ = env.reset(seed=seed)
+def episode_returns(env: gym.vector.VectorEnv, policy: Policy, seeds: list[int], max_steps: int) -> np.ndarray:
+    """One episode per sub-environment (sub-environment k on seeds[k]); the return of each up to its end."""
+    obs, _ = env.reset(seed=seeds)
     returns = np.zeros(env.num_envs)
     running = np.ones(env.num_envs, dtype=bool)
     for _ in range(max_steps):
@@ -71,34 +82,49 @@ def episode_returns(env: gym.vector.VectorEnv, policy: Policy, seed: int, max_st
 
 
 def train(args: argparse.Namespace) -> dict:
-    """Run CEM and the baseline; returns the curve and the evaluation numbers."""
+    """Run CEM and the baseline; returns the curve and the evaluation numbers.
+
+    Candidate 0 of every iteration is the current mean (its mean return is the curve's "mean policy");
+    all candidates of one iteration play the same episodes, so they are ranked on equal terms; the
+    iterations' episodes differ.
+    """
     rng = np.random.default_rng(args.seed)
     env = gym.make_vec(
         "BioTacPress-v0",
-        num_envs=args.population,
+        num_envs=args.population * args.episodes,
         vectorization_mode="vector_entry_point",
         max_steps=args.max_steps,
     )
     mean = np.zeros((3, N_FEATURES))
-    std = np.full((3, N_FEATURES), args.init_std)
+    std = np.where(MASK, args.init_std, 0.0)
     curve = []
+    episodes = args.episodes
     for iteration in range(args.iterations):
         start = time.perf_counter()
         weights = mean + std * rng.standard_normal((args.population, 3, N_FEATURES))
-        returns = episode_returns(env, linear_policies(weights), 1000 * (iteration + 1), args.max_steps)
+        weights[0] = mean
+        seeds = [1000 * (iteration + 1) + e for _ in range(args.population) for e in range(episodes)]
+        per_episode = episode_returns(env, linear_policies(np.repeat(weights, episodes, 0)), seeds, args.max_steps)
+        returns = per_episode.reshape(args.population, episodes).mean(axis=1)
         elite = weights[np.argsort(returns)[-args.elites :]]
-        mean, std = elite.mean(axis=0), elite.std(axis=0) + args.min_std
-        curve.append({"iteration": iteration, "mean": float(returns.mean()), "best": float(returns.max())})
+        mean, std = elite.mean(axis=0), np.where(MASK, elite.std(axis=0) + args.min_std, 0.0)
+        curve.append(
+            {
+                "iteration": iteration,
+                "mean_policy": float(returns[0]),
+                "population": float(returns.mean()),
+                "best": float(returns.max()),
+            }
+        )
         print(
-            f"iteration {iteration}: population mean {returns.mean():.2f}, best {returns.max():.2f} "
-            f"({time.perf_counter() - start:.0f} s)",
+            f"iteration {iteration}: mean policy {returns[0]:.2f}, population {returns.mean():.2f}, "
+            f"best {returns.max():.2f} ({time.perf_counter() - start:.0f} s)",
             flush=True,
         )
-    eval_seed = 10**6
-    trained = episode_returns(
-        env, linear_policies(np.repeat(mean[None], args.population, 0)), eval_seed, args.max_steps
-    )
-    baseline = episode_returns(env, random_policy(rng, args.population), eval_seed, args.max_steps)
+    held_out = [10**6 + k for k in range(env.num_envs)]
+    trained_policy = linear_policies(np.repeat(mean[None], env.num_envs, 0))
+    trained = episode_returns(env, trained_policy, held_out, args.max_steps)
+    baseline = episode_returns(env, random_policy(rng, env.num_envs), held_out, args.max_steps)
     env.close()
     return {
         "curve": curve,
@@ -114,8 +140,8 @@ def plot(result: dict, out: Path) -> None:
     fig = Figure(figsize=(6.0, 3.8), layout="constrained")
     ax = fig.add_subplot()
     iterations = [c["iteration"] for c in result["curve"]]
-    ax.plot(iterations, [c["mean"] for c in result["curve"]], "o-", label="CEM population mean")
-    ax.plot(iterations, [c["best"] for c in result["curve"]], "s--", alpha=0.6, label="CEM best candidate")
+    ax.plot(iterations, [c["mean_policy"] for c in result["curve"]], "o-", label="CEM mean policy")
+    ax.plot(iterations, [c["population"] for c in result["curve"]], "s--", alpha=0.6, label="CEM population mean")
     for name, colour in (("random", "tab:red"), ("trained", "tab:green")):
         stats = result[name]
         ax.axhline(stats["mean"], color=colour, label=f"{name} policy, held-out seeds ({stats['mean']:.1f})")
@@ -130,16 +156,17 @@ def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--out", type=Path, default=Path("docs/img/press_training.png"))
     parser.add_argument("--iterations", type=int, default=8)
-    parser.add_argument("--population", type=int, default=12)
+    parser.add_argument("--population", type=int, default=8)
+    parser.add_argument("--episodes", type=int, default=2, help="Episodes per candidate and iteration.")
     parser.add_argument("--elites", type=int, default=3)
-    parser.add_argument("--max-steps", type=int, default=12)
-    parser.add_argument("--init-std", type=float, default=0.5)
+    parser.add_argument("--max-steps", type=int, default=10)
+    parser.add_argument("--init-std", type=float, default=1.0)
     parser.add_argument("--min-std", type=float, default=0.05)
     parser.add_argument("--seed", type=int, default=0)
     parser.add_argument("--json", type=Path, default=None, help="Also write the numbers to this JSON file.")
     args = parser.parse_args()
-    if not 0 < args.elites <= args.population or args.iterations < 1:
-        parser.error("need 0 < elites <= population and iterations >= 1")
+    if not 0 < args.elites <= args.population or args.iterations < 1 or args.episodes < 1:
+        parser.error("need 0 < elites <= population, iterations >= 1 and episodes >= 1")
     result = train(args)
     plot(result, args.out)
     if args.json is not None:
