@@ -5,16 +5,28 @@ and the force change between a default and a finer mesh at the final depth.
 
 The issue's target on the 2-core CPU: at most 1 s per 0.1 mm increment at >= 4000 skin nodes.
 s / increment is the median wall time of the loaded increments; Newton / incr. their mean iteration count.
+
+Batched throughput (`fe.batched_stepper`, docs/scale.md): B trajectories stepped together on a warp device,
+
+    python benchmarks/fe_bench.py --batch N --device cuda|cpu [--mesh-mm 0.5] [--problem DIR] [--serial K]
+
+prints trajectories/s and loaded increments/s. The inflated skin and the planned trajectories are cached in
+--problem DIR (built here with the CPU model when missing), so a GPU machine without trimesh's planning
+needs only that folder. --serial K also runs K of the trajectories one by one through the CPU stepper
+(`fe.sensor.BioTacModel.stepper`, PARDISO) for the speed ratio and the force agreement.
 """
 
 import argparse
 import time
+from pathlib import Path
 
 import numpy as np
 from rich.console import Console
 from rich.table import Table
 
 from assets.biotac import make_biotac
+from assets.indenters import INDENTERS, get_indenter
+from fe.batched import InflatedSkin
 from fe.sensor import BioTacModel
 
 
@@ -41,6 +53,144 @@ def run(mesh_mm: float, indenter: str, point_mm: list[float], depth_mm: float, s
     }
 
 
+def add_batch_arguments(parser: argparse.ArgumentParser) -> None:
+    """Options of the batched benchmark."""
+    parser.add_argument("--batch", type=int, default=None, help="trajectories solved together (batched mode)")
+    parser.add_argument("--device", default="cpu", help="warp device of the batched solve: cpu, cuda, cuda:0, ...")
+    parser.add_argument("--mesh-mm", type=float, default=0.5, help="skin mesh of the batched benchmark")
+    parser.add_argument("--indenters", default="sphere_medium", help="comma-separated names or 'all', cycled")
+    parser.add_argument("--problem", default=None, help="folder caching the inflated skin and trajectories")
+    parser.add_argument("--serial", type=int, default=0, help="trajectories also run serially on the CPU")
+    parser.add_argument("--seed", type=int, default=0)
+    parser.add_argument("--json", default=None, help="also write the batched results to this JSON file")
+
+
+def plan_batch(args: argparse.Namespace) -> tuple[InflatedSkin, dict[str, np.ndarray], BioTacModel | None]:
+    """The inflated skin and B straight trajectories (touch points, directions, rotations, indenters) at
+    random ventral points, tilted up to 20 degrees; loaded from --problem when cached there."""
+    folder = Path(args.problem) if args.problem else None
+    if folder is not None and (folder / "skin.npz").exists():
+        with np.load(folder / "paths.npz") as data:
+            paths = {k: data[k] for k in data.files}
+        if len(paths["names"]) >= args.batch:
+            return InflatedSkin.load(folder / "skin.npz"), {k: v[: args.batch] for k, v in paths.items()}, None
+    model = BioTacModel(make_biotac(max_edge=args.mesh_mm * 1e-3))
+    if not model.inflate().converged:
+        raise RuntimeError("inflation did not converge")
+    names = list(INDENTERS) if args.indenters == "all" else args.indenters.split(",")
+    rng = np.random.default_rng(args.seed)
+    ventral = model.reference[model.geometry.skin.ventral]
+    rows: dict[str, list] = {"names": [], "touch": [], "direction": [], "rotation": []}
+    while len(rows["names"]) < args.batch:
+        name = names[len(rows["names"]) % len(names)]
+        point = ventral[rng.integers(len(ventral))]
+        try:
+            path = model.plan_trajectory(
+                get_indenter(name), point, rng.uniform(0, 20), rng.uniform(0, 360), args.depth_mm * 1e-3, 1e-3
+            )
+        except ValueError:
+            continue
+        for key, value in zip(rows, (name, path.touch_point, path.direction, path.rotation), strict=True):
+            rows[key].append(value)
+    order = np.argsort(rows["names"], kind="stable")  # equal indenters contiguous: one contact launch per run
+    paths = {k: np.asarray(v)[order] for k, v in rows.items()}
+    skin = InflatedSkin.from_model(model)
+    if folder is not None:
+        folder.mkdir(parents=True, exist_ok=True)
+        skin.save(folder / "skin.npz")
+        np.savez(folder / "paths.npz", **paths)
+    return skin, paths, model
+
+
+def run_batch_benchmark(args: argparse.Namespace) -> None:
+    """Step B trajectories together (first pose 0.1 mm before touch, then to --depth-mm in --step-mm) and
+    print throughput; with --serial K, the same K trajectories through the CPU stepper beside it."""
+    import json
+
+    import warp as wp
+
+    from fe.batched_stepper import BatchedStepper
+
+    skin, paths, model = plan_batch(args)
+    travels = np.arange(-1, int(round(args.depth_mm / args.step_mm)) + 1) * args.step_mm * 1e-3
+    console = Console(width=200)
+    start = time.perf_counter()
+    stepper = BatchedStepper(skin, list(paths["names"]), args.device)
+    warmup = [list(stepper.step(paths["rotation"], _poses(paths, t))) for t in travels[:3]]  # compiles kernels
+    setup_s = time.perf_counter() - start
+    stepper.reset()
+    stepper.shell.counters = dict.fromkeys(stepper.shell.counters, 0.0)
+    wp.synchronize()
+    start = time.perf_counter()
+    results = [stepper.step(paths["rotation"], _poses(paths, t)) for t in travels]
+    wall = time.perf_counter() - start
+    loaded = [r for step in results for r in step if r is not None and r.message != "no contact"]
+    failed = sum(not r.converged for r in loaded)
+    row = {
+        "device": str(wp.get_device(args.device)),
+        "mesh_mm": args.mesh_mm,
+        "nodes": len(skin.vertices),
+        "batch": args.batch,
+        "poses_per_trajectory": len(travels),
+        "loaded_increments": len(loaded),
+        "failed": failed,
+        "setup_s": setup_s,
+        "wall_s": wall,
+        "trajectories_per_s": args.batch / wall,
+        "increments_per_s": len(loaded) / wall,
+        "newton_per_increment": float(np.mean([r.newton_iterations for r in loaded])) if loaded else 0.0,
+        "warmup_steps": len(warmup),
+    }
+    solves = max(stepper.shell.counters["linear_solves"], 1)
+    row |= {
+        "evaluate_s": stepper.shell.counters["evaluate_s"],
+        "linear_solve_s": stepper.shell.counters["linear_solve_s"],
+        "cg_iterations_per_solve_max": stepper.shell.counters["cg_iterations_max"] / solves,
+        "cg_iterations_per_solve_mean": stepper.shell.counters["cg_iterations_mean"] / solves,
+    }
+    if args.serial:
+        row.update(_serial(args, paths, travels, results, model))
+    table = Table("quantity", "value")
+    for key, value in row.items():
+        table.add_row(key, f"{value:.4g}" if isinstance(value, float) else str(value))
+    console.print(table)
+    increments_700 = 700 * max(len(loaded) / args.batch, 1.0)
+    console.print(
+        f"extrapolated: 700 trajectories x {increments_700 / 700:.0f} loaded increments = "
+        f"{increments_700 / row['increments_per_s'] / 60:.1f} min at this batch's increments/s"
+    )
+    if args.json:
+        Path(args.json).write_text(json.dumps(row, indent=1))
+
+
+def _poses(paths: dict[str, np.ndarray], travel: float) -> np.ndarray:
+    """Tip positions (B,3) m at `travel` past first touch along each trajectory."""
+    return paths["touch"] + travel * paths["direction"]
+
+
+def _serial(args: argparse.Namespace, paths: dict, travels: np.ndarray, batched: list, model) -> dict:
+    """The first --serial trajectories one by one through the CPU stepper: speed and agreement with the batch."""
+    if model is None:
+        model = BioTacModel(make_biotac(max_edge=args.mesh_mm * 1e-3))
+        model.inflate()
+    worst, increments = 0.0, 0
+    start = time.perf_counter()
+    for i in range(min(args.serial, args.batch)):
+        stepper = model.stepper(str(paths["names"][i]))
+        for k, t in enumerate(travels):
+            result = stepper.step(paths["rotation"][i], paths["touch"][i] + t * paths["direction"][i])
+            increments += result.message != "no contact"
+            other = batched[k][i]
+            worst = max(worst, np.linalg.norm(result.force - other.force) / max(np.linalg.norm(result.force), 1e-3))
+    wall = time.perf_counter() - start
+    return {
+        "serial_trajectories": min(args.serial, args.batch),
+        "serial_increments_per_s": increments / wall,
+        "serial_trajectories_per_s": min(args.serial, args.batch) / wall,
+        "max_rel_force_diff": worst,
+    }
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--meshes-mm", default="0.5,0.35")
@@ -48,7 +198,11 @@ def main() -> None:
     parser.add_argument("--step-mm", type=float, default=0.1)
     parser.add_argument("--indenter", default="sphere_medium")
     parser.add_argument("--point-mm", default="-6,0,-9")
+    add_batch_arguments(parser)
     args = parser.parse_args()
+    if args.batch is not None:
+        run_batch_benchmark(args)
+        return
     point = [float(v) for v in args.point_mm.split(",")]
     rows = [run(float(h), args.indenter, point, args.depth_mm, args.step_mm) for h in args.meshes_mm.split(",")]
     table = Table(

@@ -1,0 +1,712 @@
+"""B copies of one inflated skin solved together on a warp device (CPU or CUDA): energies, Newton, CG.
+
+`BatchedShell` stacks B independent systems (same mesh and material, each with its own indenter pose,
+friction lagging and state) into warp arrays with a leading batch axis, evaluates every energy term of
+`fe.shell.ShellSystem` for all of them with one launch per kernel (the kernels of fe/membrane.py,
+fe/bending.py, fe/volume.py and fe/contact.py, which take the batch axis), assembles the B Newton
+matrices into one batched block-sparse matrix on the device and solves them with the batched CG of
+`fe.device_solver`. `solve_batch` is Newton's method of `fe.newton.solve_equilibrium`, per system:
+the same KKT system through its Schur complement (K u1 = -r, K u2 = b), the same stopping rules,
+merit function and backtracking, the same lagged-friction refreshes. Where the CPU path falls back to
+PSD-projected element Hessians (a step of non-positive curvature, or no acceptable length), this one
+damps the diagonal instead (K + s diag(K), s = 1e-2 ... 1e2), since CG needs a positive definite matrix.
+Units: m, N, Pa, m^3; positions in the sensor (biotac) frame.
+"""
+
+from __future__ import annotations
+
+import json
+import time
+from dataclasses import asdict, dataclass, fields
+from pathlib import Path
+
+import numpy as np
+import warp as wp
+
+from fe import bending, contact, membrane, volume
+from fe.device_solver import CG_NEGATIVE_CURVATURE, BatchedBlockMatrix, BatchedCG, BlockPattern, batched_dot
+from fe.newton import NewtonSettings
+from fe.params import ContactSettings, SkinParameters
+from fe.shell import lumped_areas
+from fe.wptypes import mat99d, mat1818d, vec6i
+
+SUPPORTED_PARAMETERS = frozenset(
+    {
+        "thickness",
+        "mu_nh",
+        "friction",
+        "fluid_temperature",
+        "thermal_expansion",
+        "reference_temperature",
+        "bending",
+        "inflation_volume_scale",
+        "gent_inverse_jm",
+    }
+)
+"""SkinParameters fields the batched solver honours (inflation-only ones act through the given reference
+state); any other field must keep its default value."""
+
+_ENERGY_RESOLUTION = 1e-12
+_DAMPING = (1e-2, 1e-1, 1.0, 1e1, 1e2)
+"""Relative diagonal damping tried, in order, when the exact Newton matrix fails for a system."""
+
+
+@dataclass(frozen=True)
+class InflatedSkin:
+    """Everything a batched solve needs from an inflated BioTac model (SI units, biotac frame).
+
+    vertices (V,3), triangles (T,3), fixed (V,) or (V,3): the rest mid-surface mesh; core_*: the rigid core
+    and the skin's clearance from it (m); volume_origin (3,) m; reference (V,3) m, pressure (Pa) and
+    target_volume (m^3): the inflated state every trajectory starts from.
+    """
+
+    vertices: np.ndarray
+    triangles: np.ndarray
+    fixed: np.ndarray
+    core_vertices: np.ndarray
+    core_triangles: np.ndarray
+    core_offset: float
+    volume_origin: np.ndarray
+    params: SkinParameters
+    contact: ContactSettings
+    newton: NewtonSettings
+    reference: np.ndarray
+    pressure: float
+    target_volume: float
+
+    def __post_init__(self) -> None:
+        unsupported = [
+            f.name
+            for f in fields(SkinParameters)
+            if f.name not in SUPPORTED_PARAMETERS and getattr(self.params, f.name) != f.default
+        ]
+        if unsupported:
+            raise NotImplementedError(f"the batched FE solver does not model {unsupported}; use fe.sensor.BioTacModel")
+
+    @classmethod
+    def from_model(cls, model) -> InflatedSkin:
+        """The inflated state of a `fe.sensor.BioTacModel` (inflate() it first)."""
+        if model.reference is None:
+            raise RuntimeError("inflate() the model before batching it")
+        system, core = model.system, model.system.core
+        return cls(
+            vertices=system.mesh.vertices,
+            triangles=system.mesh.triangles,
+            fixed=system.mesh.fixed,
+            core_vertices=core.vertices,
+            core_triangles=core.triangles,
+            core_offset=core.offset,
+            volume_origin=np.asarray(system.volume_origin, dtype=np.float64),
+            params=model.params,
+            contact=system.contact_settings,
+            newton=model.newton,
+            reference=model.reference.copy(),
+            pressure=float(model.pressure),
+            target_volume=float(model.target_volume),
+        )
+
+    def save(self, path: Path) -> None:
+        """Write to an .npz file (arrays, plus the settings as JSON)."""
+        arrays = {f.name: np.asarray(getattr(self, f.name)) for f in fields(self) if f.name not in _SETTINGS}
+        settings = {name: asdict(getattr(self, name)) for name in _SETTINGS}
+        np.savez(path, settings=json.dumps(settings), **arrays)
+
+    @classmethod
+    def load(cls, path: Path) -> InflatedSkin:
+        """Read a file written by `save`."""
+        with np.load(path) as data:
+            settings = json.loads(str(data["settings"]))
+            values = {name: data[name] for name in data.files if name != "settings"}
+        for name in ("core_offset", "pressure", "target_volume"):
+            values[name] = float(values[name])
+        built = {name: _SETTINGS[name](**settings[name]) for name in _SETTINGS}
+        return cls(**values, **built)
+
+
+_SETTINGS = {"params": SkinParameters, "contact": ContactSettings, "newton": NewtonSettings}
+
+
+def launch(kernel: wp.Kernel, dim: tuple, values: dict, device: str) -> None:
+    """Launch `kernel` taking its arguments by name from `values` (robust to argument order); a kernel
+    argument missing from `values` is an error naming it."""
+    names = [arg.label for arg in kernel.adj.args]
+    missing = [n for n in names if n not in values]
+    if missing:
+        raise RuntimeError(f"kernel {kernel.key} takes {missing}, which fe.batched does not provide")
+    wp.launch(kernel, dim, [values[n] for n in names], device=device)
+
+
+@wp.kernel
+def _row_sum(a: wp.array2d(dtype=wp.float64), out: wp.array(dtype=wp.float64)):
+    b, i = wp.tid()
+    wp.atomic_add(out, b, a[b, i])
+
+
+@wp.kernel
+def _residual(
+    gradients: wp.array3d(dtype=wp.vec3d),
+    volume_gradient: wp.array2d(dtype=wp.vec3d),
+    pressure: wp.array(dtype=wp.float64),
+    free: wp.array(dtype=wp.vec3d),
+    residual: wp.array2d(dtype=wp.vec3d),
+    gradient: wp.array2d(dtype=wp.vec3d),
+    bvec: wp.array2d(dtype=wp.vec3d),
+    stats: wp.array2d(dtype=wp.float64),
+):
+    """Free-DOF residual r = grad E - p grad V, grad E and b = grad V; stats[b] = (max|r|, sum r^2, max load)."""
+    b, v = wp.tid()
+    f = free[v]
+    g = gradients[0, b, v] + gradients[1, b, v] + gradients[2, b, v]
+    gv = volume_gradient[b, v]
+    r = wp.cw_mul(g - pressure[b] * gv, f)
+    residual[b, v] = r
+    gradient[b, v] = wp.cw_mul(g, f)
+    bvec[b, v] = wp.cw_mul(gv, f)
+    load = wp.max(wp.max(wp.abs(wp.cw_mul(g, f))), wp.max(wp.abs(wp.cw_mul(gv, f) * pressure[b])))
+    wp.atomic_max(stats, b, 0, wp.max(wp.abs(r)))
+    wp.atomic_add(stats, b, 1, wp.dot(r, r))
+    wp.atomic_max(stats, b, 2, load)
+
+
+@wp.kernel
+def _axpy(
+    x: wp.array2d(dtype=wp.vec3d),
+    step: wp.array(dtype=wp.float64),
+    d: wp.array2d(dtype=wp.vec3d),
+    out: wp.array2d(dtype=wp.vec3d),
+):
+    """out[b] = x[b] + step[b] d[b]."""
+    b, v = wp.tid()
+    out[b, v] = x[b, v] + step[b] * d[b, v]
+
+
+@wp.kernel
+def _newton_rhs(
+    residual: wp.array2d(dtype=wp.vec3d), bvec: wp.array2d(dtype=wp.vec3d), rhs: wp.array2d(dtype=wp.vec3d)
+):
+    """Columns 0..B-1: -r; B..2B-1: b."""
+    b, v = wp.tid()
+    n = residual.shape[0]
+    rhs[b, v] = -residual[b, v]
+    rhs[n + b, v] = bvec[b, v]
+
+
+@wp.kernel
+def _combine(u: wp.array2d(dtype=wp.vec3d), dp: wp.array(dtype=wp.float64), dq: wp.array2d(dtype=wp.vec3d)):
+    """dq = u1 + dp u2 with u1 = u[b], u2 = u[B + b]."""
+    b, v = wp.tid()
+    dq[b, v] = u[b, v] + dp[b] * u[dq.shape[0] + b, v]
+
+
+@wp.kernel
+def _lag_candidates(
+    gap: wp.array2d(dtype=wp.float64),
+    vertex_area: wp.array(dtype=wp.float64),
+    kappa: wp.float64,
+    lagged_force: wp.array2d(dtype=wp.float64),
+    candidate: wp.array2d(dtype=wp.float64),
+    stats: wp.array2d(dtype=wp.float64),
+):
+    """Penalty normal force (N) per vertex from its gap; stats[b] = (max change from the lagged one, max force)."""
+    b, v = wp.tid()
+    f = kappa * vertex_area[v] * wp.max(-gap[b, v], wp.float64(0.0))
+    candidate[b, v] = f
+    wp.atomic_max(stats, b, 0, wp.abs(f - lagged_force[b, v]))
+    wp.atomic_max(stats, b, 1, f)
+
+
+@wp.kernel
+def _lag_apply(
+    changed: wp.array(dtype=wp.int32),
+    candidate: wp.array2d(dtype=wp.float64),
+    normal: wp.array2d(dtype=wp.vec3d),
+    lagged_force: wp.array2d(dtype=wp.float64),
+    lagged_normal: wp.array2d(dtype=wp.vec3d),
+):
+    b, v = wp.tid()
+    if changed[b] != 0:
+        lagged_force[b, v] = candidate[b, v]
+        lagged_normal[b, v] = normal[b, v]
+
+
+@dataclass
+class Linearization:
+    """Per-system scalars of one evaluation (host arrays, (B,)); vectors stay on the device."""
+
+    energy: np.ndarray
+    volume: np.ndarray
+    residual_inf: np.ndarray
+    residual_2: np.ndarray
+    load: np.ndarray
+
+
+@dataclass
+class BatchNewtonResult:
+    """Per-system outcome of `BatchedShell.solve` ((B,) host arrays; positions stay in `shell.x`)."""
+
+    pressure: np.ndarray
+    converged: np.ndarray
+    iterations: np.ndarray
+    residual: np.ndarray
+    volume: np.ndarray
+    message: list[str]
+
+
+class BatchedShell:
+    """`batch` copies of an `InflatedSkin` on a warp `device`; indenter i of the batch is `indenters[i]`,
+    given as (kind, dims) of `fe.indenter_sdf` (systems with the same indenter are best kept contiguous:
+    one contact launch per run of equal indenters)."""
+
+    def __init__(
+        self,
+        skin: InflatedSkin,
+        indenters: list[tuple[int, tuple[float, float, float, float]]],
+        device: str = "cpu",
+        cg_max_iterations: int = 20000,
+    ) -> None:
+        self.skin, self.device, self.batch = skin, device, len(indenters)
+        self.cg_max_iterations = cg_max_iterations
+        B, V = self.batch, len(skin.vertices)
+        self.n_vertices = V
+        tri = skin.triangles
+        fixed = np.broadcast_to(np.asarray(skin.fixed).reshape(V, -1), (V, 3))
+        self.free = (~fixed).astype(np.float64)
+        self.fixed = fixed.copy()
+        dm_inv, rest_area = membrane.reference_frames(skin.vertices, tri)
+        stencils, present = bending.build_stencils(tri)
+        rest_angle, bend_area, coupling = bending.stencil_rest_state(skin.vertices, stencils, present)
+        stencils = stencils if skin.params.bending else stencils[:0]
+        self.vertex_area = lumped_areas(skin.vertices, tri)
+        arr = lambda a, dtype: wp.array(a, dtype=dtype, device=device)  # noqa: E731
+        per_batch = lambda value: arr(np.full(B, value, dtype=np.float64), wp.float64)  # noqa: E731
+        p, cs = skin.params, skin.contact
+        self._static = {
+            "triangles": arr(tri.astype(np.int32), wp.vec3i),
+            "dm_inv": arr(dm_inv, wp.mat22d),
+            "rest_area": arr(rest_area, wp.float64),
+            "stencils": arr(stencils.astype(np.int32), vec6i),
+            "has_edge": arr(present[: len(stencils)], wp.vec3i),
+            "rest_angle": arr(rest_angle[: len(stencils)], wp.vec3d),
+            "bend_area": arr(bend_area[: len(stencils)], wp.float64),
+            "coupling": arr(coupling[: len(stencils)], wp.mat33d),
+            "vertex_area": arr(self.vertex_area, wp.float64),
+            "mu_t": per_batch(p.membrane_modulus),
+            "gent_beta": per_batch(getattr(p, "gent_inverse_jm", 0.0)),
+            "bending_stiffness": per_batch(p.bending_stiffness),
+            "friction": per_batch(p.friction),
+            "offset": per_batch(0.5 * p.thickness),
+            "kappa": wp.float64(cs.penalty_stiffness),
+            "slip_eps": wp.float64(cs.slip_length),
+            "origin": wp.vec3d(*skin.volume_origin),
+        }
+        self._core_vertices = arr(skin.core_vertices, wp.vec3d)
+        self._core_triangles = arr(skin.core_triangles.astype(np.int32), wp.vec3i)
+        self._core_mesh = wp.Mesh(
+            points=arr(skin.core_vertices.astype(np.float32), wp.vec3),
+            indices=arr(skin.core_triangles.astype(np.int32).ravel(), wp.int32),
+        )
+        nt, nh = len(tri), len(stencils)
+        z = lambda shape, dtype: wp.zeros(shape, dtype=dtype, device=device)  # noqa: E731
+        self.x = z((B, V), wp.vec3d)
+        self.x_trial = z((B, V), wp.vec3d)
+        self.x_start = z((B, V), wp.vec3d)
+        self.lagged_force = z((B, V), wp.float64)
+        self.lagged_normal = z((B, V), wp.vec3d)
+        self.gradients = z((3, B, V), wp.vec3d)  # elastic, core, indenter
+        self.buf = {
+            "membrane_energy": z((B, nt), wp.float64),
+            "membrane_hessian": z((B, nt), mat99d),
+            "bending_energy": z((B, nh), wp.float64),
+            "bending_hessian": z((B, nh), mat1818d),
+            "volume": z((B, nt), wp.float64),
+            "volume_gradient": z((B, V), wp.vec3d),
+            "volume_hessian": z((B, nt), mat99d),
+            "core_energy": z((B, V), wp.float64),
+            "core_hessian": z((B, V), wp.mat33d),
+            "core_gap": z((B, V), wp.float64),
+            "indenter_energy": z((B, V), wp.float64),
+            "indenter_hessian": z((B, V), wp.mat33d),
+            "indenter_gap": z((B, V), wp.float64),
+            "indenter_normal": z((B, V), wp.vec3d),
+        }
+        self.residual = z((B, V), wp.vec3d)
+        self.gradient = z((B, V), wp.vec3d)
+        self.bvec = z((B, V), wp.vec3d)
+        self.dq = z((B, V), wp.vec3d)
+        self.rhs = z((2 * B, V), wp.vec3d)
+        self.kdq = z((B, V), wp.vec3d)
+        self._stats = z((B, 3), wp.float64)
+        self._sums = z(B, wp.float64)
+        self._candidate = z((B, V), wp.float64)
+        self.pose = {name: z(B, wp.mat33d if "rotation" in name else wp.vec3d) for name in _POSE}
+        far = np.tile([0.0, 0.0, 1.0], (B, 1))  # 1 m away: no contact until a pose is set
+        self.set_poses(np.tile(np.eye(3), (B, 1, 1)), far, np.tile(np.eye(3), (B, 1, 1)), far)
+        self._runs = _runs(indenters)
+        connectivities = [tri, stencils, np.arange(V)[:, None]]
+        self.matrix = BatchedBlockMatrix(BlockPattern.from_connectivities(connectivities, V), B, self.free, device)
+        self.cg = BatchedCG(self.matrix, 2 * B)
+        self._system_of = np.concatenate([np.arange(B), np.arange(B)]).astype(np.int32)
+        self._system_of_b = wp.array(np.arange(B, dtype=np.int32), dtype=wp.int32, device=device)
+        self.counters = dict.fromkeys(("evaluations", "evaluate_s", "linear_solves", "linear_solve_s"), 0.0)
+        self.counters |= {"cg_iterations_max": 0.0, "cg_iterations_mean": 0.0}
+        """Work done so far: evaluations and their wall time (s), linear solves (assembly + CG) and their
+        wall time, summed over solves the largest and the mean CG iteration count of the active columns."""
+
+    # -- data movement ---------------------------------------------------------------------------
+    def set_poses(
+        self, rotation: np.ndarray, translation: np.ndarray, rotation_start: np.ndarray, translation_start: np.ndarray
+    ) -> None:
+        """Indenter poses (B,3,3) body->sensor and tip positions (B,3) m, now and at the increment's start."""
+        for name, value in zip(_POSE, (rotation, translation, rotation_start, translation_start), strict=True):
+            self.pose[name].assign(np.asarray(value, dtype=np.float64))
+
+    # -- evaluation ------------------------------------------------------------------------------
+    def evaluate(self, x: wp.array, want_hessian: bool, pressure: np.ndarray) -> Linearization:
+        """All energy terms of every system at positions x (B,V) (m), their free-DOF residual at `pressure`
+        (B,) Pa (in `self.residual`, with grad E in `self.gradient` and grad V in `self.bvec`)."""
+        B, V, buf, dev = self.batch, self.n_vertices, self.buf, self.device
+        start = time.perf_counter()
+        self.gradients.zero_()
+        for name in ("volume_gradient", "core_energy", "core_hessian", "indenter_energy", "indenter_hessian"):
+            buf[name].zero_()
+        flag = 1 if want_hessian else 0
+        common = {**self._static, "x": x, "want_hessian": flag}
+        elastic = self.gradients[0]
+        nt, nh = buf["membrane_energy"].shape[1], buf["bending_energy"].shape[1]
+        launch(
+            membrane.membrane_kernel,
+            (B, nt),
+            {**common, "energy": buf["membrane_energy"], "gradient": elastic, "hessian": buf["membrane_hessian"]},
+            dev,
+        )
+        if nh:
+            launch(
+                bending.bending_kernel,
+                (B, nh),
+                {**common, "rest_area": self._static["bend_area"], "energy": buf["bending_energy"]}
+                | {"gradient": elastic, "hessian": buf["bending_hessian"]},
+                dev,
+            )
+        launch(
+            volume.volume_kernel,
+            (B, nt),
+            {**common, "volume": buf["volume"], "gradient": buf["volume_gradient"], "hessian": buf["volume_hessian"]},
+            dev,
+        )
+        core = {
+            **common,
+            "core": self._core_mesh.id,
+            "core_vertices": self._core_vertices,
+            "core_triangles": self._core_triangles,
+            "offset": wp.float64(self.skin.core_offset),
+            "energy": buf["core_energy"],
+            "gradient": self.gradients[1],
+            "hessian": buf["core_hessian"],
+            "gap": buf["core_gap"],
+        }
+        launch(contact.core_contact_kernel, (B, V), core, dev)
+        outputs = {
+            "x_start": self.x_start,
+            "lagged_force": self.lagged_force,
+            "lagged_normal": self.lagged_normal,
+            "energy": buf["indenter_energy"],
+            "gradient": self.gradients[2],
+            "hessian": buf["indenter_hessian"],
+            "gap": buf["indenter_gap"],
+            "normal": buf["indenter_normal"],
+        }
+        self._launch_indenters(contact.indenter_contact_kernel, {**common, **outputs}, x)
+        energy = sum(
+            self._per_system(buf[name])
+            for name in ("membrane_energy", "bending_energy", "core_energy", "indenter_energy")
+        )
+        vol = self._per_system(buf["volume"])
+        self._stats.zero_()
+        launch(
+            _residual,
+            (B, V),
+            {
+                "gradients": self.gradients,
+                "volume_gradient": buf["volume_gradient"],
+                "pressure": wp.array(np.asarray(pressure, dtype=np.float64), dtype=wp.float64, device=dev),
+                "free": self.matrix.free,
+                "residual": self.residual,
+                "gradient": self.gradient,
+                "bvec": self.bvec,
+                "stats": self._stats,
+            },
+            dev,
+        )
+        stats = self._stats.numpy()
+        self.counters["evaluations"] += 1
+        self.counters["evaluate_s"] += time.perf_counter() - start
+        return Linearization(energy, vol, stats[:, 0].copy(), np.sqrt(stats[:, 1]), stats[:, 2].copy())
+
+    def proximity(self, x: wp.array) -> tuple[np.ndarray, np.ndarray]:
+        """Gap (B,V) m (negative inside the contact band) and unit SDF normals (B,V,3) of x to each indenter."""
+        values = {
+            **self._static,
+            "x": x,
+            "gap": self.buf["indenter_gap"],
+            "normal": self.buf["indenter_normal"],
+        }
+        self._launch_indenters(contact.indenter_gap_kernel, values, x)
+        return self.buf["indenter_gap"].numpy().copy(), self.buf["indenter_normal"].numpy().copy()
+
+    def _launch_indenters(self, kernel: wp.Kernel, values: dict, x: wp.array) -> None:
+        """One launch of an indenter kernel per run of systems sharing an indenter, on batch slices."""
+        values = {**values, **self.pose}
+        for lo, hi, kind, dims in self._runs:
+            sliced = {k: (v[lo:hi] if k in _PER_SYSTEM else v) for k, v in values.items()}
+            sliced |= {"kind": kind, "dims": wp.vec4d(*dims)}
+            launch(kernel, (hi - lo, self.n_vertices), sliced, self.device)
+
+    def _per_system(self, a: wp.array) -> np.ndarray:
+        self._sums.zero_()
+        if a.shape[1]:
+            wp.launch(_row_sum, a.shape, [a, self._sums], device=self.device)
+        return self._sums.numpy().copy()
+
+    # -- Newton ------------------------------------------------------------------------------------
+    def lag_contact(self, x: wp.array, mask: np.ndarray) -> np.ndarray:
+        """Refresh the lagged friction forces and normals of the masked systems from positions x where they
+        changed by more than the friction tolerance; returns which systems changed ((B,) bool)."""
+        self.proximity(x)
+        self._stats.zero_()
+        wp.launch(
+            _lag_candidates,
+            (self.batch, self.n_vertices),
+            [self.buf["indenter_gap"], self._static["vertex_area"], self._static["kappa"], self.lagged_force]
+            + [self._candidate, self._stats],
+            device=self.device,
+        )
+        stats = self._stats.numpy()
+        changed = mask & (stats[:, 0] > self.skin.contact.friction_tolerance * np.maximum(stats[:, 1], 1e-12))
+        if changed.any():
+            wp.launch(
+                _lag_apply,
+                (self.batch, self.n_vertices),
+                [wp.array(changed.astype(np.int32), dtype=wp.int32, device=self.device), self._candidate]
+                + [self.buf["indenter_normal"], self.lagged_force, self.lagged_normal],
+                device=self.device,
+            )
+        return changed
+
+    def solve(
+        self, pressure0: np.ndarray, target_volume: np.ndarray, active: np.ndarray, friction: bool
+    ) -> BatchNewtonResult:
+        """Newton-solve the `active` systems from the positions in `self.x` and `pressure0` (B,) Pa with the
+        volume held at `target_volume` (B,) m^3; converged positions are left in `self.x`. With `friction`
+        the lagged friction data are refreshed near convergence, at most `friction_passes` times."""
+        settings, B = self.skin.newton, self.batch
+        pressure = np.asarray(pressure0, dtype=np.float64).copy()
+        target = np.asarray(target_volume, dtype=np.float64)
+        running = np.asarray(active, dtype=bool).copy()
+        converged = np.zeros(B, dtype=bool)
+        iterations = np.zeros(B, dtype=np.int64)
+        message = ["" if a else "inactive" for a in running]
+        passes = np.zeros(B, dtype=np.int64)
+        lin = self.evaluate(self.x, True, pressure)
+        scale = np.where(target != 0.0, np.abs(target), 1.0)
+        for iteration in range(settings.max_iterations + 1):
+            iterations[running] = iteration
+            c = lin.volume - target
+            bad = running & ~np.isfinite(lin.residual_inf)
+            _finish(bad, running, message, "non-finite residual")
+            tol = np.maximum(settings.force_tolerance, settings.relative_force_tolerance * lin.load)
+            refreshed = np.zeros(B, dtype=bool)
+            if friction:
+                near = (
+                    running
+                    & (lin.residual_inf <= settings.refresh_factor * tol)
+                    & (passes < self.skin.contact.friction_passes)
+                )
+                if near.any():
+                    refreshed = self.lag_contact(self.x, near)
+                    passes += near
+            done = running & ~refreshed & (lin.residual_inf <= tol) & (np.abs(c) <= settings.volume_tolerance * scale)
+            converged |= done
+            _finish(done, running, message, "converged")
+            stepping = running & ~refreshed
+            if iteration == settings.max_iterations or not running.any():
+                break
+            if stepping.any():
+                failed = self._newton_step(lin, pressure, target, c, tol, stepping)
+                _finish(failed, running, message, "line search failed")
+            lin = self.evaluate(self.x, True, pressure)
+        _finish(running, running, message, "iteration limit")
+        return BatchNewtonResult(pressure, converged, iterations, lin.residual_inf, lin.volume, message)
+
+    def _newton_step(
+        self,
+        lin: Linearization,
+        pressure: np.ndarray,
+        target: np.ndarray,
+        c: np.ndarray,
+        tol: np.ndarray,
+        mask: np.ndarray,
+    ) -> np.ndarray:
+        """One damped Newton step with line search for the masked systems (x and pressure updated in place);
+        returns the systems for which no step was found."""
+        todo = mask.copy()
+        residual_inf = lin.residual_inf.copy()
+        eta = np.clip(1e-2 * tol / np.maximum(residual_inf, 1e-300), 1e-10, 1e-3)
+        for attempt, damping in enumerate((0.0, *_DAMPING)):
+            if not todo.any():
+                break
+            robust = attempt > 0
+            if robust:  # the line search re-evaluated x_trial: restore the Hessians at x
+                lin = self.evaluate(self.x, True, pressure)
+            dp, ok = self._direction(lin, pressure, c, todo, np.where(todo, damping, 0.0), eta)
+            curvature = self._curvature(todo)
+            ok &= (curvature > 0.0) | (robust & (c != 0.0))
+            accepted = self._line_search(lin, pressure, target, c, dp, curvature, ok, robust)
+            todo &= ~accepted
+        return todo
+
+    def _direction(
+        self,
+        lin: Linearization,
+        pressure: np.ndarray,
+        c: np.ndarray,
+        mask: np.ndarray,
+        damping: np.ndarray,
+        eta: np.ndarray,
+    ) -> tuple[np.ndarray, np.ndarray]:
+        """Assemble K = H_E - p H_V (+ damping), solve K u1 = -r, K u2 = b by CG; dq (in self.dq) and dp (B,)."""
+        buf, B = self.buf, self.batch
+        start = time.perf_counter()
+        self.matrix.assemble(
+            [
+                (0, buf["membrane_hessian"], None),
+                (1, buf["bending_hessian"], None),
+                (2, buf["core_hessian"], None),
+                (2, buf["indenter_hessian"], None),
+                (0, buf["volume_hessian"], -pressure),
+            ],
+            damping,
+        )
+        wp.launch(_newton_rhs, (B, self.n_vertices), [self.residual, self.bvec, self.rhs], device=self.device)
+        active = np.concatenate([mask, mask])
+        u, iterations, state = self.cg.solve(
+            self.rhs, self._system_of, active, np.concatenate([eta, eta]), self.cg_max_iterations
+        )
+        self.counters["linear_solves"] += 1
+        self.counters["linear_solve_s"] += time.perf_counter() - start
+        self.counters["cg_iterations_max"] += float(iterations[active].max())
+        self.counters["cg_iterations_mean"] += float(iterations[active].mean())
+        ok = mask & (state[:B] != CG_NEGATIVE_CURVATURE) & (state[B:] != CG_NEGATIVE_CURVATURE)
+        schur = batched_dot(self.bvec, u[B:], self._sums)
+        bu1 = batched_dot(self.bvec, u[:B], self._sums)
+        ok &= np.isfinite(schur) & (schur != 0.0)
+        dp = np.where(ok, -(c + bu1) / np.where(ok, schur, 1.0), 0.0)
+        wp.launch(
+            _combine,
+            (B, self.n_vertices),
+            [u, wp.array(dp, dtype=wp.float64, device=self.device), self.dq],
+            device=self.device,
+        )
+        return dp, ok
+
+    def _curvature(self, mask: np.ndarray) -> np.ndarray:
+        """dq . K dq per system (with the damping of the last assembly)."""
+        self.matrix.multiply(self.dq, self.kdq, self._system_of_b)
+        return np.where(mask, batched_dot(self.dq, self.kdq, self._sums), 0.0)
+
+    def _line_search(
+        self,
+        lin: Linearization,
+        pressure: np.ndarray,
+        target: np.ndarray,
+        c: np.ndarray,
+        dp: np.ndarray,
+        curvature: np.ndarray,
+        mask: np.ndarray,
+        robust: bool,
+    ) -> np.ndarray:
+        """Backtracking of `fe.newton._line_search` per system along (self.dq, dp); accepted systems move
+        (self.x, pressure updated). Returns the accepted mask."""
+        cc = np.where(c != 0.0, c * c, 1.0)
+        rho = np.where(robust & (c != 0.0), 3.0 * np.maximum(0.0, -curvature) / cc, 0.0)
+        new_p = pressure + dp
+        phi0 = lin.energy - new_p * (lin.volume - target) + 0.5 * rho * c * c
+        slope = batched_dot(self.gradient, self.dq, self._sums) - new_p * batched_dot(self.bvec, self.dq, self._sums)
+        slope -= rho * c * c
+        settings = self.skin.newton
+        accepted = np.zeros(self.batch, dtype=bool)
+        step = np.ones(self.batch)
+        undecided = mask & (-slope > _ENERGY_RESOLUTION * np.maximum(np.abs(phi0), np.abs(lin.energy)))
+        for _ in range(settings.max_backtracks):
+            if not undecided.any():
+                break
+            trial = self._trial(np.where(undecided, step, 0.0), new_p)
+            cv = trial.volume - target
+            phi = trial.energy - new_p * cv + 0.5 * rho * cv * cv
+            ok = undecided & np.isfinite(phi) & (phi <= phi0 + 1e-4 * step * slope)
+            self._accept(ok, step, pressure, dp)
+            accepted |= ok
+            undecided &= ~ok
+            step = np.where(undecided, 0.5 * step, step)
+        # Where the energy cannot resolve the step, backtrack on the Euclidean norm of the residual force.
+        undecided = mask & ~accepted
+        step = np.ones(self.batch)
+        rnorm = lin.residual_2
+        for _ in range(settings.max_backtracks):
+            if not undecided.any():
+                break
+            trial = self._trial(np.where(undecided, step, 0.0), pressure + step * dp)
+            ok = undecided & (trial.residual_2 < (1.0 - 1e-4 * step) * rnorm)
+            self._accept(ok, step, pressure, dp)
+            accepted |= ok
+            undecided &= ~ok
+            step = np.where(undecided, 0.5 * step, step)
+        return accepted
+
+    def _trial(self, step: np.ndarray, pressure: np.ndarray) -> Linearization:
+        wp.launch(
+            _axpy,
+            (self.batch, self.n_vertices),
+            [self.x, wp.array(step, dtype=wp.float64, device=self.device), self.dq, self.x_trial],
+            device=self.device,
+        )
+        return self.evaluate(self.x_trial, False, pressure)
+
+    def _accept(self, ok: np.ndarray, step: np.ndarray, pressure: np.ndarray, dp: np.ndarray) -> None:
+        """Move the accepted systems: x += step dq, pressure += step dp."""
+        if not ok.any():
+            return
+        taken = np.where(ok, step, 0.0)
+        wp.launch(
+            _axpy,
+            (self.batch, self.n_vertices),
+            [self.x, wp.array(taken, dtype=wp.float64, device=self.device), self.dq, self.x],
+            device=self.device,
+        )
+        pressure += taken * dp
+
+
+_POSE = ("rotation", "translation", "rotation_start", "translation_start")
+_PER_SYSTEM = frozenset(
+    {*_POSE, "x", "x_start", "lagged_force", "lagged_normal", "energy", "gradient", "hessian", "gap", "normal"}
+    | {"offset", "friction"}
+)
+"""Indenter-kernel arguments with a leading batch axis (sliced per run of equal indenters)."""
+
+
+def _runs(indenters: list[tuple[int, tuple[float, float, float, float]]]) -> list[tuple[int, int, int, tuple]]:
+    """Contiguous runs (lo, hi, kind, dims) of systems with the same indenter."""
+    runs: list[tuple[int, int, int, tuple]] = []
+    for i, (kind, dims) in enumerate(indenters):
+        dims = tuple(float(d) for d in dims)
+        if runs and runs[-1][2] == kind and runs[-1][3] == dims:
+            runs[-1] = (runs[-1][0], i + 1, kind, dims)
+        else:
+            runs.append((i, i + 1, int(kind), dims))
+    return runs
+
+
+def _finish(which: np.ndarray, running: np.ndarray, message: list[str], text: str) -> None:
+    """Stop the systems in `which`, recording why."""
+    for i in np.flatnonzero(which & running):
+        message[i] = text
+    running &= ~which

@@ -1,0 +1,414 @@
+"""Batched block-sparse symmetric matrices and a batched preconditioned conjugate-gradient solver, in warp.
+
+A batch holds B independent systems over the same V nodes (3 DOFs each) and the same sparsity pattern of
+3x3 blocks (CSR of blocks, shared), with values (B, nnzb). Element Hessian blocks are scattered into it by
+a precomputed map, fixed DOFs are eliminated by zeroing their rows and columns (unit diagonal), and
+C >= B right-hand sides (column c uses system `system_of[c]`) are solved together by block-Jacobi
+preconditioned CG with per-column step lengths, stopping rules and negative-curvature detection. Every
+kernel runs on the CPU or a CUDA device; on CUDA the CG iterations are replayed as a captured graph.
+Units follow the caller (here N/m for stiffness blocks, m for solutions, N for right-hand sides).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Any
+
+import numpy as np
+import warp as wp
+
+CG_RUNNING, CG_CONVERGED, CG_NEGATIVE_CURVATURE, CG_ITERATION_LIMIT = 1, 0, -1, -2
+"""Per-column states of `BatchedCG.solve`."""
+
+
+@wp.kernel
+def _scatter_blocks(
+    blocks: wp.array2d(dtype=Any),
+    nodes_per_element: int,
+    block_of: wp.array2d(dtype=wp.int32),
+    scale: wp.array(dtype=wp.float64),
+    values: wp.array2d(dtype=wp.mat33d),
+):
+    """Add scale[b] x the (i, j) 3x3 sub-block of element e's Hessian (3k x 3k) to its matrix block."""
+    b, e, ij = wp.tid()
+    i = ij // nodes_per_element
+    j = ij % nodes_per_element
+    s = scale[b]
+    m = wp.mat33d()
+    for r in range(3):
+        for c in range(3):
+            m[r, c] = blocks[b, e][3 * i + r, 3 * j + c] * s
+    wp.atomic_add(values, b, block_of[e, ij], m)
+
+
+@wp.kernel
+def _constrain(
+    values: wp.array2d(dtype=wp.mat33d),
+    block_row: wp.array(dtype=wp.int32),
+    columns: wp.array(dtype=wp.int32),
+    free: wp.array(dtype=wp.vec3d),
+    shift: wp.array(dtype=wp.float64),
+):
+    """Zero the rows and columns of fixed DOFs (free = 0) with a unit diagonal; add shift[b] tr(D)/3 to the
+    free diagonal entries (relative Levenberg damping)."""
+    b, k = wp.tid()
+    row = block_row[k]
+    col = columns[k]
+    fr = free[row]
+    fc = free[col]
+    m = values[b, k]
+    out = wp.mat33d()
+    for r in range(3):
+        for c in range(3):
+            out[r, c] = m[r, c] * fr[r] * fc[c]
+    if row == col:
+        damping = shift[b] * wp.trace(m) / wp.float64(3.0)
+        for r in range(3):
+            out[r, r] = out[r, r] + (wp.float64(1.0) - fr[r]) + damping * fr[r]
+    values[b, k] = out
+
+
+@wp.kernel
+def _invert_diagonal(
+    values: wp.array2d(dtype=wp.mat33d), diagonal: wp.array(dtype=wp.int32), inverse: wp.array2d(dtype=wp.mat33d)
+):
+    """Block-Jacobi preconditioner: the inverse of each node's 3x3 diagonal block (identity if singular)."""
+    b, v = wp.tid()
+    d = values[b, diagonal[v]]
+    if wp.abs(wp.determinant(d)) > wp.float64(0.0):
+        inverse[b, v] = wp.inverse(d)
+    else:
+        inverse[b, v] = wp.identity(n=3, dtype=wp.float64)
+
+
+@wp.func
+def _row_product(
+    values: wp.array2d(dtype=wp.mat33d),
+    offsets: wp.array(dtype=wp.int32),
+    columns: wp.array(dtype=wp.int32),
+    s: int,
+    c: int,
+    row: int,
+    x: wp.array2d(dtype=wp.vec3d),
+) -> wp.vec3d:
+    y = wp.vec3d()
+    for k in range(offsets[row], offsets[row + 1]):
+        y += values[s, k] @ x[c, columns[k]]
+    return y
+
+
+@wp.kernel
+def _multiply(
+    values: wp.array2d(dtype=wp.mat33d),
+    offsets: wp.array(dtype=wp.int32),
+    columns: wp.array(dtype=wp.int32),
+    system_of: wp.array(dtype=wp.int32),
+    x: wp.array2d(dtype=wp.vec3d),
+    y: wp.array2d(dtype=wp.vec3d),
+):
+    """y[c] = A[system_of[c]] x[c]."""
+    c, row = wp.tid()
+    y[c, row] = _row_product(values, offsets, columns, system_of[c], c, row, x)
+
+
+@wp.kernel
+def _cg_start(
+    preconditioner: wp.array2d(dtype=wp.mat33d),
+    system_of: wp.array(dtype=wp.int32),
+    state: wp.array(dtype=wp.int32),
+    rhs: wp.array2d(dtype=wp.vec3d),
+    x: wp.array2d(dtype=wp.vec3d),
+    r: wp.array2d(dtype=wp.vec3d),
+    p: wp.array2d(dtype=wp.vec3d),
+    rz: wp.array(dtype=wp.float64),
+    bb: wp.array(dtype=wp.float64),
+):
+    """x = 0, r = b, p = z = M^-1 r; rz = r.z and bb = b.b per column."""
+    c, v = wp.tid()
+    if state[c] != 1:
+        return
+    b = rhs[c, v]
+    z = preconditioner[system_of[c], v] @ b
+    x[c, v] = wp.vec3d()
+    r[c, v] = b
+    p[c, v] = z
+    wp.atomic_add(rz, c, wp.dot(b, z))
+    wp.atomic_add(bb, c, wp.dot(b, b))
+
+
+@wp.kernel
+def _cg_product(
+    values: wp.array2d(dtype=wp.mat33d),
+    offsets: wp.array(dtype=wp.int32),
+    columns: wp.array(dtype=wp.int32),
+    system_of: wp.array(dtype=wp.int32),
+    state: wp.array(dtype=wp.int32),
+    p: wp.array2d(dtype=wp.vec3d),
+    ap: wp.array2d(dtype=wp.vec3d),
+    pap: wp.array(dtype=wp.float64),
+):
+    """ap = A p and pap = p.Ap for the running columns."""
+    c, row = wp.tid()
+    if state[c] != 1:
+        return
+    y = _row_product(values, offsets, columns, system_of[c], c, row, p)
+    ap[c, row] = y
+    wp.atomic_add(pap, c, wp.dot(p[c, row], y))
+
+
+@wp.kernel
+def _cg_update(
+    preconditioner: wp.array2d(dtype=wp.mat33d),
+    system_of: wp.array(dtype=wp.int32),
+    state: wp.array(dtype=wp.int32),
+    rz: wp.array(dtype=wp.float64),
+    pap: wp.array(dtype=wp.float64),
+    p: wp.array2d(dtype=wp.vec3d),
+    ap: wp.array2d(dtype=wp.vec3d),
+    x: wp.array2d(dtype=wp.vec3d),
+    r: wp.array2d(dtype=wp.vec3d),
+    z: wp.array2d(dtype=wp.vec3d),
+    rz_new: wp.array(dtype=wp.float64),
+    rr_new: wp.array(dtype=wp.float64),
+):
+    """x += alpha p, r -= alpha Ap, z = M^-1 r with alpha = rz / pAp (skipped on non-positive curvature)."""
+    c, v = wp.tid()
+    if state[c] != 1 or pap[c] <= wp.float64(0.0):
+        return
+    alpha = rz[c] / pap[c]
+    x[c, v] = x[c, v] + alpha * p[c, v]
+    rv = r[c, v] - alpha * ap[c, v]
+    r[c, v] = rv
+    zv = preconditioner[system_of[c], v] @ rv
+    z[c, v] = zv
+    wp.atomic_add(rz_new, c, wp.dot(rv, zv))
+    wp.atomic_add(rr_new, c, wp.dot(rv, rv))
+
+
+@wp.kernel
+def _cg_scalars(
+    tolerance: wp.array(dtype=wp.float64),
+    max_iterations: int,
+    bb: wp.array(dtype=wp.float64),
+    state: wp.array(dtype=wp.int32),
+    iterations: wp.array(dtype=wp.int32),
+    rz: wp.array(dtype=wp.float64),
+    pap: wp.array(dtype=wp.float64),
+    rz_new: wp.array(dtype=wp.float64),
+    rr_new: wp.array(dtype=wp.float64),
+    beta: wp.array(dtype=wp.float64),
+):
+    """Per column: stop on non-positive curvature, on |r| <= tol |b| or at the iteration cap; else beta."""
+    c = wp.tid()
+    if state[c] != 1:
+        return
+    iterations[c] = iterations[c] + 1
+    if pap[c] <= wp.float64(0.0):
+        state[c] = -1
+    elif rr_new[c] <= tolerance[c] * tolerance[c] * bb[c]:
+        state[c] = 0
+    elif iterations[c] >= max_iterations:
+        state[c] = -2
+    else:
+        beta[c] = rz_new[c] / rz[c]
+        rz[c] = rz_new[c]
+    pap[c] = wp.float64(0.0)
+    rz_new[c] = wp.float64(0.0)
+    rr_new[c] = wp.float64(0.0)
+
+
+@wp.kernel
+def _cg_direction(
+    state: wp.array(dtype=wp.int32),
+    beta: wp.array(dtype=wp.float64),
+    z: wp.array2d(dtype=wp.vec3d),
+    p: wp.array2d(dtype=wp.vec3d),
+):
+    c, v = wp.tid()
+    if state[c] != 1:
+        return
+    p[c, v] = z[c, v] + beta[c] * p[c, v]
+
+
+@dataclass
+class BlockPattern:
+    """3x3-block CSR pattern over `n_nodes` nodes, shared by a batch; `block_of[f]` (E_f, k_f^2) is the
+    block receiving sub-block (i, j) (index i k_f + j) of element e of family f."""
+
+    n_nodes: int
+    offsets: np.ndarray
+    columns: np.ndarray
+    block_row: np.ndarray
+    diagonal: np.ndarray
+    block_of: list[np.ndarray]
+
+    @classmethod
+    def from_connectivities(cls, connectivities: list[np.ndarray], n_nodes: int) -> BlockPattern:
+        """The pattern of all node pairs sharing an element of any family (E_f, k_f) node arrays, plus the diagonal."""
+        keys = [np.arange(n_nodes, dtype=np.int64) * (n_nodes + 1)]
+        for nodes in connectivities:
+            nodes = np.asarray(nodes, dtype=np.int64)
+            keys.append((nodes[:, :, None] * n_nodes + nodes[:, None, :]).reshape(len(nodes), -1).ravel())
+        unique, inverse = np.unique(np.concatenate(keys), return_inverse=True)
+        rows, cols = unique // n_nodes, unique % n_nodes
+        block_of, start = [], n_nodes
+        for nodes in connectivities:
+            size = len(nodes) * nodes.shape[1] ** 2
+            block_of.append(inverse[start : start + size].reshape(len(nodes), -1).astype(np.int32))
+            start += size
+        return cls(
+            n_nodes=n_nodes,
+            offsets=np.searchsorted(rows, np.arange(n_nodes + 1)).astype(np.int32),
+            columns=cols.astype(np.int32),
+            block_row=rows.astype(np.int32),
+            diagonal=inverse[:n_nodes].astype(np.int32),
+            block_of=block_of,
+        )
+
+
+class BatchedBlockMatrix:
+    """B symmetric matrices of one `BlockPattern` on a warp device, assembled from element Hessian blocks."""
+
+    def __init__(self, pattern: BlockPattern, batch: int, free: np.ndarray, device: str) -> None:
+        """`free` (V,3): 1 for free DOFs, 0 for fixed ones (eliminated)."""
+        self.pattern, self.batch, self.device = pattern, batch, device
+        arr = lambda a, dtype: wp.array(a, dtype=dtype, device=device)  # noqa: E731
+        self.offsets = arr(pattern.offsets, wp.int32)
+        self.columns = arr(pattern.columns, wp.int32)
+        self.block_row = arr(pattern.block_row, wp.int32)
+        self.diagonal = arr(pattern.diagonal, wp.int32)
+        self.block_of = [arr(m, wp.int32) for m in pattern.block_of]
+        self.free = arr(np.asarray(free, dtype=np.float64), wp.vec3d)
+        self.values = wp.zeros((batch, len(pattern.columns)), dtype=wp.mat33d, device=device)
+        self.preconditioner = wp.zeros((batch, pattern.n_nodes), dtype=wp.mat33d, device=device)
+        self._ones = arr(np.ones(batch), wp.float64)
+
+    def assemble(self, terms: list[tuple[int, wp.array, np.ndarray | None]], shift: np.ndarray) -> None:
+        """Sum element Hessians, each term (family index, (B, E_f) matrices, per-system scale (B,) or None),
+        eliminate fixed DOFs, add the relative damping `shift` (B,) to the diagonal, and refresh the
+        block-Jacobi preconditioner."""
+        self.values.zero_()
+        for family, blocks, scale in terms:
+            block_of = self.block_of[family]
+            if blocks.shape[1] == 0:
+                continue
+            k = int(round(np.sqrt(block_of.shape[1])))
+            weights = self._ones if scale is None else wp.array(np.asarray(scale, dtype=np.float64), device=self.device)
+            wp.launch(
+                _scatter_blocks,
+                (self.batch, blocks.shape[1], k * k),
+                [blocks, k, block_of, weights, self.values],
+                device=self.device,
+            )
+        shift_w = wp.array(np.asarray(shift, dtype=np.float64), dtype=wp.float64, device=self.device)
+        wp.launch(
+            _constrain,
+            self.values.shape,
+            [self.values, self.block_row, self.columns, self.free, shift_w],
+            device=self.device,
+        )
+        wp.launch(
+            _invert_diagonal,
+            (self.batch, self.pattern.n_nodes),
+            [self.values, self.diagonal, self.preconditioner],
+            device=self.device,
+        )
+
+    def multiply(self, x: wp.array, y: wp.array, system_of: wp.array) -> None:
+        """y[c] = A[system_of[c]] x[c] for (C, V) vec3d arrays."""
+        wp.launch(_multiply, x.shape, [self.values, self.offsets, self.columns, system_of, x, y], device=self.device)
+
+
+class BatchedCG:
+    """Preconditioned CG for `columns` right-hand sides of a `BatchedBlockMatrix`, buffers kept between solves.
+
+    On CUDA, `check_every` iterations are captured once as a graph and replayed; the host checks whether
+    any column still runs after each replay.
+    """
+
+    def __init__(self, matrix: BatchedBlockMatrix, columns: int, check_every: int = 25) -> None:
+        self.matrix, self.columns, self.check_every = matrix, columns, check_every
+        device, n = matrix.device, matrix.pattern.n_nodes
+        vec = lambda: wp.zeros((columns, n), dtype=wp.vec3d, device=device)  # noqa: E731
+        scalar = lambda dtype=wp.float64: wp.zeros(columns, dtype=dtype, device=device)  # noqa: E731
+        self.x, self.r, self.z, self.p, self.ap = vec(), vec(), vec(), vec(), vec()
+        self.rz, self.pap, self.rz_new, self.rr_new, self.beta, self.bb = (scalar() for _ in range(6))
+        self.tolerance = scalar()
+        self.state, self.iterations = scalar(wp.int32), scalar(wp.int32)
+        self.system_of = scalar(wp.int32)
+        self._max_iterations = -1
+        self._graph = None
+
+    def _iterate(self) -> None:
+        m, device, shape = self.matrix, self.matrix.device, (self.columns, self.matrix.pattern.n_nodes)
+        for _ in range(self.check_every):
+            wp.launch(
+                _cg_product,
+                shape,
+                [m.values, m.offsets, m.columns, self.system_of, self.state, self.p, self.ap, self.pap],
+                device=device,
+            )
+            wp.launch(
+                _cg_update,
+                shape,
+                [m.preconditioner, self.system_of, self.state, self.rz, self.pap, self.p, self.ap, self.x]
+                + [self.r, self.z, self.rz_new, self.rr_new],
+                device=device,
+            )
+            wp.launch(
+                _cg_scalars,
+                self.columns,
+                [self.tolerance, self._max_iterations, self.bb, self.state, self.iterations, self.rz, self.pap]
+                + [self.rz_new, self.rr_new, self.beta],
+                device=device,
+            )
+            wp.launch(_cg_direction, shape, [self.state, self.beta, self.z, self.p], device=device)
+
+    def solve(
+        self, rhs: wp.array, system_of: np.ndarray, active: np.ndarray, tolerance: np.ndarray, max_iterations: int
+    ) -> tuple[wp.array, np.ndarray, np.ndarray]:
+        """Solve A[system_of[c]] x[c] = rhs[c] (fixed DOFs of rhs must be 0) for the `active` columns to
+        |r| <= tolerance[c] |rhs[c]| (2-norms). Returns the solutions (C, V) (device array, owned by the
+        solver), iteration counts and final states (CG_* constants; inactive columns CG_CONVERGED with 0
+        iterations and x = 0)."""
+        device = self.matrix.device
+        self.system_of.assign(np.asarray(system_of, dtype=np.int32))
+        self.state.assign(np.where(active, CG_RUNNING, CG_CONVERGED).astype(np.int32))
+        self.tolerance.assign(np.asarray(tolerance, dtype=np.float64))
+        for a in (self.iterations, self.rz, self.pap, self.rz_new, self.rr_new, self.bb, self.x):
+            a.zero_()
+        shape = (self.columns, self.matrix.pattern.n_nodes)
+        wp.launch(
+            _cg_start,
+            shape,
+            [self.matrix.preconditioner, self.system_of, self.state, rhs, self.x, self.r, self.p, self.rz, self.bb],
+            device=device,
+        )
+        bb = self.bb.numpy()
+        self.state.assign(np.where(np.asarray(active) & (bb > 0.0), CG_RUNNING, CG_CONVERGED).astype(np.int32))
+        use_graph = wp.get_device(device).is_cuda
+        if use_graph and (self._graph is None or self._max_iterations != max_iterations):
+            self._max_iterations = max_iterations
+            with wp.ScopedCapture(device=device) as capture:
+                self._iterate()
+            self._graph = capture.graph
+        self._max_iterations = max_iterations
+        while np.any(self.state.numpy() == CG_RUNNING):
+            if use_graph:
+                wp.capture_launch(self._graph)
+            else:
+                self._iterate()
+        return self.x, self.iterations.numpy(), self.state.numpy()
+
+
+def batched_dot(a: wp.array, b: wp.array, out: wp.array) -> np.ndarray:
+    """Per-row dot products of two (C, V) vec3d arrays, (C,) on the host (out is a (C,) float64 scratch)."""
+    out.zero_()
+    wp.launch(_row_dot, a.shape, [a, b, out], device=a.device)
+    return out.numpy().copy()
+
+
+@wp.kernel
+def _row_dot(a: wp.array2d(dtype=wp.vec3d), b: wp.array2d(dtype=wp.vec3d), out: wp.array(dtype=wp.float64)):
+    c, v = wp.tid()
+    wp.atomic_add(out, c, wp.dot(a[c, v], b[c, v]))

@@ -1,0 +1,135 @@
+"""Batched FE on a warp device (here the CPU device): the batched CG against a direct solve, and B
+trajectories stepped together against the per-trajectory CPU stepper on the coarse 2 mm mesh.
+
+Stated tolerances (docs/scale.md): frictionless, forces within 1e-6 of |F|, displacements within 1e-9 m
+and contact areas within 1e-6 (both paths converge to the same equilibrium to the Newton tolerance);
+with friction, forces within 1e-3 of |F|, displacements within 1e-6 m and contact areas within 1e-4,
+since the lagged friction forces are only refreshed until they change by less than 0.1% and the two
+paths refresh at different iterates.
+"""
+
+from pathlib import Path
+
+import numpy as np
+import pytest
+import warp as wp
+
+from assets.indenters import get_indenter
+from fe.batched import InflatedSkin
+from fe.batched_stepper import BatchedStepper
+from fe.device_solver import CG_CONVERGED, CG_NEGATIVE_CURVATURE, BatchedBlockMatrix, BatchedCG, BlockPattern
+from fe.params import SkinParameters
+from fe.sensor import BioTacModel
+
+PATHS = [  # indenter, point (m), angle (deg), azimuth (deg)
+    ("sphere_medium", np.array([-6e-3, 0.0, -9e-3]), 0.0, 0.0),
+    ("sphere_medium", np.array([-3e-3, 2e-3, -9e-3]), 20.0, 30.0),
+    ("cylinder_short_small", np.array([-8e-3, -1e-3, -8e-3]), 10.0, 90.0),
+]
+STEPS = np.array([-0.2e-3, 0.0, 0.3e-3, 0.6e-3])
+"""Tip travel (m) past first touch; the first pose is out of contact."""
+
+
+def _random_spd(rng: np.random.Generator, n: int) -> np.ndarray:
+    a = rng.standard_normal((n, n))
+    return a @ a.T + n * np.eye(n)
+
+
+def test_batched_cg_matches_a_direct_solve_and_flags_negative_curvature() -> None:
+    rng = np.random.default_rng(3)
+    n_nodes, batch = 12, 2
+    elements = np.array([[i, i + 1] for i in range(n_nodes - 1)] + [[0, 5], [3, 9]])
+    pattern = BlockPattern.from_connectivities([elements], n_nodes)
+    free = np.ones((n_nodes, 3))
+    free[0] = 0.0  # node 0 fixed
+    free[4, 2] = 0.0  # one coordinate of node 4 fixed
+    matrix = BatchedBlockMatrix(pattern, batch, free, "cpu")
+    blocks = np.stack([[_random_spd(rng, 6) for _ in elements] for _ in range(batch)])
+    blocks[1, 2] -= 40.0 * np.eye(6)  # system 1 becomes indefinite
+    mat66 = wp.types.matrix(shape=(6, 6), dtype=wp.float64)
+    matrix.assemble([(0, wp.array(blocks, dtype=mat66), None)], np.zeros(batch))
+    rhs = rng.standard_normal((3, n_nodes, 3)) * free
+    solver = BatchedCG(matrix, 3)
+    x, iterations, state = solver.solve(
+        wp.array(rhs, dtype=wp.vec3d), np.array([0, 1, 0]), np.array([True, True, False]), np.full(3, 1e-12), 500
+    )
+    dense = np.zeros((3 * n_nodes, 3 * n_nodes))
+    for e, nodes in enumerate(elements):
+        dofs = (3 * nodes[:, None] + np.arange(3)).ravel()
+        dense[np.ix_(dofs, dofs)] += blocks[0, e]
+    keep = free.ravel() > 0
+    expected = np.zeros(3 * n_nodes)
+    expected[keep] = np.linalg.solve(dense[np.ix_(keep, keep)], rhs[0].ravel()[keep])
+    assert state[0] == CG_CONVERGED and 0 < iterations[0] <= 3 * n_nodes
+    np.testing.assert_allclose(x.numpy()[0].ravel(), expected, rtol=1e-8, atol=1e-12)
+    assert state[1] == CG_NEGATIVE_CURVATURE
+    assert state[2] == CG_CONVERGED and iterations[2] == 0 and not x.numpy()[2].any()
+
+
+def _paths(model: BioTacModel) -> list:
+    return [model.plan_trajectory(get_indenter(name), p, a, z, 1e-3, 1e-3) for name, p, a, z in PATHS]
+
+
+def _cpu(model: BioTacModel, paths: list) -> list[list]:
+    out = []
+    for (name, *_), path in zip(PATHS, paths, strict=True):
+        stepper = model.stepper(name)
+        out.append([stepper.step(path.rotation, path.touch_point + s * path.direction) for s in STEPS])
+    return out
+
+
+def _batched(model: BioTacModel, paths: list, tmp_path: Path) -> list[list]:
+    """The batched stepper, the third trajectory starting one step late (inactive systems wait)."""
+    skin = InflatedSkin.from_model(model)
+    skin.save(tmp_path / "skin.npz")
+    stepper = BatchedStepper(InflatedSkin.load(tmp_path / "skin.npz"), [name for name, *_ in PATHS], "cpu")
+    out: list[list] = [[] for _ in PATHS]
+    rotation = np.stack([p.rotation for p in paths])
+    for k in range(len(STEPS) + 1):
+        index = np.array([k, k, k - 1])
+        active = (index >= 0) & (index < len(STEPS))
+        travel = STEPS[np.clip(index, 0, len(STEPS) - 1)]
+        translation = np.stack([p.touch_point + s * p.direction for p, s in zip(paths, travel, strict=True)])
+        for i, result in enumerate(stepper.step(rotation, translation, active)):
+            assert (result is None) == (not active[i])
+            if result is not None:
+                out[i].append(result)
+    return out
+
+
+@pytest.mark.parametrize(
+    ("fixture", "force_rtol", "displacement_atol", "area_rtol"),
+    [("frictionless_biotac", 1e-6, 1e-9, 1e-6), ("frictional_biotac", 1e-3, 1e-6, 1e-4)],
+)
+def test_batched_stepper_matches_the_cpu_stepper(
+    fixture: str,
+    force_rtol: float,
+    displacement_atol: float,
+    area_rtol: float,
+    request: pytest.FixtureRequest,
+    tmp_path: Path,
+) -> None:
+    model: BioTacModel = request.getfixturevalue(fixture)
+    paths = _paths(model)
+    cpu, batched = _cpu(model, paths), _batched(model, paths, tmp_path)
+    for trajectory_cpu, trajectory_batched in zip(cpu, batched, strict=True):
+        assert len(trajectory_batched) == len(STEPS)
+        assert trajectory_batched[0].message == "no contact" and trajectory_batched[0].newton_iterations == 0
+        for a, b in zip(trajectory_cpu, trajectory_batched, strict=True):
+            assert a.converged and b.converged, b.message
+            assert b.depth == pytest.approx(a.depth, abs=1e-12)
+            scale = max(np.linalg.norm(a.force), 1e-3)
+            assert np.linalg.norm(b.force - a.force) <= force_rtol * scale
+            assert b.pressure == pytest.approx(a.pressure, rel=1e-5)
+            np.testing.assert_allclose(b.displacement, a.displacement, rtol=0, atol=displacement_atol)
+            assert b.contact_area == pytest.approx(a.contact_area, rel=area_rtol, abs=1e-12)
+            assert b.equilibrium_error < 1e-5
+        assert trajectory_batched[-1].force[2] > 0.1  # pressed into the pad
+
+
+def test_batched_solver_rejects_effects_it_does_not_model(frictionless_biotac: BioTacModel) -> None:
+    skin = InflatedSkin.from_model(frictionless_biotac)
+    with pytest.raises(NotImplementedError, match="air_volume_fraction"):
+        InflatedSkin(**{**skin.__dict__, "params": SkinParameters(air_volume_fraction=0.1)})
+    with pytest.raises(ValueError, match="orthonormal"):
+        BatchedStepper(skin, ["sphere_medium"], "cpu").step(np.zeros((1, 3, 3)), np.zeros((1, 3)))
