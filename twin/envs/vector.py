@@ -118,6 +118,11 @@ class TactileVectorEnv(VectorEnv):
         self._autoreset = terminated | truncated
         return self._batch(observations), rewards, terminated, truncated, infos
 
+    def close_extras(self, **kwargs: Any) -> None:
+        """Close the sub-environments (finishes the first one's rerun recording)."""
+        for env in self.envs:
+            env.close()
+
     def _step_fe(self, poses: list[tuple[np.ndarray, np.ndarray]]):
         return self.fe.step_batch(np.array([p[0] for p in poses]), np.array([p[1] for p in poses]))
 
