@@ -3,7 +3,7 @@
 A batch holds B independent systems over the same V nodes (3 DOFs each) and the same sparsity pattern of
 3x3 blocks (CSR of blocks, shared), with values (B, nnzb). Element Hessian blocks are scattered into it by
 a precomputed map, fixed DOFs are eliminated by zeroing their rows and columns (unit diagonal), and
-C >= B right-hand sides (column c uses system `system_of[c]`) are solved together by block-Jacobi
+C right-hand sides, at most two per system (column c uses system `system_of[c]`), are solved together by block-Jacobi
 preconditioned CG with per-column step lengths, stopping rules and negative-curvature detection. Every
 kernel runs on the CPU or a CUDA device; on CUDA the CG iterations are replayed as a captured graph.
 Units follow the caller (here N/m for stiffness blocks, m for solutions, N for right-hand sides).
@@ -141,19 +141,40 @@ def _cg_product(
     values: wp.array2d(dtype=wp.mat33d),
     offsets: wp.array(dtype=wp.int32),
     columns: wp.array(dtype=wp.int32),
-    system_of: wp.array(dtype=wp.int32),
+    columns_of: wp.array2d(dtype=wp.int32),
     state: wp.array(dtype=wp.int32),
     p: wp.array2d(dtype=wp.vec3d),
     ap: wp.array2d(dtype=wp.vec3d),
     pap: wp.array(dtype=wp.float64),
 ):
-    """ap = A p and pap = p.Ap for the running columns."""
-    c, row = wp.tid()
-    if state[c] != 1:
+    """ap = A p and pap = p.Ap for the running columns of system s (at most two, `columns_of[s]`, -1 for
+    none), reading each matrix block once for both."""
+    s, row = wp.tid()
+    c0 = columns_of[s, 0]
+    c1 = columns_of[s, 1]
+    run0 = c0 >= 0
+    run1 = c1 >= 0
+    if run0:
+        run0 = state[c0] == 1
+    if run1:
+        run1 = state[c1] == 1
+    if not (run0 or run1):
         return
-    y = _row_product(values, offsets, columns, system_of[c], c, row, p)
-    ap[c, row] = y
-    wp.atomic_add(pap, c, wp.dot(p[c, row], y))
+    y0 = wp.vec3d()
+    y1 = wp.vec3d()
+    for k in range(offsets[row], offsets[row + 1]):
+        a = values[s, k]
+        col = columns[k]
+        if run0:
+            y0 += a @ p[c0, col]
+        if run1:
+            y1 += a @ p[c1, col]
+    if run0:
+        ap[c0, row] = y0
+        wp.atomic_add(pap, c0, wp.dot(p[c0, row], y0))
+    if run1:
+        ap[c1, row] = y1
+        wp.atomic_add(pap, c1, wp.dot(p[c1, row], y1))
 
 
 @wp.kernel
@@ -336,6 +357,7 @@ class BatchedCG:
         self.tolerance = scalar()
         self.state, self.iterations = scalar(wp.int32), scalar(wp.int32)
         self.system_of = scalar(wp.int32)
+        self.columns_of = wp.zeros((matrix.batch, 2), dtype=wp.int32, device=device)
         self._max_iterations = -1
         self._graph = None
 
@@ -344,8 +366,8 @@ class BatchedCG:
         for _ in range(self.check_every):
             wp.launch(
                 _cg_product,
-                shape,
-                [m.values, m.offsets, m.columns, self.system_of, self.state, self.p, self.ap, self.pap],
+                (m.batch, m.pattern.n_nodes),
+                [m.values, m.offsets, m.columns, self.columns_of, self.state, self.p, self.ap, self.pap],
                 device=device,
             )
             wp.launch(
@@ -372,7 +394,15 @@ class BatchedCG:
         solver), iteration counts and final states (CG_* constants; inactive columns CG_CONVERGED with 0
         iterations and x = 0)."""
         device = self.matrix.device
-        self.system_of.assign(np.asarray(system_of, dtype=np.int32))
+        system_of = np.asarray(system_of, dtype=np.int32)
+        columns_of = np.full((self.matrix.batch, 2), -1, dtype=np.int32)
+        for c, system in enumerate(system_of):
+            free = np.flatnonzero(columns_of[system] < 0)
+            if not free.size:
+                raise ValueError("at most two right-hand sides per system")
+            columns_of[system, free[0]] = c
+        self.system_of.assign(system_of)
+        self.columns_of.assign(columns_of)
         self.state.assign(np.where(active, CG_RUNNING, CG_CONVERGED).astype(np.int32))
         self.tolerance.assign(np.asarray(tolerance, dtype=np.float64))
         for a in (self.iterations, self.rz, self.pap, self.rz_new, self.rr_new, self.bb, self.x):
