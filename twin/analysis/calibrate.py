@@ -8,7 +8,11 @@ Cost (Narang et al., Eq. 1): J = w1 J_force + w2 J_thick with w1 = 1, w2 = 1e4.
   a proper penalty of the same weight and units, smooth for SLSQP: w2 sqrt((t_sim - 0.0151)^2 + eps^2)
   - w2 eps with eps = 10 um (a pseudo-Huber absolute value: |dt| away from zero, quadratic within eps).
 The skin is inflated by the paper's thermal rule (fluid at T_fl), so the sensor thickness t_sim is an
-output. Parameters are scaled to [0, 1] inside the paper's bounds.
+output. Our BioTac cavity (facts/biotac.md geometry) holds far less fluid than the paper's FE fluid
+domain: with beta_T = 0.01 /C, reaching 15.1 mm would need T_fl near 130 C. Calibration therefore uses
+an effective beta_T, set once so that the starting T_fl inflates the starting skin to exactly 15.1 mm;
+T_fl keeps its role (the inflation knob) and its bounds. Parameters are scaled to [0, 1] inside the
+paper's bounds.
 
 Uncertainty: the force residual r (3 x rows, N) is linearised at the optimum by central differences;
 cov = s^2 (J^T J)^-1 with s^2 = |r|^2 / (n - p). Rows are low-pass filtered, hence correlated, so these
@@ -59,6 +63,7 @@ class Calibration:
     force_cost: float
     thickness_cost: float
     thickness: float  # m, sensor thickness after inflation at the optimum
+    thermal_expansion: float  # 1/C, the effective beta_T used (see the module docstring)
     std: dict[str, float]
     intervals: dict[str, tuple[float, float]]
     correlation: list[list[float]]
@@ -71,8 +76,9 @@ class Calibration:
     history: list[dict[str, float]] = field(default_factory=list)
 
     def model(self, base: TwinModel) -> TwinModel:
-        """`base` with the calibrated skin (thermal inflation, as calibrated)."""
-        return replace(base, skin=replace(base.skin, **self.parameters), inflation="thermal")
+        """`base` with the calibrated skin (thermal inflation with the effective beta_T, as calibrated)."""
+        skin = replace(base.skin, thermal_expansion=self.thermal_expansion, **self.parameters)
+        return replace(base, skin=skin, inflation="thermal")
 
     def to_dict(self) -> dict:
         """JSON-ready form (the `twin calibrate --json` shape)."""
@@ -130,10 +136,12 @@ def calibrate(
     if np.any(start < low) or np.any(start > high):
         raise ValueError(f"the starting skin {dict(zip(CALIBRATED, start, strict=True))} is outside the bounds")
     history: list[dict[str, float]] = []
+    expansion = effective_thermal_expansion(predictor, base)
 
     def model_at(z: np.ndarray) -> TwinModel:
         values = low + np.clip(z, 0.0, 1.0) * (high - low)
-        skin = replace(base.skin, **dict(zip(CALIBRATED, (float(v) for v in values), strict=True)))
+        calibrated = dict(zip(CALIBRATED, (float(v) for v in values), strict=True))
+        skin = replace(base.skin, thermal_expansion=expansion, **calibrated)
         return replace(base, skin=skin, inflation="thermal")
 
     def terms(z: np.ndarray) -> tuple[float, float, float]:
@@ -177,6 +185,7 @@ def calibrate(
         force_cost=force_cost,
         thickness_cost=thick_cost,
         thickness=thickness,
+        thermal_expansion=expansion,
         std=std,
         intervals=intervals,
         correlation=corr.round(4).tolist(),
@@ -188,6 +197,20 @@ def calibrate(
         message=str(result.message),
         history=history,
     )
+
+
+def effective_thermal_expansion(predictor: Predictor, base: TwinModel) -> float:
+    """beta_T (1/C) such that the thermal rule at `base.skin.fluid_temperature` adds the fluid volume that
+    inflates `base`'s skin to 15.1 mm (see the module docstring)."""
+    skin = apply_skin(base.skin, base.effects)
+    fe, inflation = predictor.inflated(skin, base.mesh_max_edge, "thickness")
+    warming = skin.fluid_temperature - skin.reference_temperature
+    if warming <= 0:
+        raise ValueError(
+            f"T_fl ({skin.fluid_temperature} C) must exceed the reference ({skin.reference_temperature} C)"
+        )
+    added = inflation.volume_change / skin.inflation_volume_scale
+    return float(added / (fe.geometry.cavity_volume_reference * warming))
 
 
 def _calibrated_values(skin: SkinParameters) -> dict[str, float]:

@@ -82,7 +82,7 @@ def trajectory_error(trajectory: TrajectoryRecord, prediction: Prediction) -> Tr
         trajectory.sensor_id,
         trajectory.trajectory_id,
         trajectory.indenter,
-        trajectory.normal,
+        bool(trajectory.normal),
         rms,
         int(used.sum()),
         int(reached.sum()),
