@@ -1,7 +1,9 @@
 """Speed of learn/: training time to convergence on a ~30k-sample campaign, and inference samples/s.
 
-The campaign is synthetic (learn.synthetic: analytic dents read by the physics electrode model, 2 mm
-skin mesh) until FE campaigns exist; it is written once to --data and reused. Every model trains on the
+The timing campaign is synthetic (learn.synthetic: analytic dents read by the physics electrode model,
+2 mm skin mesh; no warp or MuJoCo needed); it is written once to --data and reused. --table runs the
+paper's protocol on synthetic sensors, or on the campaign files biotac*.hdf5 of --campaign (e.g. the
+FE-simulated one of scripts/make_learn_campaign.py). Every model trains on the
 contiguous 80/20 split with early stopping (patience epochs without validation improvement) or the
 time limit, whichever comes first. "Time to convergence" is the wall time up to the best validation
 epoch; "converged" says whether early stopping (not the time limit) ended the run.
@@ -9,6 +11,7 @@ epoch; "converged" says whether early stopping (not the time limit) ended the ru
     python benchmarks/learn_bench.py --device cpu --threads 2 --time-limit 900
     python benchmarks/learn_bench.py --device cuda --batch-size 128
     python benchmarks/learn_bench.py --device cuda --table 3 --samples 10000   # the paper's table
+    python benchmarks/learn_bench.py --device cuda --table 3 --campaign runs/learn_fe_compact
 
 Prints one JSON object (and writes it to --json when given).
 """
@@ -72,9 +75,16 @@ def paper_table(paths: list[Path], models: list[str], config: TrainConfig, held_
     fine-tune on the last (networks). One row per (model, split, training files)."""
     rows = []
 
+    clock = [time.perf_counter()]
+
     def add(model: str, split: str, trained_on: str, result: dict) -> None:
-        rows.append({"model": model, "split": split, "trained_on": trained_on, **result})
-        print(json.dumps(rows[-1]["combined"] | {"model": model, "split": split, "on": trained_on}), flush=True)
+        wall = time.perf_counter() - clock[0]
+        rows.append({"model": model, "split": split, "trained_on": trained_on, "wall_s": round(wall, 1), **result})
+        print(
+            json.dumps(rows[-1]["combined"] | {"model": model, "split": split, "on": trained_on, "s": round(wall, 1)}),
+            flush=True,
+        )
+        clock[0] = time.perf_counter()
 
     names = [p.stem for p in paths]
     for model in models:
@@ -138,11 +148,20 @@ def main() -> None:
     parser.add_argument("--json", type=Path, default=None)
     parser.add_argument("--table", type=int, default=0, help="run the paper's protocol on this many sensors")
     parser.add_argument("--held-out-indenter", default="ring")
+    parser.add_argument(
+        "--campaign", type=Path, default=None, help="--table on this folder's biotac*.hdf5 instead of synthetic"
+    )
     args = parser.parse_args()
 
     torch.set_num_threads(args.threads)
     if args.table:
-        paths = [campaign(args.data, args.samples, args.seed + k, k + 1) for k in range(args.table)]
+        if args.campaign is not None:
+            paths = sorted(args.campaign.glob("biotac*.hdf5"))[: args.table]
+            for p in paths:
+                d = load(p)
+                print(f"{p}: {len(d)} samples, {len(set(d.trajectory.tolist()))} trajectories", flush=True)
+        else:
+            paths = [campaign(args.data, args.samples, args.seed + k, k + 1) for k in range(args.table)]
         config = TrainConfig(
             max_epochs=args.max_epochs,
             batch_size=args.batch_size,
@@ -193,6 +212,10 @@ def main() -> None:
                 time_to_convergence_s=best.seconds,
                 seconds_per_epoch=history[-1].seconds / len(history),
                 converged=len(history) < args.max_epochs and history[-1].seconds <= args.time_limit,
+                stopped_by="patience"
+                if len(history) < args.max_epochs and history[-1].seconds <= args.time_limit
+                else ("time limit" if history[-1].seconds > args.time_limit else "max epochs"),
+                history=[[h.epoch, round(h.val_loss, 6), round(h.seconds, 1)] for h in history],
                 inference_samples_per_s=inference_rate(ckpt.estimator, data, args.device),
             )
         report["models"][model] = entry
