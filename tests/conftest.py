@@ -1,4 +1,7 @@
-"""Shared fixtures: a coarse inflated BioTac (2 mm mesh) reused across FE tests."""
+"""Shared fixtures: a coarse inflated BioTac (2 mm mesh) reused across FE tests; a tiny campaign."""
+
+from dataclasses import replace
+from pathlib import Path
 
 import pytest
 
@@ -23,3 +26,20 @@ def frictionless_biotac() -> BioTacModel:
 @pytest.fixture(scope="session")
 def frictional_biotac() -> BioTacModel:
     return inflated_biotac(friction=0.5)
+
+
+def tiny_campaign_file(out: Path, plant=None) -> Path:
+    """Sensor 2, sphere_medium, one normal (0.4 mm) and one angled (0.2 mm) trajectory, 0.1 s pauses, 2 mm
+    mesh; `plant` as in twin.campaign.run_campaign (None: the default plant)."""
+    from twin.campaign import QUICK_CONFIG, run_campaign
+    from twin.protocol import QUICK_SETTINGS
+
+    settings = replace(QUICK_SETTINGS, normal_depth=0.4e-3, angled_depth=0.2e-3, pause_s=0.1)
+    config = replace(QUICK_CONFIG, sensors=(2,), indenters=("sphere_medium",), settings=settings)
+    return run_campaign(config, out, workers=1, plant=plant).files[2]
+
+
+@pytest.fixture(scope="session")
+def make_tiny_campaign():
+    """`tiny_campaign_file`, for module fixtures that build their own tiny campaign."""
+    return tiny_campaign_file

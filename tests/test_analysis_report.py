@@ -285,15 +285,8 @@ def test_compare_rejects_bad_datasets(tmp_path: Path) -> None:
 
 
 @pytest.fixture(scope="module")
-def tiny_campaign(tmp_path_factory: pytest.TempPathFactory) -> Path:
-    """Sensor 2, sphere_medium, one normal (0.4 mm) and one angled (0.2 mm) trajectory, 0.1 s pauses."""
-    from twin.campaign import QUICK_CONFIG, run_campaign
-    from twin.protocol import QUICK_SETTINGS
-
-    settings = replace(QUICK_SETTINGS, normal_depth=0.4e-3, angled_depth=0.2e-3, pause_s=0.1)
-    config = replace(QUICK_CONFIG, sensors=(2,), indenters=("sphere_medium",), settings=settings)
-    out = tmp_path_factory.mktemp("tiny")
-    return run_campaign(config, out, workers=1).files[2]
+def tiny_campaign(tmp_path_factory: pytest.TempPathFactory, make_tiny_campaign) -> Path:
+    return make_tiny_campaign(tmp_path_factory.mktemp("tiny"))
 
 
 def test_compare_cli_on_a_tiny_campaign(tiny_campaign: Path, tmp_path: Path) -> None:
