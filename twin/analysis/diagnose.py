@@ -29,6 +29,7 @@ from dataclasses import dataclass, field, replace
 import numpy as np
 from scipy.optimize import lsq_linear, minimize, minimize_scalar
 
+from assets.indenters import get_indenter
 from twin.analysis.compare import FORCE_CHANNELS, noise_estimate, time_in_increment
 from twin.analysis.data import CampaignData, TrajectoryRecord
 from twin.analysis.predict import Predictor, TwinModel, measured_force_fullrate, measured_pdc_fullrate
@@ -152,7 +153,18 @@ def build_residual(
     """The whitened residual (channel gains not yet profiled) and each trajectory's mask of samples
     used (valid predictions)."""
     values, index, indenter, masks = [], [], [], []
-    names = ("depth", "time_in_increment", "time", "axis", "angled", "sensor")
+    names = (
+        "depth",
+        "time_in_increment",
+        "time",
+        "axis",
+        "angled",
+        "sensor",
+        "indenter_size",
+        "location_x",
+        "location_y",
+        "predicted_pdc",
+    )
     cov: dict[str, list] = {k: [] for k in names}
     k = len(CHANNELS)
     for i, (t, p) in enumerate(zip(trajectories, predicted, strict=True)):
@@ -170,6 +182,10 @@ def build_residual(
         cov["axis"].append(np.tile(np.arange(k), n))
         cov["angled"].append(np.full(k * n, not t.normal))
         cov["sensor"].append(np.full(k * n, t.sensor_id))
+        cov["indenter_size"].append(np.full(k * n, get_indenter(t.indenter).dims[0]))
+        cov["location_x"].append(np.full(k * n, t.touch_point[0]))
+        cov["location_y"].append(np.full(k * n, t.touch_point[1]))
+        cov["predicted_pdc"].append(np.repeat(p[valid, CHANNELS.index("pdc")], k))
     residual = Residual(
         np.concatenate(values),
         np.concatenate(index),
@@ -226,16 +242,23 @@ def _base_residual(datasets: list[CampaignData], model: TwinModel, predictor: Pr
 
 
 def signatures(residual: Residual) -> dict[str, float]:
-    """Correlation of the whitened residual (and of its magnitude) with each covariate."""
-    r = residual.values
+    """Per channel, the correlation of the whitened residual (and of its magnitude) with each covariate;
+    and each channel's whitened RMS."""
     out = {}
-    for name, values in residual.covariates.items():
-        if name == "axis" or np.ptp(values.astype(float)) == 0:
+    axis = residual.covariates["axis"]
+    for c, channel in enumerate(CHANNELS):
+        mine = axis == c
+        r = residual.values[mine]
+        if r.size < 3:
             continue
-        x = values.astype(float)
-        out[f"corr(residual, {name})"] = float(np.corrcoef(r, x)[0, 1])
-        out[f"corr(|residual|, {name})"] = float(np.corrcoef(np.abs(r), x)[0, 1])
-    out["rms_over_noise"] = float(np.sqrt(np.mean(r**2)))
+        for name, values in residual.covariates.items():
+            x = values[mine].astype(float)
+            if name == "axis" or np.ptp(x) == 0:
+                continue
+            out[f"corr({channel} residual, {name})"] = float(np.corrcoef(r, x)[0, 1])
+            out[f"corr(|{channel} residual|, {name})"] = float(np.corrcoef(np.abs(r), x)[0, 1])
+        out[f"{channel} rms_over_noise"] = float(np.sqrt(np.mean(r**2)))
+    out["rms_over_noise"] = float(np.sqrt(np.mean(residual.values**2)))
     return out
 
 
