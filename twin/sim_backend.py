@@ -38,6 +38,8 @@ class SimSettings:
     """Mass (kg) of BioTac + fixture carried by the F/T sensor (seen untared as a constant load)."""
 
 
+WRENCH_HISTORY_S = 1.0
+"""Seconds of clean-wrench history kept for the measurement effects (the longest time delay is 0.5 s)."""
 RELAXATION_SOLVE_INTERVAL_S = 0.1
 """While the skin relaxes (a viscoelastic skin model), it is re-solved at a held pose this often (s): here
 and in the model's replay (twin.analysis.predict) alike."""
@@ -102,7 +104,7 @@ class SimBackend:
             self._last_tip = None
             self._state = None
             self._clean = self._rest_signals()
-            self._wrench_history.append((self.time_s, self._clean["wrench"]))
+            self._record_wrench()
 
     def command_joints(self, arm: str, joints: np.ndarray) -> None:
         """Set the joint target (rad); outside the joint limits is refused with BackendError."""
@@ -195,7 +197,15 @@ class SimBackend:
         self._state = result
         self.solve_log.append((self.time_s, result))
         self._clean = self._signals(result, pose[:3, 3])
+        self._record_wrench()
+
+    def _record_wrench(self) -> None:
+        """Append the clean wrench now to the history the measurement effects read; entries older than
+        the longest delay an effect may have (plus the newest one before that) are dropped."""
         self._wrench_history.append((self.time_s, self._clean["wrench"]))
+        horizon = self.time_s - WRENCH_HISTORY_S
+        while len(self._wrench_history) > 1 and self._wrench_history[1][0] <= horizon:
+            self._wrench_history.pop(0)
 
     def _rest_signals(self) -> dict:
         reference = self.fe_model.reference
