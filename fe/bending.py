@@ -18,6 +18,9 @@ import warp as wp
 
 from fe.wptypes import mat1818d, vec6i, vec12d
 
+mat318d = wp.types.matrix(shape=(3, 18), dtype=wp.float64)
+"""d theta_i / d (18 stencil coordinates) of a triangle's three hinge angles."""
+
 POISSON = 0.5
 """Poisson's ratio of the incompressible skin."""
 
@@ -113,7 +116,7 @@ def bending_kernel(
     k = bending_stiffness[b] * rest_area[t]
     m = coupling[t]
     dtheta = wp.vec3d()
-    jac = mat1818d()  # rows 0-2: d theta_i / d (18 stencil coordinates); the other rows stay zero
+    jac = mat318d()
     for i in range(3):
         if present[i] != 0:
             xs = _hinge_coordinates(x, b, nodes, i)
@@ -130,13 +133,17 @@ def bending_kernel(
             f[d] = lam[0] * jac[0, 3 * slot + d] + lam[1] * jac[1, 3 * slot + d] + lam[2] * jac[2, 3 * slot + d]
         wp.atomic_add(gradient, b, nodes[slot], f)
     if want_hessian != 0:
+        # Gauss-Newton part k jac^T M jac, through w = k M jac (M symmetric).
+        w = mat318d()
+        for j in range(3):
+            for r in range(18):
+                w[j, r] = k * (m[0, j] * jac[0, r] + m[1, j] * jac[1, r] + m[2, j] * jac[2, r])
         H = mat1818d()
-        for i in range(3):
-            for j in range(3):
-                kij = k * m[i, j]
-                for r in range(18):
-                    for c in range(18):
-                        H[r, c] = H[r, c] + kij * jac[i, r] * jac[j, c]
+        for r in range(18):
+            for c in range(r, 18):
+                v = w[0, r] * jac[0, c] + w[1, r] * jac[1, c] + w[2, r] * jac[2, c]
+                H[r, c] = v
+                H[c, r] = v
         for i in range(3):
             if present[i] != 0:
                 xs = _hinge_coordinates(x, b, nodes, i)

@@ -10,6 +10,7 @@ minimum-degree ordering of A^T + A), which is about four times slower on the Bio
 
 import ctypes
 import os
+import weakref
 
 import numpy as np
 import scipy.sparse as sp
@@ -60,10 +61,7 @@ class _Pardiso:
         self._data = np.zeros(0)
         self._select = self._indptr = self._indices = np.zeros(0, dtype=np.int64)
         self._upper_indptr = self._upper_indices = np.zeros(0, dtype=np.int32)
-
-    def __del__(self) -> None:
-        if self._n:
-            self._call(-1, np.zeros((self._n, 1), order="F"))
+        self._release: weakref.finalize | None = None
 
     def factorize(self, matrix: sp.csr_matrix) -> None:
         if not matrix.has_sorted_indices:
@@ -78,7 +76,7 @@ class _Pardiso:
     def _analyse(self, matrix: sp.csr_matrix) -> None:
         """Symbolic analysis (fill-reducing ordering) of the upper triangle's pattern."""
         if self._n:
-            self._call(-1, np.zeros((self._n, 1), order="F"))
+            _release_pardiso(self._pardiso, self._handle, self._iparm)
         n = matrix.shape[0]
         rows = np.repeat(np.arange(n), np.diff(matrix.indptr))
         self._select = np.flatnonzero(matrix.indices >= rows)
@@ -91,9 +89,11 @@ class _Pardiso:
         self._data = np.ascontiguousarray(matrix.data[self._select], dtype=np.float64)
         self._n = n
         self._call(11, np.zeros((n, 1), order="F"))
+        if self._release is None:
+            self._release = weakref.finalize(self, _release_pardiso, self._pardiso, self._handle, self._iparm)
 
     def _call(self, phase: int, rhs: np.ndarray) -> np.ndarray:
-        """One PARDISO phase (11 analysis, 22 factorisation, 33 solve, -1 release) on the stored upper triangle."""
+        """One PARDISO phase (11 analysis, 22 factorisation, 33 solve) on the stored upper triangle."""
         int_p, double_p = ctypes.POINTER(ctypes.c_int32), ctypes.POINTER(ctypes.c_double)
         out = np.zeros_like(rhs, order="F")
         error = ctypes.c_int32(0)
@@ -116,14 +116,33 @@ class _Pardiso:
             ctypes.byref(error),
         )
         if error.value != 0:
-            if phase == -1:
-                return out
             raise SingularMatrixError(f"PARDISO phase {phase} failed with error {error.value}")
         return out
 
     def solve(self, rhs: np.ndarray) -> np.ndarray:
         columns = np.asfortranarray(rhs.reshape(self._n, -1), dtype=np.float64)
         return np.ascontiguousarray(self._call(33, columns)).reshape(rhs.shape)
+
+
+def _release_pardiso(pardiso: ctypes.CDLL, handle: np.ndarray, iparm: np.ndarray) -> None:
+    """Free the memory PARDISO holds for `handle` (phase -1)."""
+    int_p = ctypes.POINTER(ctypes.c_int32)
+    one, zero, phase, mtype = ctypes.c_int32(1), ctypes.c_int32(0), ctypes.c_int32(-1), ctypes.c_int32(-2)
+    dummy = np.zeros(1)
+    pardiso(
+        handle.ctypes.data_as(ctypes.POINTER(ctypes.c_int64)),
+        *(ctypes.byref(v) for v in (one, one, mtype, phase, zero)),
+        dummy.ctypes.data_as(ctypes.POINTER(ctypes.c_double)),
+        None,
+        None,
+        None,
+        ctypes.byref(one),
+        iparm.ctypes.data_as(int_p),
+        ctypes.byref(zero),
+        dummy.ctypes.data_as(ctypes.POINTER(ctypes.c_double)),
+        dummy.ctypes.data_as(ctypes.POINTER(ctypes.c_double)),
+        ctypes.byref(ctypes.c_int32(0)),
+    )
 
 
 def _pardiso_available() -> bool:

@@ -61,7 +61,10 @@ class NewtonSettings:
     max_iterations: int = 60
     max_backtracks: int = 30
     refresh_factor: float = 1e5
-    """Lagged quantities are refreshed once the residual is below refresh_factor x its tolerance."""
+    """Lagged quantities are refreshed, and chord steps tried, once the residual is below refresh_factor x
+    its tolerance."""
+    chord_contraction: float = 0.2
+    """A chord step (last factorisation reused) is kept when it cuts the residual by at least this factor."""
 
 
 @dataclass
@@ -106,10 +109,15 @@ def solve_equilibrium(
     `refresh(q)`, when given, updates lagged data of the problem (e.g. friction normal forces) near
     convergence and returns whether they changed beyond their tolerance; a solve only converges once
     they have settled.
+
+    Near convergence (residual below `refresh_factor` x its tolerance) an iteration first tries a chord
+    step with the last factorisation (one solve and one gradient evaluation, no Hessian); it is kept when
+    it shrinks the residual by at least `chord_contraction`, else the iteration is a full Newton step.
     """
     q, pressure = q0.copy(), float(pressure0)
     lin = problem.linearize(q, pressure, want_matrix=True)
     volume_scale = abs(target_volume) if target_volume else 1.0
+    factorized = False  # the solver holds a factorisation of this solve's matrix at a recent state
     for iteration in range(settings.max_iterations + 1):
         r = _residual(lin, pressure)
         rnorm = float(np.max(np.abs(r))) if r.size else 0.0
@@ -119,24 +127,57 @@ def solve_equilibrium(
         if not np.isfinite(rnorm):
             return NewtonResult(q, pressure, False, iteration, rnorm, lin.volume, "non-finite residual")
         tolerance = _force_tolerance(lin, pressure, settings)
-        if refresh is not None and rnorm <= settings.refresh_factor * tolerance and refresh(q):
-            lin = problem.linearize(q, pressure, want_matrix=True)
+        near = rnorm <= settings.refresh_factor * tolerance
+        if refresh is not None and near and refresh(q):
+            lin = problem.linearize(q, pressure, want_matrix=False)
             continue
         if rnorm <= tolerance and abs(c) <= settings.volume_tolerance * volume_scale:
             return NewtonResult(q, pressure, True, iteration, rnorm, lin.volume, "converged")
         if iteration == settings.max_iterations:
             break
+        if factorized and near:
+            chord = _chord_step(problem, lin, q, pressure, r, c, target_volume is not None, rnorm, settings)
+            if chord is not None:
+                q, pressure, lin = chord
+                continue
+        if lin.matrix is None:
+            lin = problem.linearize(q, pressure, want_matrix=True)
         step = _line_search(problem, lin, q, pressure, r, c, target_volume, settings, robust=False)
         if step is None:
             projected = problem.linearize(q, pressure, want_matrix=True, projected=True)
             step = _line_search(problem, projected, q, pressure, r, c, target_volume, settings, robust=True)
         if step is None:
             return NewtonResult(q, pressure, False, iteration, rnorm, lin.volume, "line search failed")
-        q, pressure = step
-        lin = problem.linearize(q, pressure, want_matrix=True)
+        q, pressure, lin = step
+        factorized = True
     r = _residual(lin, pressure)
     rnorm = float(np.max(np.abs(r))) if r.size else 0.0
     return NewtonResult(q, pressure, False, settings.max_iterations, rnorm, lin.volume, "iteration limit")
+
+
+def _chord_step(
+    problem: EquilibriumProblem,
+    lin: Linearization,
+    q: np.ndarray,
+    pressure: float,
+    r: np.ndarray,
+    c: float,
+    constrained: bool,
+    rnorm: float,
+    settings: NewtonSettings,
+) -> tuple[np.ndarray, float, Linearization] | None:
+    """A Newton step with the factorisation already held by the solver (the matrix of an earlier iterate):
+    the new (q, pressure, linearization without matrix) when it cuts the residual's infinity norm by
+    `chord_contraction`, else None."""
+    dq, dp = _solve_bordered(problem.linear_solver, lin, r, c, constrained)
+    if dq is None:
+        return None
+    trial = problem.linearize(q + dq, pressure + dp, want_matrix=False)
+    trial_r = _residual(trial, pressure + dp)
+    trial_norm = float(np.max(np.abs(trial_r))) if trial_r.size else 0.0
+    if not trial_norm <= settings.chord_contraction * rnorm:
+        return None
+    return q + dq, pressure + dp, trial
 
 
 def _force_tolerance(lin: Linearization, pressure: float, settings: NewtonSettings) -> float:
@@ -155,9 +196,10 @@ def _line_search(
     target_volume: float | None,
     settings: NewtonSettings,
     robust: bool,
-) -> tuple[np.ndarray, float] | None:
-    """Newton step with backtracking on the merit function: new (q, pressure), or None when the matrix is
-    singular, has non-positive curvature along the step (unless `robust`), or no step length is acceptable."""
+) -> tuple[np.ndarray, float, Linearization] | None:
+    """Newton step with backtracking on the merit function: new (q, pressure) and the linearization there
+    (without matrix; it does not depend on the pressure), or None when the matrix is singular, has
+    non-positive curvature along the step (unless `robust`), or no step length is acceptable."""
     dq, dp = _newton_step(lin, r, c, target_volume is not None, problem.linear_solver)
     if dq is None:
         return None
@@ -176,7 +218,7 @@ def _line_search(
             trial = problem.linearize(q + step * dq, new_pressure, want_matrix=False)
             phi = _merit(trial, new_pressure, target_volume, rho)
             if np.isfinite(phi) and phi <= phi0 + 1e-4 * step * slope:
-                return q + step * dq, pressure + step * dp
+                return q + step * dq, pressure + step * dp, trial
             step *= 0.5
     # The energy cannot resolve this step (round-off near the solution) or no step decreased it: backtrack
     # on the Euclidean norm of the residual force, for which the Newton step is a descent direction too.
@@ -184,7 +226,7 @@ def _line_search(
     for _ in range(settings.max_backtracks):
         trial = problem.linearize(q + step * dq, pressure + step * dp, want_matrix=False)
         if np.linalg.norm(_residual(trial, pressure + step * dp)) < (1.0 - 1e-4 * step) * rnorm:
-            return q + step * dq, pressure + step * dp
+            return q + step * dq, pressure + step * dp, trial
         step *= 0.5
     return None
 
@@ -192,13 +234,24 @@ def _line_search(
 def _newton_step(
     lin: Linearization, r: np.ndarray, c: float, constrained: bool, solver: SymmetricSolver
 ) -> tuple[np.ndarray | None, float]:
-    """Solve the (bordered) Newton system; returns (dq, dp) or (None, 0) when singular.
-
-    The bordered system is solved through its Schur complement: with K u1 = -r and K u2 = b,
-    dq = u1 + dp u2 and dp = -(c + b.u1) / (b.u2 + s), so only K is factorised (s: `volume_compliance`).
-    """
+    """Factorise lin.matrix and solve the (bordered) Newton system; returns (dq, dp) or (None, 0) when singular."""
     try:
         solver.factorize(lin.matrix)
+    except SingularMatrixError:
+        return None, 0.0
+    return _solve_bordered(solver, lin, r, c, constrained)
+
+
+def _solve_bordered(
+    solver: SymmetricSolver, lin: Linearization, r: np.ndarray, c: float, constrained: bool
+) -> tuple[np.ndarray | None, float]:
+    """Solve the bordered Newton system for (dq, dp) with the factorisation of K that `solver` holds (not
+    necessarily of lin.matrix: chord steps reuse an earlier one); (None, 0) when singular.
+
+    Through the Schur complement: with K u1 = -r and K u2 = b (b = lin.volume_gradient),
+    dq = u1 + dp u2 and dp = -(c + b.u1) / (b.u2 + s) (s: `volume_compliance`).
+    """
+    try:
         if not constrained:
             return solver.solve(-r), 0.0
         b = lin.volume_gradient
