@@ -11,8 +11,8 @@ same held-out seeds.
 
     python3 scripts/train_press_policy.py --out docs/img/press_training.png
 
-Cost: about population x episodes x iterations x max_steps FE increments on the coarse mesh (a few minutes on
-two CPU cores with the defaults).
+Cost: about (population x episodes + validation) x iterations x max_steps FE increments on the coarse
+mesh (a few minutes on two CPU cores with the defaults).
 """
 
 from __future__ import annotations
@@ -84,46 +84,43 @@ def episode_returns(env: gym.vector.VectorEnv, policy: Policy, seeds: list[int],
 def train(args: argparse.Namespace) -> dict:
     """Run CEM and the baseline; returns the curve and the evaluation numbers.
 
-    Candidate 0 of every iteration is the current mean (its mean return is the curve's "mean policy");
-    all candidates of one iteration play the same episodes, so they are ranked on equal terms; the
-    iterations' episodes differ.
+    Each iteration the vector env holds population x episodes training sub-environments (every candidate
+    on the same fresh episodes, so candidates are ranked on equal terms; candidate 0 is the current mean)
+    and `--validation` more that play the current mean on fixed validation episodes: the curve.
     """
     rng = np.random.default_rng(args.seed)
+    n_train = args.population * args.episodes
     env = gym.make_vec(
         "BioTacPress-v0",
-        num_envs=args.population * args.episodes,
+        num_envs=n_train + args.validation,
         vectorization_mode="vector_entry_point",
         max_steps=args.max_steps,
     )
+    validation_seeds = [10**5 + k for k in range(args.validation)]
     mean = np.zeros((3, N_FEATURES))
     std = np.where(MASK, args.init_std, 0.0)
     curve = []
-    episodes = args.episodes
-    for iteration in range(args.iterations):
+    for iteration in range(args.iterations + 1):
         start = time.perf_counter()
         weights = mean + std * rng.standard_normal((args.population, 3, N_FEATURES))
         weights[0] = mean
-        seeds = [1000 * (iteration + 1) + e for _ in range(args.population) for e in range(episodes)]
-        per_episode = episode_returns(env, linear_policies(np.repeat(weights, episodes, 0)), seeds, args.max_steps)
-        returns = per_episode.reshape(args.population, episodes).mean(axis=1)
-        elite = weights[np.argsort(returns)[-args.elites :]]
-        mean, std = elite.mean(axis=0), np.where(MASK, elite.std(axis=0) + args.min_std, 0.0)
-        curve.append(
-            {
-                "iteration": iteration,
-                "mean_policy": float(returns[0]),
-                "population": float(returns.mean()),
-                "best": float(returns.max()),
-            }
-        )
+        played = np.concatenate([np.repeat(weights, args.episodes, 0), np.repeat(mean[None], args.validation, 0)])
+        seeds = [1000 * (iteration + 1) + e for _ in range(args.population) for e in range(args.episodes)]
+        per_episode = episode_returns(env, linear_policies(played), seeds + validation_seeds, args.max_steps)
+        returns = per_episode[:n_train].reshape(args.population, args.episodes).mean(axis=1)
+        validation = float(per_episode[n_train:].mean())
+        curve.append({"iteration": iteration, "validation": validation, "population": float(returns.mean())})
         print(
-            f"iteration {iteration}: mean policy {returns[0]:.2f}, population {returns.mean():.2f}, "
-            f"best {returns.max():.2f} ({time.perf_counter() - start:.0f} s)",
+            f"iteration {iteration}: mean policy on validation {validation:.2f}, population {returns.mean():.2f} "
+            f"({time.perf_counter() - start:.0f} s)",
             flush=True,
         )
+        if iteration == args.iterations:  # the last pass only measures the final mean
+            break
+        elite = weights[np.argsort(returns)[-args.elites :]]
+        mean, std = elite.mean(axis=0), np.where(MASK, elite.std(axis=0) + args.min_std, 0.0)
     held_out = [10**6 + k for k in range(env.num_envs)]
-    trained_policy = linear_policies(np.repeat(mean[None], env.num_envs, 0))
-    trained = episode_returns(env, trained_policy, held_out, args.max_steps)
+    trained = episode_returns(env, linear_policies(np.repeat(mean[None], env.num_envs, 0)), held_out, args.max_steps)
     baseline = episode_returns(env, random_policy(rng, env.num_envs), held_out, args.max_steps)
     env.close()
     return {
@@ -131,7 +128,7 @@ def train(args: argparse.Namespace) -> dict:
         "trained": {"mean": float(trained.mean()), "std": float(trained.std()), "episodes": len(trained)},
         "random": {"mean": float(baseline.mean()), "std": float(baseline.std()), "episodes": len(baseline)},
         "weights": mean.tolist(),
-        "settings": {k: v for k, v in vars(args).items() if k not in ("out", "json")},
+        "settings": {k: str(v) for k, v in vars(args).items() if k not in ("out", "json")},
     }
 
 
@@ -140,8 +137,10 @@ def plot(result: dict, out: Path) -> None:
     fig = Figure(figsize=(6.0, 3.8), layout="constrained")
     ax = fig.add_subplot()
     iterations = [c["iteration"] for c in result["curve"]]
-    ax.plot(iterations, [c["mean_policy"] for c in result["curve"]], "o-", label="CEM mean policy")
-    ax.plot(iterations, [c["population"] for c in result["curve"]], "s--", alpha=0.6, label="CEM population mean")
+    ax.plot(iterations, [c["validation"] for c in result["curve"]], "o-", label="mean policy, validation episodes")
+    ax.plot(
+        iterations, [c["population"] for c in result["curve"]], "s--", alpha=0.5, label="population, training episodes"
+    )
     for name, colour in (("random", "tab:red"), ("trained", "tab:green")):
         stats = result[name]
         ax.axhline(stats["mean"], color=colour, label=f"{name} policy, held-out seeds ({stats['mean']:.1f})")
@@ -155,13 +154,14 @@ def plot(result: dict, out: Path) -> None:
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--out", type=Path, default=Path("docs/img/press_training.png"))
-    parser.add_argument("--iterations", type=int, default=8)
-    parser.add_argument("--population", type=int, default=8)
+    parser.add_argument("--iterations", type=int, default=10)
+    parser.add_argument("--population", type=int, default=10)
     parser.add_argument("--episodes", type=int, default=2, help="Episodes per candidate and iteration.")
+    parser.add_argument("--validation", type=int, default=4, help="Fixed episodes the mean policy plays.")
     parser.add_argument("--elites", type=int, default=3)
     parser.add_argument("--max-steps", type=int, default=10)
-    parser.add_argument("--init-std", type=float, default=1.0)
-    parser.add_argument("--min-std", type=float, default=0.05)
+    parser.add_argument("--init-std", type=float, default=0.5)
+    parser.add_argument("--min-std", type=float, default=0.1)
     parser.add_argument("--seed", type=int, default=0)
     parser.add_argument("--json", type=Path, default=None, help="Also write the numbers to this JSON file.")
     args = parser.parse_args()
