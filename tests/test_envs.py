@@ -12,6 +12,7 @@ from gymnasium.utils.env_checker import check_env
 from gymnasium.vector import VectorEnv
 
 import twin  # noqa: F401  (registers the environments)
+from learn.electrode_physics import ElectrodeParameters
 from twin.envs import ENV_IDS
 from twin.envs.edge import EdgeFollowEnv
 from twin.envs.press import PressEnv
@@ -70,6 +71,19 @@ def test_pressing_raises_pressure_lowers_electrodes_and_the_reward_tracks_the_fo
     assert pdcs[-2] > pdcs[0] + 50  # and so does the fluid pressure
     assert obs["electrodes"].min() < -100  # the skin approaches the electrodes: counts go down
     assert obs["tip"][2] == pytest.approx(-0.3 + len(forces) * env.max_step_mm, abs=1e-4)
+
+
+def test_sensor_parameters_set_the_electrode_read_out() -> None:
+    quiet = {"noise_std": 0.0, "pdc_noise_std": 0.0}
+    tared = []
+    for gain in (1.0, 2.0):
+        env = PressEnv(sensor_params=ElectrodeParameters(gain=np.full(19, gain), **quiet), start_offset_mm=0.0)
+        env.reset(seed=4)
+        for _ in range(5):
+            obs = env.step(PRESS)[0]
+        tared.append(obs["electrodes"])
+    assert tared[0].min() < -30
+    assert np.allclose(tared[1], 2.0 * tared[0], atol=1.0)  # tared counts scale with the gain (ADC rounding)
 
 
 def test_episodes_truncate_at_max_steps_and_bad_input_is_refused() -> None:

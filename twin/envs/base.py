@@ -26,7 +26,7 @@ import gymnasium as gym
 import numpy as np
 from gymnasium import spaces
 
-from learn.electrode_physics import ADC_MAX, N_ELECTRODES
+from learn.electrode_physics import ADC_MAX, N_ELECTRODES, ElectrodeParameters
 from twin.envs.fe_batch import COARSE_MESH_MM, BatchIncrement, IndentationBatch, shared_model
 from twin.envs.sensing import Reading, TactileReadout
 
@@ -61,6 +61,8 @@ def slot_increment(batch: BatchIncrement, k: int) -> SlotIncrement:
 class TactileEnv(gym.Env[dict[str, np.ndarray], np.ndarray]):
     """Base of the BioTac environments (see the module docstring); tasks implement the abstract hooks.
 
+    sensor_params: the BioTac's read-out (`ElectrodeParameters`; None: nominal; `ElectrodeParameters.sample`
+    draws a plausible other unit); force_noise_n: white noise (N) of the F/T observation.
     fe, slot, readout: set by `TactileVectorEnv` so that sub-environments share one FE batch; left
     None, the environment builds a one-slot batch on the shared model with `mesh_mm` edges (mm).
     """
@@ -81,6 +83,8 @@ class TactileEnv(gym.Env[dict[str, np.ndarray], np.ndarray]):
         max_step_mm: float = 0.3,
         force_limit_n: float = 4.0,
         limit_penalty: float = 10.0,
+        sensor_params: ElectrodeParameters | None = None,
+        force_noise_n: float = 0.01,
         render_mode: str | None = None,
         rerun_save: str | Path | None = None,
         fe: IndentationBatch | None = None,
@@ -95,7 +99,7 @@ class TactileEnv(gym.Env[dict[str, np.ndarray], np.ndarray]):
         if not 0 <= slot < self.fe.n or self.fe.indenters[slot] != indenter:
             raise ValueError(f"slot {slot} of the FE batch must exist and carry indenter {indenter!r}")
         self.indenter, self.slot = indenter, slot
-        self.readout = readout if readout is not None else TactileReadout(self.fe)
+        self.readout = readout if readout is not None else TactileReadout(self.fe, sensor_params, force_noise_n)
         self.ft, self.max_steps, self.max_step_mm = ft, int(max_steps), float(max_step_mm)
         self.force_limit_n, self.limit_penalty = float(force_limit_n), float(limit_penalty)
         self.render_mode = render_mode
@@ -181,9 +185,7 @@ class TactileEnv(gym.Env[dict[str, np.ndarray], np.ndarray]):
         self._steps += 1
         return self._pose()
 
-    def outcome(
-        self, increment: SlotIncrement
-    ) -> tuple[dict[str, np.ndarray], float, bool, bool, dict[str, Any]]:
+    def outcome(self, increment: SlotIncrement) -> tuple[dict[str, np.ndarray], float, bool, bool, dict[str, Any]]:
         """Observation, reward, terminated, truncated and info after the FE answered the last command."""
         truncated = self._steps >= self.max_steps
         info = self._info(increment)

@@ -46,7 +46,7 @@ class TactileVectorEnv(VectorEnv):
             raise ValueError(f"num_envs must be >= 1, got {num_envs!r}")
         indenter = env_kwargs.pop("indenter", env_class.default_indenter)
         self.fe = IndentationBatch(shared_model(mesh_mm), [indenter] * num_envs)
-        readout = TactileReadout(self.fe)
+        readout = TactileReadout(self.fe, env_kwargs.get("sensor_params"), env_kwargs.get("force_noise_n", 0.01))
         self.envs = [
             env_class(
                 indenter,
@@ -97,9 +97,7 @@ class TactileVectorEnv(VectorEnv):
         if actions.shape != (self.num_envs, 3):
             raise ValueError(f"actions must be ({self.num_envs}, 3), got {actions.shape}")
         resetting = self._autoreset.copy()
-        poses = [
-            env.begin_episode() if resetting[k] else env.command(actions[k]) for k, env in enumerate(self.envs)
-        ]
+        poses = [env.begin_episode() if resetting[k] else env.command(actions[k]) for k, env in enumerate(self.envs)]
         if resetting.any():
             self.fe.reset(np.flatnonzero(resetting))
         batch = self._step_fe(poses)
