@@ -77,8 +77,11 @@ def _trajectory(model) -> dict[str, np.ndarray]:
     }
 
 
-def _write_dataset(path: Path, model, trajectory_ids: list[int], stored: bool) -> dict[str, np.ndarray]:
-    """A schema-v1 file (docs/dataset.md) of identical trajectories; `stored`: with nodal_res and mesh."""
+def _write_dataset(
+    path: Path, model, trajectory_ids: list[int], stored: bool, indenters: tuple[str, ...] = ("sphere_medium",)
+) -> dict[str, np.ndarray]:
+    """A schema-v1 file (docs/dataset.md) of trajectories with identical rows, the i-th labelled with
+    indenters[i % len(indenters)]; `stored`: with nodal_res and mesh."""
     rows = _trajectory(model)
     n = len(DEPTHS)
     features = ("depth", "contact_loc", "time", "force", "electrode_vals", "pdc", "fe_pressure")
@@ -90,7 +93,7 @@ def _write_dataset(path: Path, model, trajectory_ids: list[int], stored: bool) -
             f.create_dataset(f"{name}/data", data=np.concatenate([rows[name]] * len(trajectory_ids)))
         meta = {
             "trajectory_id": trajectory_ids,
-            "indenter_type": [list(INDENTERS).index("sphere_medium")] * len(trajectory_ids),
+            "indenter_type": [list(INDENTERS).index(indenters[k % len(indenters)]) for k in range(len(trajectory_ids))],
             "first_row": [k * n for k in range(len(trajectory_ids))],
             "n_rows": [n] * len(trajectory_ids),
         }
@@ -109,7 +112,7 @@ def model():
 
 
 def test_view_dataset_logs_every_field_of_the_chosen_trajectory(model, tmp_path: Path) -> None:
-    rows = _write_dataset(tmp_path / "stored.hdf5", model, [4, 9], stored=True)
+    rows = _write_dataset(tmp_path / "stored.hdf5", model, [4, 9], stored=True, indenters=("cube", "sphere_medium"))
     out = tmp_path / "view.rrd"
     result = runner.invoke(app, ["view", str(tmp_path / "stored.hdf5"), "--save", str(out), "--trajectory", "9"])
     assert result.exit_code == 0, result.output
@@ -135,7 +138,20 @@ def test_view_dataset_logs_every_field_of_the_chosen_trajectory(model, tmp_path:
     assert np.array(logged["series/biotac/electrodes"]["Scalars:scalars"]).shape == (n, 19)
     assert np.allclose(logged["series/biotac/force"]["Scalars:scalars"], rows["force"])
     assert np.allclose(np.ravel(logged["series/biotac/pressure"]["Scalars:scalars"]), rows["fe_pressure"])
-    assert len(logged["biotac/indenter/shape"]["Mesh3D:vertex_positions"]) == 1  # static
+    shape = logged["biotac/indenter/shape"]["Mesh3D:vertex_positions"]
+    assert len(shape) == 1 and len(shape[0]) == len(get_indenter("sphere_medium").mesh(1e-3).vertices)
+
+
+def test_view_dataset_draws_each_trajectorys_indenter_in_turn(model, tmp_path: Path) -> None:
+    _write_dataset(tmp_path / "two.hdf5", model, [4, 9], stored=True, indenters=("cube", "sphere_medium"))
+    out = tmp_path / "two.rrd"
+    args = ["view", str(tmp_path / "two.hdf5"), "--save", str(out), "--trajectory", "4", "--trajectory", "9"]
+    assert runner.invoke(app, args).exit_code == 0
+    logged = _entities(out)
+    assert len(logged["biotac/skin"]["Mesh3D:vertex_positions"]) == 2 * len(DEPTHS)
+    shapes = logged["biotac/indenter/shape"]["Mesh3D:vertex_positions"]  # cube first, then the sphere
+    expected = [len(get_indenter(name).mesh(1e-3).vertices) for name in ("cube", "sphere_medium")]
+    assert [len(s) for s in shapes] == expected and expected[0] != expected[1]
 
 
 def test_view_replays_the_fe_when_the_dataset_has_no_displacement(model, tmp_path: Path) -> None:

@@ -4,7 +4,7 @@ Entity layout (under the `root`, default `biotac`), all in the biotac frame, met
 - `{root}/skin`: Mesh3D of the deformed skin mid-surface, vertex colours = |displacement| (viridis,
   0 to `displacement_scale_m`);
 - `{root}/indenter`: Transform3D (rotation body->biotac, tip position); `{root}/indenter/shape`: the
-  indenter's Mesh3D in its own frame (static);
+  indenter's Mesh3D in its own frame (logged when the indenter changes);
 - `{root}/force`: Arrows3D from the tip along the force of the indenter on the skin, `FORCE_ARROW_M_PER_N`;
 - `{root}/electrodes`: Points3D at the 19 electrode centres, colours = tared counts (coolwarm, +-
   `electrode_scale_counts`);
@@ -88,21 +88,16 @@ class SkinScene:
         self.electrode_scale_counts = float(electrode_scale_counts)
         self.series = f"series/{root}"
         self._indenter: str | None = None
+        self._drawn: str | None = None
         recording.log(root, rr.ViewCoordinates.RIGHT_HAND_Z_UP, static=True)
         recording.log(f"{self.series}/force", rr.SeriesLines(names=["x", "y", "z"]), static=True)
         names = [f"E{k}" for k in range(1, 20)]
         recording.log(f"{self.series}/electrodes", rr.SeriesLines(names=names), static=True)
 
     def set_indenter(self, name: str) -> None:
-        """Draw indenter `name` (its mesh in its own frame, static) from now on."""
-        if name == self._indenter:
-            return
-        vertices, faces = _indenter_mesh(name)
-        self.recording.log(
-            f"{self.root}/indenter/shape",
-            rr.Mesh3D(vertex_positions=vertices, triangle_indices=faces, albedo_factor=[180, 180, 200, 255]),
-            static=True,
-        )
+        """Draw indenter `name` from the next logged state on (its mesh, in its own frame, is logged at
+        that state's time whenever the indenter changes)."""
+        get_indenter(name)  # a clear error for an unknown name
         self._indenter = name
 
     def log_state(
@@ -133,6 +128,11 @@ class SkinScene:
         )
         if rotation is not None and tip is not None:
             rec.log(f"{root}/indenter", rr.Transform3D(translation=tip, mat3x3=rotation))
+            if self._indenter is not None and self._indenter != self._drawn:
+                vertices, faces = _indenter_mesh(self._indenter)
+                shape = rr.Mesh3D(vertex_positions=vertices, triangle_indices=faces, albedo_factor=[180, 180, 200, 255])
+                rec.log(f"{root}/indenter/shape", shape)
+                self._drawn = self._indenter
             if force is not None:
                 rec.log(
                     f"{root}/force",
