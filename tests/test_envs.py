@@ -139,3 +139,14 @@ def test_vector_env_matches_stand_alone_envs_and_autoresets_next_step() -> None:
     assert np.all(obs["tip"][:, 2] < 0.0) and np.all(obs["pdc"] == 0.0)
     with pytest.raises(ValueError, match="actions must be"):
         vec.step(actions[:2])
+
+
+def test_vector_env_on_the_batched_warp_fe_matches_the_stepper_loop() -> None:
+    actions = np.array([[0.0, 0.0, 1.0], [0.5, 0.0, 1.0]])
+    rewards = {}
+    for device in (None, "cpu"):
+        vec = TactileVectorEnv(PressEnv, 2, fe_device=device, max_steps=4, standoff_mm=(0.3, 0.3))
+        vec.reset(seed=21)
+        rewards[device] = [vec.step(actions)[1] for _ in range(4)]
+    assert np.abs(np.array(rewards[None])).max() > 0.1
+    assert np.allclose(rewards["cpu"], rewards[None], atol=2e-3)  # the batched FE agrees to ~1e-3 N

@@ -1,10 +1,12 @@
 """The FE as the environments see it: many indentation slots stepped through one batched call.
 
 `IndentationBatch.step_batch(rotations, translations)` moves every slot's indenter to its new pose and
-returns the skin's answer as stacked arrays (`BatchIncrement`). Today it is a plain loop over one
-`fe.indentation.IndentationStepper` per slot, all on one inflated `fe.sensor.BioTacModel`; the call's
-shape (poses in, stacked arrays out) is the one a GPU-batched FE can implement directly, so the
-environments do not change when it drops in.
+returns the skin's answer as stacked arrays (`BatchIncrement`). Two backends, the same call:
+- `device=None` (default): a plain loop over one `fe.indentation.IndentationStepper` per slot, all on
+  one inflated `fe.sensor.BioTacModel` (sparse direct Newton on the CPU);
+- `device="cpu"` or `"cuda:0"`: `fe.batched_stepper.BatchedStepper`, all slots in one set of warp
+  launches with a batched block-sparse Newton and CG on that device (its docs state its agreement with
+  the CPU stepper).
 
 Frames and units: the `biotac` frame of the product manual (x distal, -z ventral), SI (m, N, Pa).
 """
@@ -56,25 +58,33 @@ class IndentationBatch:
     """`n` independent indentation slots on one inflated FE model, one indenter per slot.
 
     Every slot starts at the inflated state with its indenter away; `reset(slots)` puts slots back
-    there. Slots share the model's `ShellSystem`: each stepper sets the contact state it needs before
-    every solve, so stepping slots in turn gives the same answers as stepping them alone.
+    there. `device`: None for the loop of CPU steppers, else the warp device of the batched FE (module
+    docstring). The loop's slots share the model's `ShellSystem`: each stepper sets the contact state it
+    needs before every solve, so stepping slots in turn gives the same answers as stepping them alone.
     """
 
-    def __init__(self, model: BioTacModel, indenters: list[str]) -> None:
+    def __init__(self, model: BioTacModel, indenters: list[str], device: str | None = None) -> None:
         if model.reference is None:
             raise ValueError("the FE model must be inflated before it drives an IndentationBatch")
         if not indenters:
             raise ValueError("an IndentationBatch needs at least one slot")
         self.model = model
         self.indenters = list(indenters)
-        self._steppers = [model.stepper(name) for name in self.indenters]
+        self.device = device
+        if device is None:
+            self._steppers = [model.stepper(name) for name in self.indenters]
+        else:
+            from fe.batched import InflatedSkin
+            from fe.batched_stepper import BatchedStepper
+
+            self._batched = BatchedStepper(InflatedSkin.from_model(model), self.indenters, device)
         self.wall_s = 0.0
         """Total wall-clock time (s) spent in `step_batch` so far."""
 
     @property
     def n(self) -> int:
         """Number of slots."""
-        return len(self._steppers)
+        return len(self.indenters)
 
     @property
     def reference(self) -> np.ndarray:
@@ -83,8 +93,14 @@ class IndentationBatch:
 
     def reset(self, slots: list[int] | np.ndarray | None = None) -> None:
         """Back to the inflated state with the indenter released, for `slots` (None: all)."""
-        for k in range(self.n) if slots is None else slots:
-            self._steppers[int(k)].reset()
+        chosen = range(self.n) if slots is None else [int(k) for k in slots]
+        if self.device is None:
+            for k in chosen:
+                self._steppers[k].reset()
+        else:
+            which = np.zeros(self.n, dtype=bool)
+            which[list(chosen)] = True
+            self._batched.reset(which)
 
     def step_batch(self, rotations: np.ndarray, translations: np.ndarray) -> BatchIncrement:
         """Move slot k's indenter to (rotations[k] (3,3) body->biotac, translations[k] (3,) tip, m) and
@@ -97,7 +113,10 @@ class IndentationBatch:
                 f"got {rotations.shape} and {translations.shape}"
             )
         start = time.perf_counter()
-        results = [s.step(r, t) for s, r, t in zip(self._steppers, rotations, translations, strict=True)]
+        if self.device is None:
+            results = [s.step(r, t) for s, r, t in zip(self._steppers, rotations, translations, strict=True)]
+        else:
+            results = self._batched.step(rotations, translations)
         wall_s = time.perf_counter() - start
         self.wall_s += wall_s
         return BatchIncrement(
