@@ -155,6 +155,8 @@ def solve_equilibrium(
         if step is None:
             return NewtonResult(q, pressure, False, iteration, rnorm, lin.volume, "line search failed")
         q, pressure, lin = step
+        if lin is None:
+            lin = problem.linearize(q, pressure, want_matrix=False)
         factorized = True
     r = _residual(lin, pressure)
     rnorm = float(np.max(np.abs(r))) if r.size else 0.0
@@ -202,10 +204,10 @@ def _line_search(
     target_volume: float | None,
     settings: NewtonSettings,
     robust: bool,
-) -> tuple[np.ndarray, float, Linearization] | None:
+) -> tuple[np.ndarray, float, Linearization | None] | None:
     """Newton step with backtracking on the merit function: new (q, pressure) and the linearization there
-    (without matrix; it does not depend on the pressure), or None when the matrix is singular, has
-    non-positive curvature along the step (unless `robust`), or no step length is acceptable."""
+    (without matrix; None where it was evaluated at another pressure), or None when the matrix is singular,
+    has non-positive curvature along the step (unless `robust`), or no step length is acceptable."""
     dq, dp = _newton_step(lin, r, c, target_volume is not None, problem.linear_solver)
     if dq is None:
         return None
@@ -224,7 +226,8 @@ def _line_search(
             trial = problem.linearize(q + step * dq, new_pressure, want_matrix=False)
             phi = _merit(trial, new_pressure, target_volume, rho)
             if np.isfinite(phi) and phi <= phi0 + 1e-4 * step * slope:
-                return q + step * dq, pressure + step * dp, trial
+                # The trial was evaluated at the full step's pressure: reusable only for a full step.
+                return q + step * dq, pressure + step * dp, trial if step == 1.0 else None
             step *= 0.5
     # The energy cannot resolve this step (round-off near the solution) or no step decreased it: backtrack
     # on the Euclidean norm of the residual force, for which the Newton step is a descent direction too.
