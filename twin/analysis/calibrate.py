@@ -164,8 +164,11 @@ def calibrate(
         return total if np.isfinite(total) else 1e6
 
     z0 = (start - low) / (high - low)
+    scale = cost(z0)  # SLSQP's tolerance is absolute: optimise the cost relative to the start's
+    if not np.isfinite(scale) or scale >= 1e6:
+        raise RuntimeError("the model fails at the starting parameters; pass a --model that runs")
     result = minimize(
-        cost,
+        lambda z: cost(z) / scale,
         z0,
         method="SLSQP",
         bounds=[(0.0, 1.0)] * len(CALIBRATED),
