@@ -12,7 +12,6 @@ Units follow the caller (here N/m for stiffness blocks, m for solutions, N for r
 from __future__ import annotations
 
 from dataclasses import dataclass
-from typing import Any
 
 import numpy as np
 import warp as wp
@@ -23,22 +22,30 @@ CG_RUNNING, CG_CONVERGED, CG_NEGATIVE_CURVATURE, CG_ITERATION_LIMIT = 1, 0, -1, 
 
 @wp.kernel
 def _scatter_blocks(
-    blocks: wp.array2d(dtype=Any),
+    blocks: wp.array3d(dtype=wp.float64),
     nodes_per_element: int,
     block_of: wp.array2d(dtype=wp.int32),
     scale: wp.array(dtype=wp.float64),
     values: wp.array2d(dtype=wp.mat33d),
 ):
-    """Add scale[b] x the (i, j) 3x3 sub-block of element e's Hessian (3k x 3k) to its matrix block."""
+    """Add scale[b] x the (i, j) 3x3 sub-block of element e's Hessian (3k x 3k, row-major in blocks[b, e])
+    to its matrix block."""
     b, e, ij = wp.tid()
     i = ij // nodes_per_element
     j = ij % nodes_per_element
+    n = 3 * nodes_per_element
     s = scale[b]
     m = wp.mat33d()
     for r in range(3):
         for c in range(3):
-            m[r, c] = blocks[b, e][3 * i + r, 3 * j + c] * s
+            m[r, c] = blocks[b, e, (3 * i + r) * n + 3 * j + c] * s
     wp.atomic_add(values, b, block_of[e, ij], m)
+
+
+def scalar_view(blocks: wp.array) -> wp.array:
+    """The (B, E) matrix array `blocks` seen as (B, E, rows x cols) float64, without a copy."""
+    size = wp.types.type_size(blocks.dtype)
+    return wp.array(ptr=blocks.ptr, dtype=wp.float64, shape=(*blocks.shape, size), device=blocks.device, copy=False)
 
 
 @wp.kernel
@@ -318,7 +325,7 @@ class BatchedBlockMatrix:
             wp.launch(
                 _scatter_blocks,
                 (self.batch, blocks.shape[1], k * k),
-                [blocks, k, block_of, weights, self.values],
+                [scalar_view(blocks), k, block_of, weights, self.values],
                 device=self.device,
             )
         shift_w = wp.array(np.asarray(shift, dtype=np.float64), dtype=wp.float64, device=self.device)
@@ -347,8 +354,12 @@ class BatchedCG:
     any column still runs after each replay.
     """
 
-    def __init__(self, matrix: BatchedBlockMatrix, columns: int, check_every: int = 25) -> None:
+    def __init__(
+        self, matrix: BatchedBlockMatrix, columns: int, check_every: int = 25, use_graph: bool | None = None
+    ) -> None:
+        """`use_graph`: replay the iterations as a CUDA graph (None: on CUDA devices)."""
         self.matrix, self.columns, self.check_every = matrix, columns, check_every
+        self.use_graph = wp.get_device(matrix.device).is_cuda if use_graph is None else use_graph
         device, n = matrix.device, matrix.pattern.n_nodes
         vec = lambda: wp.zeros((columns, n), dtype=wp.vec3d, device=device)  # noqa: E731
         scalar = lambda dtype=wp.float64: wp.zeros(columns, dtype=dtype, device=device)  # noqa: E731
@@ -416,7 +427,7 @@ class BatchedCG:
         )
         bb = self.bb.numpy()
         self.state.assign(np.where(np.asarray(active) & (bb > 0.0), CG_RUNNING, CG_CONVERGED).astype(np.int32))
-        use_graph = wp.get_device(device).is_cuda
+        use_graph = self.use_graph
         if use_graph and (self._graph is None or self._max_iterations != max_iterations):
             self._max_iterations = max_iterations
             with wp.ScopedCapture(device=device) as capture:
