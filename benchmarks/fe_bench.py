@@ -64,6 +64,7 @@ def add_batch_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--seed", type=int, default=0)
     parser.add_argument("--json", default=None, help="also write the batched results to this JSON file")
     parser.add_argument("--forces", default=None, help="write the batched forces (poses, B, 3) N to this .npz")
+    parser.add_argument("--force-limit", type=float, default=25.0, help="N; a trajectory stops above it")
     parser.add_argument("--time-limit", type=float, default=1e9, help="stop stepping after this many seconds")
 
 
@@ -129,11 +130,14 @@ def run_batch_benchmark(args: argparse.Namespace) -> None:
     wp.synchronize()
     start = time.perf_counter()
     results = []
+    running = np.ones(args.batch, dtype=bool)
     for t in travels:
         if time.perf_counter() - start > args.time_limit:
             break
-        running = np.array([f is None for f in stepper.failure])  # a failed trajectory stops, as in a campaign
         results.append(stepper.step(paths["rotation"], _poses(paths, t), running))
+        # As in a campaign, a failed trajectory stops, and so does one past the controller's force limit.
+        pressed = np.array([r is not None and np.linalg.norm(r.force) > args.force_limit for r in results[-1]])
+        running &= ~pressed & np.array([f is None for f in stepper.failure])
     wall = time.perf_counter() - start
     loaded = [r for step in results for r in step if r is not None and r.message != "no contact"]
     failed = sum(not r.converged for r in loaded)
@@ -146,6 +150,7 @@ def run_batch_benchmark(args: argparse.Namespace) -> None:
         "poses_stepped": len(results),
         "loaded_increments": len(loaded),
         "failed": failed,
+        "stopped_at_force_limit": int(args.batch - running.sum() - len([f for f in stepper.failure if f])),
         "compile_s": compile_s,
         "setup_s": setup_s,
         "wall_s": wall,
