@@ -99,7 +99,7 @@ def test_calibration_moves_the_modulus_toward_the_plants_and_lowers_the_cost(sti
     chosen = default_trajectories([data])
     assert [t.normal for t in chosen] == [False] and chosen[0].indenter == "sphere_medium"
     base = TwinModel(mesh_max_edge=data.mesh_max_edge)
-    result = calibrate(chosen, base, Predictor(), CalibrationSettings(max_iterations=3))
+    result = calibrate(chosen, base, Predictor(), CalibrationSettings(max_iterations=4))
     start_cost = result.history[0]["cost"]
     assert result.cost < 0.7 * start_cost, (start_cost, result.cost)
     nominal = SkinParameters().mu_nh

@@ -6,7 +6,8 @@ Cost (Narang et al., Eq. 1): J = w1 J_force + w2 J_thick with w1 = 1, w2 = 1e4.
   predicted force of zero, so failing early never lowers the cost.
 - J_thick: the paper writes w2 (t_sim - 0.0151), which rewards a thinner sensor without bound. Here it is
   a proper penalty of the same weight and units, smooth for SLSQP: w2 sqrt((t_sim - 0.0151)^2 + eps^2)
-  - w2 eps with eps = 10 um (a pseudo-Huber absolute value: |dt| away from zero, quadratic within eps).
+  - w2 eps with eps = 0.1 mm (a pseudo-Huber absolute value: |dt| far from zero, quadratic within eps, so
+  SLSQP sees a smooth valley it can follow while the other parameters move the inflated thickness).
 The skin is inflated by the paper's thermal rule (fluid at T_fl), so the sensor thickness t_sim is an
 output. Our BioTac cavity (facts/biotac.md geometry) holds far less fluid than the paper's FE fluid
 domain: with beta_T = 0.01 /C, reaching 15.1 mm would need T_fl near 130 C. Calibration therefore uses
@@ -39,16 +40,19 @@ CALIBRATED = ("thickness", "mu_nh", "friction", "fluid_temperature")
 """SkinParameters fields the calibration moves (the paper's t_s, mu_NH, mu_fr, T_fl)."""
 FORCE_WEIGHT = 1.0
 THICKNESS_WEIGHT = 1e4
-THICKNESS_SMOOTHING = 10e-6
+THICKNESS_SMOOTHING = 0.1e-3
 """eps (m) of the pseudo-Huber thickness penalty."""
+FIRST_STEP = 0.05
+"""Largest move of SLSQP's first step, as a fraction of a parameter's bound range."""
 
 
 @dataclass(frozen=True)
 class CalibrationSettings:
     """SLSQP settings; `step` is the finite-difference step in scaled units (fraction of each bound range)."""
 
-    max_iterations: int = 20
+    max_iterations: int = 30
     tolerance: float = 1e-4
+    """Stop when an iteration lowers the cost by less than this fraction of the starting cost."""
     step: float = 0.02
     bounds: dict[str, tuple[float, float]] = field(default_factory=lambda: dict(PAPER_CALIBRATION_BOUNDS))
 
@@ -158,21 +162,37 @@ def calibrate(
     def cost(z: np.ndarray) -> float:
         force_cost, thick_cost, thickness = terms(z)
         total = force_cost + thick_cost
-        history.append({**_calibrated_values(model_at(z).skin), "cost": total, "thickness": thickness})
+        history.append({**_calibrated_values(model_at(z).skin), "cost": total, "sensor_thickness": thickness})
         if progress is not None:
             progress(len(history), total)
         return total if np.isfinite(total) else 1e6
 
     z0 = (start - low) / (high - low)
-    scale = cost(z0)  # SLSQP's tolerance is absolute: optimise the cost relative to the start's
-    if not np.isfinite(scale) or scale >= 1e6:
+
+    def gradient(z: np.ndarray) -> np.ndarray:
+        """Forward differences of `settings.step` in scaled units (backward at the upper bound); the
+        predictor caches every model, so SLSQP's repeated points cost nothing."""
+        f0, out = cost(z), np.zeros_like(z)
+        for i in range(len(z)):
+            h = settings.step if z[i] + settings.step <= 1.0 else -settings.step
+            shifted = z.copy()
+            shifted[i] += h
+            out[i] = (cost(shifted) - f0) / h
+        return out
+
+    # SLSQP's first step is minus the gradient (unit Hessian) and its tolerance is absolute: divide the
+    # cost so that the first step moves no parameter by more than FIRST_STEP of its range.
+    f_start = cost(z0)
+    if not np.isfinite(f_start) or f_start >= 1e6:
         raise RuntimeError("the model fails at the starting parameters; pass a --model that runs")
+    divisor = max(float(np.max(np.abs(gradient(z0)))) / FIRST_STEP, f_start, 1e-12)
     result = minimize(
-        lambda z: cost(z) / scale,
+        lambda z: cost(z) / divisor,
         z0,
+        jac=lambda z: gradient(z) / divisor,
         method="SLSQP",
         bounds=[(0.0, 1.0)] * len(CALIBRATED),
-        options={"maxiter": settings.max_iterations, "ftol": settings.tolerance, "eps": settings.step},
+        options={"maxiter": settings.max_iterations, "ftol": settings.tolerance * f_start / divisor},
     )
     best = model_at(result.x)
     force_cost, thick_cost, thickness = terms(result.x)
