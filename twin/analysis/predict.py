@@ -28,8 +28,8 @@ from twin.sim_backend import RELAXATION_SOLVE_INTERVAL_S, ft_load
 
 INFLATION_RULES = ("thickness", "thermal")
 """How a model's skin is inflated (see TwinModel)."""
-MODEL_CACHE_SIZE = 8
-"""Inflated fe models a Predictor keeps (least recently built dropped first)."""
+MODEL_CACHE_SIZE = 24
+"""Inflated fe models a Predictor keeps (first built dropped first); replays, small arrays, are all kept."""
 
 
 @dataclass(frozen=True)
@@ -114,7 +114,6 @@ class Predictor:
             if len(self._models) >= MODEL_CACHE_SIZE:
                 dropped = next(iter(self._models))
                 self._electrodes.pop(id(self._models.pop(dropped)[0]), None)
-                self._replays = {k: v for k, v in self._replays.items() if k[0] != dropped}
             self._models[key] = (model, result)
         return self._models[key]
 
