@@ -116,4 +116,4 @@ def run_demo(
 ) -> LoopResult:
     """`twin demo`: the loop with a hidden effect drawn by `seed` from `DEMO_EFFECTS`."""
     hidden = DEMO_EFFECTS[int(np.random.default_rng(seed).integers(len(DEMO_EFFECTS)))]
-    return run_loop(out_dir, hidden, seed, config, say=say)
+    return run_loop(out_dir, hidden, seed, config, say=say, top=2)
