@@ -302,7 +302,7 @@ class IndentationStepper:
             self.failure = result.message
         axis = indenter.rotation[:, 2]
         rel = x - indenter.translation
-        radial = rel - np.outer(rel @ axis, axis)
+        radial = rel - np.outer(np.einsum("ij,j->i", rel, axis), axis)  # einsum: no BLAS thread wake-ups
         return IncrementResult(
             depth=depth,
             force=f_indenter,

@@ -1,11 +1,12 @@
 """The skin as a warp-evaluated energy system: membrane + bending + contact, with the fluid volume.
 
-`ShellSystem` owns the mesh data on the warp device and answers `linearize` for Newton: total energy,
+`ShellSystem` owns the mesh data on warp's CPU device and answers `linearize` for Newton: total energy,
 gradient and projected sparse Hessian on the free DOFs, and the enclosed volume with its derivatives.
 Positions are metres in the sensor frame (`biotac` for the BioTac); forces newtons.
 """
 
 from dataclasses import dataclass, field
+from functools import partial
 
 import numpy as np
 import warp as wp
@@ -16,6 +17,16 @@ from fe.linsolve import SymmetricSolver
 from fe.newton import Linearization
 from fe.params import ContactSettings, SkinParameters
 from fe.wptypes import mat99d, mat1818d, vec6i
+
+CPU_DEVICE = "cpu"
+"""Warp device of every array and launch of `ShellSystem`, named explicitly rather than taken from warp's
+default (which is `cuda:0` on a CUDA machine): the system writes inputs through `.numpy()` views, which are
+the array's own memory only for CPU arrays. The batched GPU path is `fe.batched`."""
+
+
+def _cpu_array(data: object, dtype: type) -> wp.array:
+    """A warp array of `dtype` on `CPU_DEVICE` holding a copy of `data`."""
+    return wp.array(data, dtype=dtype, device=CPU_DEVICE)
 
 
 @dataclass(frozen=True)
@@ -97,25 +108,25 @@ class ShellSystem:
         rest_angle, bend_area, coupling = bending.stencil_rest_state(mesh.vertices, stencils, present)
         self._dm_inv_host, self._present, self.rest_angle = dm_inv, present, rest_angle
         self.vertex_area = lumped_areas(mesh.vertices, mesh.triangles)
-        self._tri = wp.array(mesh.triangles.astype(np.int32), dtype=wp.vec3i)
-        self._dm_inv = wp.array(dm_inv, dtype=wp.mat22d)
-        self._rest_area = wp.array(rest_area, dtype=wp.float64)
-        self._stencils = wp.array(stencils, dtype=vec6i)
-        self._has_edge = wp.array(present, dtype=wp.vec3i)
-        self._bend_area = wp.array(bend_area, dtype=wp.float64)
-        self._coupling = wp.array(coupling, dtype=wp.mat33d)
-        self._vertex_area = wp.array(self.vertex_area, dtype=wp.float64)
+        self._tri = _cpu_array(mesh.triangles.astype(np.int32), wp.vec3i)
+        self._dm_inv = _cpu_array(dm_inv, wp.mat22d)
+        self._rest_area = _cpu_array(rest_area, wp.float64)
+        self._stencils = _cpu_array(stencils, vec6i)
+        self._has_edge = _cpu_array(present, wp.vec3i)
+        self._bend_area = _cpu_array(bend_area, wp.float64)
+        self._coupling = _cpu_array(coupling, wp.mat33d)
+        self._vertex_area = _cpu_array(self.vertex_area, wp.float64)
         vertex_nodes = np.arange(self.n_vertices)[:, None]
         self.bending_stencils = stencils if self.params.bending else stencils[:0]
         """(T,6) nodes of each triangle's bending stencil: its vertices, then the far vertex across each edge."""
         self.assembler = BlockAssembler([mesh.triangles, self.bending_stencils, vertex_nodes], dof_map)
         self._core_mesh = None
         if self.core is not None:
-            self._core_vertices = wp.array(self.core.vertices, dtype=wp.vec3d)
-            self._core_triangles = wp.array(self.core.triangles.astype(np.int32), dtype=wp.vec3i)
+            self._core_vertices = _cpu_array(self.core.vertices, wp.vec3d)
+            self._core_triangles = _cpu_array(self.core.triangles.astype(np.int32), wp.vec3i)
             self._core_mesh = wp.Mesh(
-                points=wp.array(self.core.vertices.astype(np.float32), dtype=wp.vec3),
-                indices=wp.array(self.core.triangles.astype(np.int32).ravel(), dtype=wp.int32),
+                points=_cpu_array(self.core.vertices.astype(np.float32), wp.vec3),
+                indices=_cpu_array(self.core.triangles.astype(np.int32).ravel(), wp.int32),
             )
         self.indenter: IndenterState | None = None
         self.x_start = self.x.copy()
@@ -139,7 +150,7 @@ class ShellSystem:
     def _allocate(self) -> None:
         """Warp buffers reused by every evaluation (batch axis of 1)."""
         nv, nt, nh = self.n_vertices, len(self.mesh.triangles), len(self.bending_stencils)
-        zeros = wp.zeros
+        zeros = partial(wp.zeros, device=CPU_DEVICE)
         self._buf = {
             "x": zeros((1, nv), dtype=wp.vec3d),
             "x_start": zeros((1, nv), dtype=wp.vec3d),
@@ -163,8 +174,8 @@ class ShellSystem:
             "indenter_gap": zeros((1, nv), dtype=wp.float64),
             "indenter_normal": zeros((1, nv), dtype=wp.vec3d),
         }
-        self._gent = wp.array([self.params.gent_inverse_jm], dtype=wp.float64)
-        self._friction = wp.array([self.params.friction], dtype=wp.float64)
+        self._gent = _cpu_array([self.params.gent_inverse_jm], wp.float64)
+        self._friction = _cpu_array([self.params.friction], wp.float64)
         self.set_relaxation(self.params.long_term_fraction)
 
     def set_relaxation(
@@ -174,11 +185,11 @@ class ShellSystem:
         `scale` (1: elastic, 1 - g: fully relaxed), a frozen membrane stress (T,2,2) N/m added as
         (1/2) a : (C - I) per reference area, and bending rest angles shifted by `angle_shift` (T,3) rad.
         A new system is fully relaxed (scale 1 - relaxation_fraction, nothing frozen)."""
-        self._mu_t = wp.array([scale * self.params.membrane_modulus], dtype=wp.float64)
-        self._kb = wp.array([scale * self.params.bending_stiffness], dtype=wp.float64)
-        self._frozen_stress = None if membrane_stress is None else wp.array(membrane_stress, dtype=wp.mat22d)
+        self._mu_t = _cpu_array([scale * self.params.membrane_modulus], wp.float64)
+        self._kb = _cpu_array([scale * self.params.bending_stiffness], wp.float64)
+        self._frozen_stress = None if membrane_stress is None else _cpu_array(membrane_stress, wp.mat22d)
         shifted = self.rest_angle if angle_shift is None or not len(angle_shift) else self.rest_angle + angle_shift
-        self._rest_angle = wp.array(shifted, dtype=wp.vec3d)
+        self._rest_angle = _cpu_array(shifted, wp.vec3d)
 
     def membrane_stress(self, x: np.ndarray) -> np.ndarray:
         """Elastic (instantaneous) membrane stress resultants (T,2,2) N/m at positions x (V,3) m."""
@@ -212,6 +223,7 @@ class ShellSystem:
             (1, nt),
             [xw, self._tri, self._dm_inv, self._rest_area, self._mu_t, self._gent, flag]
             + [buf["membrane_energy"], buf["elastic_gradient"], buf["membrane_hessian"]],
+            device=CPU_DEVICE,
         )
         if self._frozen_stress is not None:
             wp.launch(
@@ -219,6 +231,7 @@ class ShellSystem:
                 (1, nt),
                 [xw, self._tri, self._dm_inv, self._rest_area, self._frozen_stress, flag]
                 + [buf["membrane_energy"], buf["elastic_gradient"], buf["membrane_hessian"]],
+                device=CPU_DEVICE,
             )
         if nh:
             wp.launch(
@@ -226,12 +239,14 @@ class ShellSystem:
                 (1, nh),
                 [xw, self._stencils, self._has_edge, self._rest_angle, self._bend_area, self._coupling, self._kb, flag]
                 + [buf["bending_energy"], buf["elastic_gradient"], buf["bending_hessian"]],
+                device=CPU_DEVICE,
             )
         wp.launch(
             volume.volume_kernel,
             (1, nt),
             [xw, self._tri, wp.vec3d(*self.volume_origin), flag]
             + [buf["volume"], buf["volume_gradient"], buf["volume_hessian"]],
+            device=CPU_DEVICE,
         )
         self._launch_contact(want_hessian)
         out: dict[str, np.ndarray | float] = {
@@ -267,6 +282,7 @@ class ShellSystem:
                 [buf["x"], self._core_mesh.id, self._core_vertices, self._core_triangles, self._vertex_area]
                 + [wp.float64(self.core.offset), kappa, buf["core_energy"], buf["core_gradient"]]
                 + [buf["core_hessian"], buf["core_gap"]],
+                device=CPU_DEVICE,
             )
         ind = self.indenter
         if ind is None:
@@ -279,12 +295,13 @@ class ShellSystem:
             contact.indenter_contact_kernel,
             (1, nv),
             [buf["x"], buf["x_start"], self._vertex_area, ind.kind, wp.vec4d(*ind.dims)]
-            + [wp.array([ind.rotation], dtype=wp.mat33d), wp.array([ind.translation], dtype=wp.vec3d)]
-            + [wp.array([rotation_start], dtype=wp.mat33d), wp.array([ind.translation_start], dtype=wp.vec3d)]
-            + [wp.array([ind.offset], dtype=wp.float64), kappa, self._friction, buf["lagged_force"]]
+            + [_cpu_array([ind.rotation], wp.mat33d), _cpu_array([ind.translation], wp.vec3d)]
+            + [_cpu_array([rotation_start], wp.mat33d), _cpu_array([ind.translation_start], wp.vec3d)]
+            + [_cpu_array([ind.offset], wp.float64), kappa, self._friction, buf["lagged_force"]]
             + [buf["lagged_normal"], wp.float64(self.contact_settings.slip_length), 1 if want_hessian else 0]
             + [buf["indenter_energy"], buf["indenter_gradient"], buf["indenter_hessian"], buf["indenter_gap"]]
             + [buf["indenter_normal"]],
+            device=CPU_DEVICE,
         )
 
     def indenter_proximity(self, x: np.ndarray, indenter: IndenterState) -> tuple[np.ndarray, np.ndarray]:
@@ -294,9 +311,10 @@ class ShellSystem:
         wp.launch(
             contact.indenter_gap_kernel,
             (1, self.n_vertices),
-            [buf["x"], indenter.kind, wp.vec4d(*indenter.dims), wp.array([indenter.rotation], dtype=wp.mat33d)]
-            + [wp.array([indenter.translation], dtype=wp.vec3d), wp.array([indenter.offset], dtype=wp.float64)]
+            [buf["x"], indenter.kind, wp.vec4d(*indenter.dims), _cpu_array([indenter.rotation], wp.mat33d)]
+            + [_cpu_array([indenter.translation], wp.vec3d), _cpu_array([indenter.offset], wp.float64)]
             + [buf["indenter_gap"], buf["indenter_normal"]],
+            device=CPU_DEVICE,
         )
         return self._host("indenter_gap"), self._host("indenter_normal")
 
