@@ -19,16 +19,21 @@ import json
 import time
 from dataclasses import asdict, dataclass, fields
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import numpy as np
 import warp as wp
 
+from fe import batched_kernels as bk
 from fe import bending, contact, membrane, volume
 from fe.device_solver import CG_NEGATIVE_CURVATURE, BatchedBlockMatrix, BatchedCG, BlockPattern, batched_dot
 from fe.newton import NewtonSettings
 from fe.params import ContactSettings, SkinParameters
 from fe.shell import lumped_areas
 from fe.wptypes import mat99d, mat1818d, vec6i
+
+if TYPE_CHECKING:
+    from fe.sensor import BioTacModel
 
 SUPPORTED_PARAMETERS = frozenset(
     {
@@ -84,7 +89,7 @@ class InflatedSkin:
             raise NotImplementedError(f"the batched FE solver does not model {unsupported}; use fe.sensor.BioTacModel")
 
     @classmethod
-    def from_model(cls, model) -> InflatedSkin:
+    def from_model(cls, model: BioTacModel) -> InflatedSkin:
         """The inflated state of a `fe.sensor.BioTacModel` (inflate() it first)."""
         if model.reference is None:
             raise RuntimeError("inflate() the model before batching it")
@@ -136,102 +141,11 @@ def launch(kernel: wp.Kernel, dim: tuple, values: dict, device: str) -> None:
     wp.launch(kernel, dim, [values[n] for n in names], device=device)
 
 
-@wp.kernel
-def _row_sum(a: wp.array2d(dtype=wp.float64), out: wp.array(dtype=wp.float64)):
-    b, i = wp.tid()
-    wp.atomic_add(out, b, a[b, i])
-
-
-@wp.kernel
-def _residual(
-    gradients: wp.array3d(dtype=wp.vec3d),
-    volume_gradient: wp.array2d(dtype=wp.vec3d),
-    pressure: wp.array(dtype=wp.float64),
-    free: wp.array(dtype=wp.vec3d),
-    residual: wp.array2d(dtype=wp.vec3d),
-    gradient: wp.array2d(dtype=wp.vec3d),
-    bvec: wp.array2d(dtype=wp.vec3d),
-    stats: wp.array2d(dtype=wp.float64),
-):
-    """Free-DOF residual r = grad E - p grad V, grad E and b = grad V; stats[b] = (max|r|, sum r^2, max load)."""
-    b, v = wp.tid()
-    f = free[v]
-    g = gradients[0, b, v] + gradients[1, b, v] + gradients[2, b, v]
-    gv = volume_gradient[b, v]
-    r = wp.cw_mul(g - pressure[b] * gv, f)
-    residual[b, v] = r
-    gradient[b, v] = wp.cw_mul(g, f)
-    bvec[b, v] = wp.cw_mul(gv, f)
-    load = wp.max(wp.max(wp.abs(wp.cw_mul(g, f))), wp.max(wp.abs(wp.cw_mul(gv, f) * pressure[b])))
-    wp.atomic_max(stats, b, 0, wp.max(wp.abs(r)))
-    wp.atomic_add(stats, b, 1, wp.dot(r, r))
-    wp.atomic_max(stats, b, 2, load)
-
-
-@wp.kernel
-def _axpy(
-    x: wp.array2d(dtype=wp.vec3d),
-    step: wp.array(dtype=wp.float64),
-    d: wp.array2d(dtype=wp.vec3d),
-    out: wp.array2d(dtype=wp.vec3d),
-):
-    """out[b] = x[b] + step[b] d[b]."""
-    b, v = wp.tid()
-    out[b, v] = x[b, v] + step[b] * d[b, v]
-
-
-@wp.kernel
-def _newton_rhs(
-    residual: wp.array2d(dtype=wp.vec3d), bvec: wp.array2d(dtype=wp.vec3d), rhs: wp.array2d(dtype=wp.vec3d)
-):
-    """Columns 0..B-1: -r; B..2B-1: b."""
-    b, v = wp.tid()
-    n = residual.shape[0]
-    rhs[b, v] = -residual[b, v]
-    rhs[n + b, v] = bvec[b, v]
-
-
-@wp.kernel
-def _combine(u: wp.array2d(dtype=wp.vec3d), dp: wp.array(dtype=wp.float64), dq: wp.array2d(dtype=wp.vec3d)):
-    """dq = u1 + dp u2 with u1 = u[b], u2 = u[B + b]."""
-    b, v = wp.tid()
-    dq[b, v] = u[b, v] + dp[b] * u[dq.shape[0] + b, v]
-
-
-@wp.kernel
-def _lag_candidates(
-    gap: wp.array2d(dtype=wp.float64),
-    vertex_area: wp.array(dtype=wp.float64),
-    kappa: wp.float64,
-    lagged_force: wp.array2d(dtype=wp.float64),
-    candidate: wp.array2d(dtype=wp.float64),
-    stats: wp.array2d(dtype=wp.float64),
-):
-    """Penalty normal force (N) per vertex from its gap; stats[b] = (max change from the lagged one, max force)."""
-    b, v = wp.tid()
-    f = kappa * vertex_area[v] * wp.max(-gap[b, v], wp.float64(0.0))
-    candidate[b, v] = f
-    wp.atomic_max(stats, b, 0, wp.abs(f - lagged_force[b, v]))
-    wp.atomic_max(stats, b, 1, f)
-
-
-@wp.kernel
-def _lag_apply(
-    changed: wp.array(dtype=wp.int32),
-    candidate: wp.array2d(dtype=wp.float64),
-    normal: wp.array2d(dtype=wp.vec3d),
-    lagged_force: wp.array2d(dtype=wp.float64),
-    lagged_normal: wp.array2d(dtype=wp.vec3d),
-):
-    b, v = wp.tid()
-    if changed[b] != 0:
-        lagged_force[b, v] = candidate[b, v]
-        lagged_normal[b, v] = normal[b, v]
-
-
 @dataclass
-class Linearization:
-    """Per-system scalars of one evaluation (host arrays, (B,)); vectors stay on the device."""
+class BatchLinearization:
+    """Per-system scalars of one evaluation, (B,) host arrays: energy (J), enclosed volume (m^3), infinity
+    and 2-norm of the free-DOF residual (N), and the largest nodal load max(|grad E|, |p grad V|) (N);
+    the vectors stay on the device (`BatchedShell.residual`, `.gradient`, `.bvec`)."""
 
     energy: np.ndarray
     volume: np.ndarray
@@ -361,7 +275,7 @@ class BatchedShell:
             self.pose[name].assign(np.asarray(value, dtype=np.float64))
 
     # -- evaluation ------------------------------------------------------------------------------
-    def evaluate(self, x: wp.array, want_hessian: bool, pressure: np.ndarray) -> Linearization:
+    def evaluate(self, x: wp.array, want_hessian: bool, pressure: np.ndarray) -> BatchLinearization:
         """All energy terms of every system at positions x (B,V) (m), their free-DOF residual at `pressure`
         (B,) Pa (in `self.residual`, with grad E in `self.gradient` and grad V in `self.bvec`)."""
         B, V, buf, dev = self.batch, self.n_vertices, self.buf, self.device
@@ -415,7 +329,7 @@ class BatchedShell:
             "gap": buf["indenter_gap"],
             "normal": buf["indenter_normal"],
         }
-        self._launch_indenters(contact.indenter_contact_kernel, {**common, **outputs}, x)
+        self._launch_indenters(contact.indenter_contact_kernel, {**common, **outputs})
         energy = sum(
             self._per_system(buf[name])
             for name in ("membrane_energy", "bending_energy", "core_energy", "indenter_energy")
@@ -423,7 +337,7 @@ class BatchedShell:
         vol = self._per_system(buf["volume"])
         self._stats.zero_()
         launch(
-            _residual,
+            bk.free_residual,
             (B, V),
             {
                 "gradients": self.gradients,
@@ -440,7 +354,7 @@ class BatchedShell:
         stats = self._stats.numpy()
         self.counters["evaluations"] += 1
         self.counters["evaluate_s"] += time.perf_counter() - start
-        return Linearization(energy, vol, stats[:, 0].copy(), np.sqrt(stats[:, 1]), stats[:, 2].copy())
+        return BatchLinearization(energy, vol, stats[:, 0].copy(), np.sqrt(stats[:, 1]), stats[:, 2].copy())
 
     def proximity(self, x: wp.array) -> tuple[np.ndarray, np.ndarray]:
         """Gap (B,V) m (negative inside the contact band) and unit SDF normals (B,V,3) of x to each indenter."""
@@ -450,10 +364,10 @@ class BatchedShell:
             "gap": self.buf["indenter_gap"],
             "normal": self.buf["indenter_normal"],
         }
-        self._launch_indenters(contact.indenter_gap_kernel, values, x)
+        self._launch_indenters(contact.indenter_gap_kernel, values)
         return self.buf["indenter_gap"].numpy().copy(), self.buf["indenter_normal"].numpy().copy()
 
-    def _launch_indenters(self, kernel: wp.Kernel, values: dict, x: wp.array) -> None:
+    def _launch_indenters(self, kernel: wp.Kernel, values: dict) -> None:
         """One launch of an indenter kernel per run of systems sharing an indenter, on batch slices."""
         values = {**values, **self.pose}
         for lo, hi, kind, dims in self._runs:
@@ -464,7 +378,7 @@ class BatchedShell:
     def _per_system(self, a: wp.array) -> np.ndarray:
         self._sums.zero_()
         if a.shape[1]:
-            wp.launch(_row_sum, a.shape, [a, self._sums], device=self.device)
+            wp.launch(bk.row_sum, a.shape, [a, self._sums], device=self.device)
         return self._sums.numpy().copy()
 
     # -- Newton ------------------------------------------------------------------------------------
@@ -474,7 +388,7 @@ class BatchedShell:
         self.proximity(x)
         self._stats.zero_()
         wp.launch(
-            _lag_candidates,
+            bk.lag_candidates,
             (self.batch, self.n_vertices),
             [self.buf["indenter_gap"], self._static["vertex_area"], self._static["kappa"], self.lagged_force]
             + [self._candidate, self._stats],
@@ -484,7 +398,7 @@ class BatchedShell:
         changed = mask & (stats[:, 0] > self.skin.contact.friction_tolerance * np.maximum(stats[:, 1], 1e-12))
         if changed.any():
             wp.launch(
-                _lag_apply,
+                bk.lag_apply,
                 (self.batch, self.n_vertices),
                 [wp.array(changed.astype(np.int32), dtype=wp.int32, device=self.device), self._candidate]
                 + [self.buf["indenter_normal"], self.lagged_force, self.lagged_normal],
@@ -539,7 +453,7 @@ class BatchedShell:
 
     def _newton_step(
         self,
-        lin: Linearization,
+        lin: BatchLinearization,
         pressure: np.ndarray,
         target: np.ndarray,
         c: np.ndarray,
@@ -566,7 +480,7 @@ class BatchedShell:
 
     def _direction(
         self,
-        lin: Linearization,
+        lin: BatchLinearization,
         pressure: np.ndarray,
         c: np.ndarray,
         mask: np.ndarray,
@@ -586,7 +500,7 @@ class BatchedShell:
             ],
             damping,
         )
-        wp.launch(_newton_rhs, (B, self.n_vertices), [self.residual, self.bvec, self.rhs], device=self.device)
+        wp.launch(bk.newton_rhs, (B, self.n_vertices), [self.residual, self.bvec, self.rhs], device=self.device)
         active = np.concatenate([mask, mask])
         u, iterations, state = self.cg.solve(
             self.rhs, self._system_of, active, np.concatenate([eta, eta]), self.cg_max_iterations
@@ -601,7 +515,7 @@ class BatchedShell:
         ok &= np.isfinite(schur) & (schur != 0.0)
         dp = np.where(ok, -(c + bu1) / np.where(ok, schur, 1.0), 0.0)
         wp.launch(
-            _combine,
+            bk.combine,
             (B, self.n_vertices),
             [u, wp.array(dp, dtype=wp.float64, device=self.device), self.dq],
             device=self.device,
@@ -615,7 +529,7 @@ class BatchedShell:
 
     def _line_search(
         self,
-        lin: Linearization,
+        lin: BatchLinearization,
         pressure: np.ndarray,
         target: np.ndarray,
         c: np.ndarray,
@@ -662,9 +576,9 @@ class BatchedShell:
             step = np.where(undecided, 0.5 * step, step)
         return accepted
 
-    def _trial(self, step: np.ndarray, pressure: np.ndarray) -> Linearization:
+    def _trial(self, step: np.ndarray, pressure: np.ndarray) -> BatchLinearization:
         wp.launch(
-            _axpy,
+            bk.axpy,
             (self.batch, self.n_vertices),
             [self.x, wp.array(step, dtype=wp.float64, device=self.device), self.dq, self.x_trial],
             device=self.device,
@@ -677,7 +591,7 @@ class BatchedShell:
             return
         taken = np.where(ok, step, 0.0)
         wp.launch(
-            _axpy,
+            bk.axpy,
             (self.batch, self.n_vertices),
             [self.x, wp.array(taken, dtype=wp.float64, device=self.device), self.dq, self.x],
             device=self.device,

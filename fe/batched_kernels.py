@@ -1,0 +1,95 @@
+"""Warp kernels of the batched Newton solver (`fe.batched`): reductions, residuals, vector updates and the
+friction lagging, all over a leading batch axis b (positions m, forces N, pressures Pa)."""
+
+import warp as wp
+
+
+@wp.kernel
+def row_sum(a: wp.array2d(dtype=wp.float64), out: wp.array(dtype=wp.float64)):
+    b, i = wp.tid()
+    wp.atomic_add(out, b, a[b, i])
+
+
+@wp.kernel
+def free_residual(
+    gradients: wp.array3d(dtype=wp.vec3d),
+    volume_gradient: wp.array2d(dtype=wp.vec3d),
+    pressure: wp.array(dtype=wp.float64),
+    free: wp.array(dtype=wp.vec3d),
+    residual: wp.array2d(dtype=wp.vec3d),
+    gradient: wp.array2d(dtype=wp.vec3d),
+    bvec: wp.array2d(dtype=wp.vec3d),
+    stats: wp.array2d(dtype=wp.float64),
+):
+    """Free-DOF residual r = grad E - p grad V, grad E and b = grad V; stats[b] = (max|r|, sum r^2, max load)."""
+    b, v = wp.tid()
+    f = free[v]
+    g = gradients[0, b, v] + gradients[1, b, v] + gradients[2, b, v]
+    gv = volume_gradient[b, v]
+    r = wp.cw_mul(g - pressure[b] * gv, f)
+    residual[b, v] = r
+    gradient[b, v] = wp.cw_mul(g, f)
+    bvec[b, v] = wp.cw_mul(gv, f)
+    load = wp.max(wp.max(wp.abs(wp.cw_mul(g, f))), wp.max(wp.abs(wp.cw_mul(gv, f) * pressure[b])))
+    wp.atomic_max(stats, b, 0, wp.max(wp.abs(r)))
+    wp.atomic_add(stats, b, 1, wp.dot(r, r))
+    wp.atomic_max(stats, b, 2, load)
+
+
+@wp.kernel
+def axpy(
+    x: wp.array2d(dtype=wp.vec3d),
+    step: wp.array(dtype=wp.float64),
+    d: wp.array2d(dtype=wp.vec3d),
+    out: wp.array2d(dtype=wp.vec3d),
+):
+    """out[b] = x[b] + step[b] d[b]."""
+    b, v = wp.tid()
+    out[b, v] = x[b, v] + step[b] * d[b, v]
+
+
+@wp.kernel
+def newton_rhs(residual: wp.array2d(dtype=wp.vec3d), bvec: wp.array2d(dtype=wp.vec3d), rhs: wp.array2d(dtype=wp.vec3d)):
+    """Columns 0..B-1: -r; B..2B-1: b."""
+    b, v = wp.tid()
+    n = residual.shape[0]
+    rhs[b, v] = -residual[b, v]
+    rhs[n + b, v] = bvec[b, v]
+
+
+@wp.kernel
+def combine(u: wp.array2d(dtype=wp.vec3d), dp: wp.array(dtype=wp.float64), dq: wp.array2d(dtype=wp.vec3d)):
+    """dq = u1 + dp u2 with u1 = u[b], u2 = u[B + b]."""
+    b, v = wp.tid()
+    dq[b, v] = u[b, v] + dp[b] * u[dq.shape[0] + b, v]
+
+
+@wp.kernel
+def lag_candidates(
+    gap: wp.array2d(dtype=wp.float64),
+    vertex_area: wp.array(dtype=wp.float64),
+    kappa: wp.float64,
+    lagged_force: wp.array2d(dtype=wp.float64),
+    candidate: wp.array2d(dtype=wp.float64),
+    stats: wp.array2d(dtype=wp.float64),
+):
+    """Penalty normal force (N) per vertex from its gap; stats[b] = (max change from the lagged one, max force)."""
+    b, v = wp.tid()
+    f = kappa * vertex_area[v] * wp.max(-gap[b, v], wp.float64(0.0))
+    candidate[b, v] = f
+    wp.atomic_max(stats, b, 0, wp.abs(f - lagged_force[b, v]))
+    wp.atomic_max(stats, b, 1, f)
+
+
+@wp.kernel
+def lag_apply(
+    changed: wp.array(dtype=wp.int32),
+    candidate: wp.array2d(dtype=wp.float64),
+    normal: wp.array2d(dtype=wp.vec3d),
+    lagged_force: wp.array2d(dtype=wp.float64),
+    lagged_normal: wp.array2d(dtype=wp.vec3d),
+):
+    b, v = wp.tid()
+    if changed[b] != 0:
+        lagged_force[b, v] = candidate[b, v]
+        lagged_normal[b, v] = normal[b, v]
