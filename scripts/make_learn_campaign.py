@@ -6,7 +6,9 @@ depths (3 mm normal, 1.5 mm angled) in 0.1 mm increments with loading and unload
 Everything goes through the real pipeline (FE skin, plant, electrode physics, processing) via
 `twin.campaign.run_campaign`; the files are the schema of docs/dataset.md.
 
-    python3 scripts/make_learn_campaign.py --out runs/learn_fe --workers 2          # ~30 min on 2 cores
+    python3 scripts/make_learn_campaign.py --out runs/learn_fe --workers 2 --time-limit 1740
+        # docs/learn.md's table: 162 of the 228 reachable trajectories in 32 min on 2 shared cores;
+        # without --time-limit (or run again on the same --out) it finishes all 228
     python3 scripts/make_learn_campaign.py --out runs/learn_fe --plan-only          # what would run
     python3 scripts/make_learn_campaign.py --out runs/learn_fe --compact runs/learn_fe_compact
 
