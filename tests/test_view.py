@@ -231,3 +231,12 @@ def test_view_refuses_bad_input_with_a_clear_message(model, tmp_path: Path) -> N
     for args, message in cases:
         result = runner.invoke(app, ["view", *args])
         assert result.exit_code == 2 and message in " ".join(result.output.split()), result.output
+
+
+def test_campaign_run_records_each_trajectory_live(tmp_path: Path) -> None:
+    rrd = tmp_path / "live.rrd"
+    args = ["campaign", "run", "--quick", "--sensors", "2", "--indenters", "sphere_medium", "--workers", "1"]
+    result = CliRunner().invoke(app, [*args, "--out", str(tmp_path / "c"), "--view-save", str(rrd)])
+    assert result.exit_code == 0, result.output
+    entities = _entities(rrd)
+    assert {"biotac2/force", "biotac2/electrodes", "biotac2/indenter"} <= set(entities), sorted(entities)[:20]

@@ -24,7 +24,7 @@ from fe.sensor import BioTacModel
 from learn.electrode_physics import ElectrodeModel
 from twin.backend import ARMS
 from twin.controller import Recording, execute
-from twin.dataset import assemble_sensor_file, part_path, write_part
+from twin.dataset import assemble_sensor_file, part_path, read_part, write_part
 from twin.effects import apply_path, apply_skin
 from twin.executors import Executor, LocalExecutor
 from twin.planning import PlannedTrajectory, plan_for_sensor, plan_statistics, scene_tool_tip
@@ -300,12 +300,15 @@ def run_campaign(
     plant: Plant | None = None,
     on_progress: Callable[[int, int], None] | None = None,
     executor: Executor | None = None,
+    on_trajectory: Callable[[int, dict[str, np.ndarray]], None] | None = None,
 ) -> CampaignResult:
     """Plan and run the campaign into `out_dir` (one HDF5 per sensor); resumes from existing parts.
 
     Trajectories run on `executor` (default: `workers` local processes); the files do not depend on it.
-    on_progress(done, total) is called after each trajectory. Parts live in `out_dir/parts` until the
-    sensor files are assembled; they are kept so that a later run can resume or re-assemble.
+    on_progress(done, total) is called after each trajectory; on_trajectory(sensor id, part arrays as
+    `twin.dataset.read_part` returns them) after each one that ran now (a live view). Parts live in
+    `out_dir/parts` until the sensor files are assembled; they are kept so that a later run can resume
+    or re-assemble.
     """
     out_dir = Path(out_dir)
     out_dir.mkdir(parents=True, exist_ok=True)
@@ -325,8 +328,10 @@ def run_campaign(
         (j, slots[(j.sensor_id, j.spec.trajectory_id)], plan.registration[(j.sensor_id, j.arm)], str(parts_dir))
         for j in todo
     ]
-    for _, _, complete in executor.map_unordered(_run_one, tasks, _init_worker, (config, plant)):
+    for sensor_id, trajectory_id, complete in executor.map_unordered(_run_one, tasks, _init_worker, (config, plant)):
         incomplete += not complete
+        if on_trajectory:
+            on_trajectory(sensor_id, read_part(part_path(parts_dir, sensor_id, trajectory_id)))
         done += 1
         if on_progress:
             on_progress(done, len(jobs))

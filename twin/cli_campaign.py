@@ -75,6 +75,17 @@ def _executor(name: str, workers: int, address: str | None):
         raise typer.BadParameter(str(error)) from error
 
 
+def _campaign_viewer(config, spawn: bool, save: Path | None):
+    """A rerun CampaignViewer for --view / --view-save, or None when neither is asked for."""
+    if not spawn and save is None:
+        return None
+    from assets.biotac import make_biotac
+    from twin.view import CampaignViewer, open_recording
+
+    recording = guarded(lambda: open_recording("biotac-twin-campaign", save=save, spawn=spawn))
+    return CampaignViewer(recording, make_biotac(config.mesh_max_edge).skin.triangles)
+
+
 @campaign_app.command("run")
 def run(
     out: Annotated[Path, typer.Option(help="Output folder (one HDF5 per sensor); resumes if it has parts.")],
@@ -101,6 +112,10 @@ def run(
     yes: Annotated[
         bool, typer.Option("--yes", help="Hardware: do not stop to have indenters mounted (e.g. simulated devices).")
     ] = False,
+    view: Annotated[bool, typer.Option("--view", help="Sim: show each finished trajectory in a rerun viewer.")] = False,
+    view_save: Annotated[
+        Path | None, typer.Option("--view-save", help="Sim: record each finished trajectory to this .rrd file.")
+    ] = None,
 ) -> None:
     """Run a campaign, simulated on local workers or on the testbed's devices; a killed run resumes where it stopped.
 
@@ -123,8 +138,11 @@ def run(
         raise typer.BadParameter("--workers must be >= 1")
     if backend == "hardware" and (executor != "local" or address is not None):
         raise typer.BadParameter("--executor/--address: a hardware campaign runs on one robot, here")
+    if backend == "hardware" and (view or view_save is not None):
+        raise typer.BadParameter("--view/--view-save show simulated campaigns (hardware parts lack the fe fields)")
     pool = _executor(executor, workers or 2, address) if backend == "sim" else None
     config = guarded(lambda: _config(quick, sensors, indenters, seed, mesh_mm))
+    viewer = _campaign_viewer(config, view, view_save) if backend == "sim" else None
     with progress_bar() as progress:
         task = progress.add_task("trajectories", total=None)
 
@@ -140,7 +158,14 @@ def run(
         if backend == "sim":
             from twin.campaign import run_campaign
 
-            result = guarded(lambda: run_campaign(config, out, on_progress=report, executor=pool))
+            on_trajectory = viewer.log_trajectory if viewer else None
+            try:
+                result = guarded(
+                    lambda: run_campaign(config, out, on_progress=report, executor=pool, on_trajectory=on_trajectory)
+                )
+            finally:
+                if viewer:
+                    viewer.close()
         else:
             from twin.campaign_hardware import run_from_config
 
