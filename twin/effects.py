@@ -193,7 +193,7 @@ EFFECTS: dict[str, Effect] = {
             "trapped_air",
             "A gas bubble in the fluid (volume fraction of the cavity) makes the fluid compressible (Boyle).",
             "physics",
-            (EffectParameter("fraction", 0.0, 0.0, 0.2, 0.01, "1"),),
+            (EffectParameter("fraction", 0.0, 0.0, 0.5, 0.02, "1"),),
             ("force", "pdc", "electrodes"),
             skin=_trapped_air,
         ),

@@ -3,7 +3,8 @@
 The analysis never sees what is drawn here: callers put the values into a plant and write them to a
 sealed manifest beside the data, which only the final reveal reads. Sizes are drawn well above the
 noise of a quick campaign but within what a real testbed shows (a few tenths of a millimetre of
-registration error, a few percent of calibration error, tens of milliseconds of stream delay).
+registration error, a few percent of calibration error, tens of milliseconds of stream delay, a
+bubble of a fifth to a third of the fluid).
 """
 
 from __future__ import annotations
@@ -43,7 +44,7 @@ HIDDEN_DRAWS: dict[str, Callable[[np.random.Generator], dict[str, float]]] = {
     "indenter_friction": lambda rng: {"scale": float(rng.uniform(2.5, 4.0))},
     "skin_relaxation": lambda rng: {"fraction": float(rng.uniform(0.2, 0.4)), "time_s": float(rng.uniform(0.3, 1.0))},
     "skin_stiffening": lambda rng: {"inverse_jm": float(rng.uniform(0.3, 0.8))},
-    "trapped_air": lambda rng: {"fraction": float(rng.uniform(0.05, 0.12))},
+    "trapped_air": lambda rng: {"fraction": float(rng.uniform(0.2, 0.35))},
     "fill_volume": lambda rng: {"scale": _either(rng, 0.08, 0.15)},
     "registration_offset": _registration,
     "time_delay": lambda rng: {"seconds": float(rng.uniform(0.04, 0.12))},
