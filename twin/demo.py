@@ -24,7 +24,16 @@ from twin.campaign import QUICK_CONFIG, CampaignConfig, run_campaign
 from twin.hidden import draw_hidden, write_sealed_manifest
 from twin.plant import make_plant
 
-DEMO_EFFECTS = ("time_delay", "ft_drift", "ft_crosstalk", "registration_offset", "skin_relaxation", "trapped_air")
+DEMO_EFFECTS = (
+    "time_delay",
+    "ft_drift",
+    "ft_crosstalk",
+    "registration_offset",
+    "skin_relaxation",
+    "skin_stiffening",
+    "skin_thickness",
+    "indenter_friction",
+)
 """Hidden effects `twin demo` draws from: each one leaves its own mark on the data."""
 
 DEMO_CONFIG = replace(QUICK_CONFIG, sensors=(2,), indenters=("sphere_small", "sphere_large", "cylinder_long"))
