@@ -388,10 +388,12 @@ def _identifiability(candidate: Candidate, jac: np.ndarray) -> None:
 
 
 def _refit(
-    candidate: Candidate, model: TwinModel, predictor: Predictor, base: _Base, lin: Linearisation, iterations: int = 2
+    candidate: Candidate, model: TwinModel, predictor: Predictor, base: _Base, lin: Linearisation, iterations: int = 3
 ) -> None:
-    """Chord iterations (linear steps with the base J, re-predicted nonlinearly each time), then, for
-    measurement effects whose predictions reuse cached fe replays, a nonlinear least-squares polish."""
+    """Linear steps re-predicted nonlinearly each time: the first with the given J; a physics effect that
+    still leaves more than the tolerance is linearised again where it stands (Gauss-Newton: one fe replay
+    per parameter), a measurement effect keeps J (its predictions reuse cached fe replays) and ends with a
+    nonlinear least-squares polish."""
     effect = EFFECTS[candidate.name]
     values = lin.point
 
@@ -399,13 +401,16 @@ def _refit(
         return base.residual.values - base.shifted(predictor, model.with_effects({candidate.name: trial_values}))
 
     residual = base.residual.values - lin.offset
-    for _ in range(iterations):
+    for iteration in range(iterations):
         delta = _linear_fit(effect, values, lin.jac, residual)
         values = {
             p.name: float(np.clip(values[p.name] + d, p.lower, p.upper))
             for p, d in zip(effect.parameters, delta, strict=True)
         }
         residual = misfit(values)
+        more = iteration + 1 < iterations
+        if more and effect.kind == "physics" and np.sqrt(np.nanmean(residual**2)) > NOISE_TOLERANCE:
+            lin = linearise(effect, model, values, predictor, base)
     if effect.kind == "measurement":
         values, residual = _polish(effect, values, misfit)
     candidate.refit_parameters = values
@@ -502,7 +507,7 @@ def fit_effect(
     residual = base.residual
     lin = sensitivity(effect, model, predictor, base)
     candidate = Candidate(name, effect.kind, {}, 0.0, 0.0, 0.0)
-    _refit(candidate, model, predictor, base, lin, iterations=3)
+    _refit(candidate, model, predictor, base, lin, iterations=4)
     rms_before = float(np.sqrt(np.mean(residual.values**2)))
     improved = model.with_effects({name: candidate.refit_parameters})
     # Held out: linearised again at the fit, refitted without each indenter in turn, scored on it.
