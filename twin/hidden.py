@@ -35,7 +35,7 @@ def _registration(rng: np.random.Generator) -> dict[str, float]:
 
 def _crosstalk(rng: np.random.Generator) -> dict[str, float]:
     terms = rng.choice(["xy", "xz", "yx", "yz", "zx", "zy"], size=2, replace=False)
-    return {str(t): _signed(rng, 0.05, 0.1) for t in terms}
+    return {str(t): _signed(rng, 0.08, 0.15) for t in terms}
 
 
 HIDDEN_DRAWS: dict[str, Callable[[np.random.Generator], dict[str, float]]] = {
