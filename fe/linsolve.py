@@ -9,8 +9,10 @@ minimum-degree ordering of A^T + A), which is about four times slower on the Bio
 """
 
 import ctypes
+import functools
 import os
 import weakref
+from collections.abc import Callable
 
 import numpy as np
 import scipy.sparse as sp
@@ -116,12 +118,7 @@ class _Pardiso:
     MAX_REFINEMENTS = 3
 
     def __init__(self) -> None:
-        import pypardiso
-
-        solver = pypardiso.PyPardisoSolver()
-        if "MKL_NUM_THREADS" not in os.environ and "MKL_DOMAIN_NUM_THREADS" not in os.environ:
-            solver.libmkl.MKL_Domain_Set_Num_Threads(ctypes.c_int(1), ctypes.c_int(_MKL_DOMAIN_PARDISO))
-        self._pardiso = solver._mkl_pardiso
+        self._pardiso = _mkl_pardiso()
         self._matrix: sp.csr_matrix | None = None
         self._single: _PardisoFactor | None = None
         self._double: _PardisoFactor | None = None
@@ -206,6 +203,19 @@ def _pardiso_available() -> bool:
     except ImportError:
         return False
     return True
+
+
+@functools.cache
+def _mkl_pardiso() -> Callable[..., None]:
+    """MKL's `pardiso` entry point, found once per process (pypardiso searches the file system for the
+    library on every construction, about 1 s), its PARDISO domain set to one thread unless
+    MKL_NUM_THREADS or MKL_DOMAIN_NUM_THREADS say otherwise (see `_Pardiso`)."""
+    import pypardiso
+
+    solver = pypardiso.PyPardisoSolver()
+    if "MKL_NUM_THREADS" not in os.environ and "MKL_DOMAIN_NUM_THREADS" not in os.environ:
+        solver.libmkl.MKL_Domain_Set_Num_Threads(ctypes.c_int(1), ctypes.c_int(_MKL_DOMAIN_PARDISO))
+    return solver._mkl_pardiso
 
 
 class SymmetricSolver:
