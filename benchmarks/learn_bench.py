@@ -132,6 +132,21 @@ def markdown(rows: list[dict]) -> str:
     return "\n".join(lines)
 
 
+def _train_config(args: argparse.Namespace, **overrides: str) -> TrainConfig:
+    """The training settings the command line asks for (plus `overrides`)."""
+    return TrainConfig(
+        max_epochs=args.max_epochs,
+        batch_size=args.batch_size,
+        learning_rate=args.learning_rate,
+        patience=args.patience,
+        time_limit_s=args.time_limit,
+        seed=args.seed,
+        threads=args.threads,
+        device=args.device,
+        **overrides,
+    )
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--samples", type=int, default=30000)
@@ -162,16 +177,7 @@ def main() -> None:
                 print(f"{p}: {len(d)} samples, {len(set(d.trajectory.tolist()))} trajectories", flush=True)
         else:
             paths = [campaign(args.data, args.samples, args.seed + k, k + 1) for k in range(args.table)]
-        config = TrainConfig(
-            max_epochs=args.max_epochs,
-            batch_size=args.batch_size,
-            learning_rate=args.learning_rate,
-            patience=args.patience,
-            time_limit_s=args.time_limit,
-            seed=args.seed,
-            threads=args.threads,
-            device=args.device,
-        )
+        config = _train_config(args)
         rows = paper_table(paths, args.models.split(","), config, args.held_out_indenter)
         print(markdown(rows))
         if args.json is not None:
@@ -189,17 +195,7 @@ def main() -> None:
         "models": {},
     }
     for model in args.models.split(","):
-        config = TrainConfig(
-            network=model if model in NETWORKS else "pointnet",
-            max_epochs=args.max_epochs,
-            batch_size=args.batch_size,
-            learning_rate=args.learning_rate,
-            patience=args.patience,
-            time_limit_s=args.time_limit,
-            seed=args.seed,
-            threads=args.threads,
-            device=args.device,
-        )
+        config = _train_config(args, network=model if model in NETWORKS else "pointnet")
         start = time.perf_counter()
         ckpt = train([path], model, SplitSpec("contiguous", 0.2, args.seed), config)
         entry: dict = {"wall_s": time.perf_counter() - start, "metrics": ckpt.metrics["combined"]}

@@ -126,7 +126,7 @@ def solve_equilibrium(
     factorized = False  # the solver holds a factorisation of this solve's matrix at a recent state
     for iteration in range(settings.max_iterations + 1):
         r = _residual(lin, pressure)
-        rnorm = float(np.max(np.abs(r))) if r.size else 0.0
+        rnorm = _inf_norm(r)
         c = 0.0 if target_volume is None else lin.volume - target_volume
         if on_iteration is not None:
             on_iteration(iteration, rnorm)
@@ -159,7 +159,7 @@ def solve_equilibrium(
             lin = problem.linearize(q, pressure, want_matrix=False)
         factorized = True
     r = _residual(lin, pressure)
-    rnorm = float(np.max(np.abs(r))) if r.size else 0.0
+    rnorm = _inf_norm(r)
     return NewtonResult(q, pressure, False, settings.max_iterations, rnorm, lin.volume, "iteration limit")
 
 
@@ -182,10 +182,15 @@ def _chord_step(
         return None
     trial = problem.linearize(q + dq, pressure + dp, want_matrix=False)
     trial_r = _residual(trial, pressure + dp)
-    trial_norm = float(np.max(np.abs(trial_r))) if trial_r.size else 0.0
+    trial_norm = _inf_norm(trial_r)
     if not trial_norm <= settings.chord_contraction * rnorm:
         return None
     return q + dq, pressure + dp, trial
+
+
+def _inf_norm(r: np.ndarray) -> float:
+    """Largest absolute entry of a residual (0 for an empty one)."""
+    return float(np.max(np.abs(r), initial=0.0))
 
 
 def _force_tolerance(lin: Linearization, pressure: float, settings: NewtonSettings) -> float:
