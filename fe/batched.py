@@ -166,6 +166,45 @@ class BatchNewtonResult:
     message: list[str]
 
 
+@dataclass
+class NewtonBatch:
+    """Per-system Newton state of a `BatchedShell` ((B,) host arrays), kept between global iterations so
+    that systems can start and stop independently: pressure (Pa), target volume (m^3), whether a system
+    runs, converged, failed its last line search or just had its lagged friction refreshed, its
+    iteration and friction-refresh counts, why it stopped, and its final residual (N) and volume (m^3)."""
+
+    pressure: np.ndarray
+    target: np.ndarray
+    running: np.ndarray
+    converged: np.ndarray
+    failed: np.ndarray
+    refreshed: np.ndarray
+    iterations: np.ndarray
+    passes: np.ndarray
+    message: list[str]
+    residual: np.ndarray
+    volume: np.ndarray
+
+    @classmethod
+    def idle(cls, batch: int, target_volume: np.ndarray | float) -> NewtonBatch:
+        """B systems, none running, holding their volumes at `target_volume` (m^3)."""
+        flags = [np.zeros(batch, dtype=bool) for _ in range(4)]
+        counts = [np.zeros(batch, dtype=np.int64) for _ in range(2)]
+        target = np.broadcast_to(np.asarray(target_volume, dtype=np.float64), (batch,)).copy()
+        return cls(np.zeros(batch), target, *flags, *counts, ["inactive"] * batch, np.zeros(batch), np.zeros(batch))
+
+    def result(self) -> BatchNewtonResult:
+        """The outcome of the systems' last solves."""
+        return BatchNewtonResult(
+            self.pressure.copy(),
+            self.converged.copy(),
+            self.iterations.copy(),
+            self.residual.copy(),
+            self.volume.copy(),
+            list(self.message),
+        )
+
+
 class BatchedShell:
     """`batch` copies of an `InflatedSkin` on a warp `device`; indenter i of the batch is `indenters[i]`,
     given as (kind, dims) of `fe.indenter_sdf` (systems with the same indenter are best kept contiguous:
@@ -356,16 +395,16 @@ class BatchedShell:
         self.counters["evaluate_s"] += time.perf_counter() - start
         return BatchLinearization(energy, vol, stats[:, 0].copy(), np.sqrt(stats[:, 1]), stats[:, 2].copy())
 
-    def proximity(self, x: wp.array) -> tuple[np.ndarray, np.ndarray]:
-        """Gap (B,V) m (negative inside the contact band) and unit SDF normals (B,V,3) of x to each indenter."""
-        values = {
-            **self._static,
-            "x": x,
-            "gap": self.buf["indenter_gap"],
-            "normal": self.buf["indenter_normal"],
-        }
+    def proximity(self, x: wp.array, rows: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Gap (k,V) m (negative inside the contact band) and unit SDF normals (k,V,3) of x to each indenter,
+        for the systems `rows` (k,) (the shell's gap buffers then hold all B systems' values)."""
+        self._gaps(x)
+        return get_rows(self.buf["indenter_gap"], rows), get_rows(self.buf["indenter_normal"], rows)
+
+    def _gaps(self, x: wp.array) -> None:
+        """Indenter gaps and normals of positions x (B,V) into the shell's buffers."""
+        values = {**self._static, "x": x, "gap": self.buf["indenter_gap"], "normal": self.buf["indenter_normal"]}
         self._launch_indenters(contact.indenter_gap_kernel, values)
-        return self.buf["indenter_gap"].numpy().copy(), self.buf["indenter_normal"].numpy().copy()
 
     def _launch_indenters(self, kernel: wp.Kernel, values: dict) -> None:
         """One launch of an indenter kernel per run of systems sharing an indenter, on batch slices."""
@@ -385,7 +424,7 @@ class BatchedShell:
     def lag_contact(self, x: wp.array, mask: np.ndarray) -> np.ndarray:
         """Refresh the lagged friction forces and normals of the masked systems from positions x where they
         changed by more than the friction tolerance; returns which systems changed ((B,) bool)."""
-        self.proximity(x)
+        self._gaps(x)
         self._stats.zero_()
         wp.launch(
             bk.lag_candidates,
@@ -406,50 +445,73 @@ class BatchedShell:
             )
         return changed
 
+    def begin(self, state: NewtonBatch, which: np.ndarray, pressure: np.ndarray) -> None:
+        """Start Newton for the systems in `which` (B,) bool from the positions in `self.x` and their
+        `pressure` (B,) Pa: iteration 0, no friction refreshes yet."""
+        which = np.asarray(which, dtype=bool)
+        state.pressure[which] = np.asarray(pressure, dtype=np.float64)[which]
+        state.running |= which
+        state.converged[which] = False
+        state.failed[which] = False
+        state.refreshed[which] = False
+        state.iterations[which] = 0
+        state.passes[which] = 0
+        for i in np.flatnonzero(which):
+            state.message[i] = ""
+
+    def check(self, state: NewtonBatch, lin: BatchLinearization, friction: bool) -> np.ndarray:
+        """The stopping rules of `fe.newton.solve_equilibrium` for the running systems, given `lin` evaluated
+        at `self.x`: refresh lagged friction near convergence (`friction`), then stop systems that converged,
+        failed or reached the iteration limit. Returns the systems that stopped now ((B,) bool); their
+        residual and volume are recorded in `state`."""
+        settings, before = self.skin.newton, state.running.copy()
+        running = state.running
+        _finish(running & ~np.isfinite(lin.residual_inf), running, state.message, "non-finite residual")
+        _finish(state.failed, running, state.message, "line search failed")
+        tol = _tolerance(lin, settings)
+        state.refreshed[:] = False
+        if friction:
+            near = running & (lin.residual_inf <= settings.refresh_factor * tol)
+            near &= state.passes < self.skin.contact.friction_passes
+            if near.any():
+                state.refreshed[:] = self.lag_contact(self.x, near)
+                state.passes += near
+        c = lin.volume - state.target
+        scale = np.where(state.target != 0.0, np.abs(state.target), 1.0)
+        done = running & ~state.refreshed & (lin.residual_inf <= tol) & (np.abs(c) <= settings.volume_tolerance * scale)
+        state.converged |= done
+        _finish(done, running, state.message, "converged")
+        _finish(running & (state.iterations >= settings.max_iterations), running, state.message, "iteration limit")
+        stopped = before & ~running
+        state.residual[stopped] = lin.residual_inf[stopped]
+        state.volume[stopped] = lin.volume[stopped]
+        return stopped
+
+    def iterate(self, state: NewtonBatch, lin: BatchLinearization) -> None:
+        """One damped Newton step for every running system whose friction was not just refreshed (x and
+        pressure updated in place); a system for which no step is found stops at the next `check`."""
+        stepping = state.running & ~state.refreshed
+        if stepping.any():
+            c = lin.volume - state.target
+            tol = _tolerance(lin, self.skin.newton)
+            state.failed |= self._newton_step(lin, state.pressure, state.target, c, tol, stepping)
+        state.iterations[state.running & ~state.failed] += 1
+
     def solve(
         self, pressure0: np.ndarray, target_volume: np.ndarray, active: np.ndarray, friction: bool
     ) -> BatchNewtonResult:
         """Newton-solve the `active` systems from the positions in `self.x` and `pressure0` (B,) Pa with the
         volume held at `target_volume` (B,) m^3; converged positions are left in `self.x`. With `friction`
         the lagged friction data are refreshed near convergence, at most `friction_passes` times."""
-        settings, B = self.skin.newton, self.batch
-        pressure = np.asarray(pressure0, dtype=np.float64).copy()
-        target = np.asarray(target_volume, dtype=np.float64)
-        running = np.asarray(active, dtype=bool).copy()
-        converged = np.zeros(B, dtype=bool)
-        iterations = np.zeros(B, dtype=np.int64)
-        message = ["" if a else "inactive" for a in running]
-        passes = np.zeros(B, dtype=np.int64)
-        lin = self.evaluate(self.x, True, pressure)
-        scale = np.where(target != 0.0, np.abs(target), 1.0)
-        for iteration in range(settings.max_iterations + 1):
-            iterations[running] = iteration
-            c = lin.volume - target
-            bad = running & ~np.isfinite(lin.residual_inf)
-            _finish(bad, running, message, "non-finite residual")
-            tol = np.maximum(settings.force_tolerance, settings.relative_force_tolerance * lin.load)
-            refreshed = np.zeros(B, dtype=bool)
-            if friction:
-                near = (
-                    running
-                    & (lin.residual_inf <= settings.refresh_factor * tol)
-                    & (passes < self.skin.contact.friction_passes)
-                )
-                if near.any():
-                    refreshed = self.lag_contact(self.x, near)
-                    passes += near
-            done = running & ~refreshed & (lin.residual_inf <= tol) & (np.abs(c) <= settings.volume_tolerance * scale)
-            converged |= done
-            _finish(done, running, message, "converged")
-            stepping = running & ~refreshed
-            if iteration == settings.max_iterations or not running.any():
+        state = NewtonBatch.idle(self.batch, target_volume)
+        self.begin(state, active, pressure0)
+        while True:
+            lin = self.evaluate(self.x, True, state.pressure)
+            self.check(state, lin, friction)
+            if not state.running.any():
                 break
-            if stepping.any():
-                failed = self._newton_step(lin, pressure, target, c, tol, stepping)
-                _finish(failed, running, message, "line search failed")
-            lin = self.evaluate(self.x, True, pressure)
-        _finish(running, running, message, "iteration limit")
-        return BatchNewtonResult(pressure, converged, iterations, lin.residual_inf, lin.volume, message)
+            self.iterate(state, lin)
+        return state.result()
 
     def _newton_step(
         self,
@@ -607,6 +669,17 @@ _PER_SYSTEM = frozenset(
 """Indenter-kernel arguments with a leading batch axis (sliced per run of equal indenters)."""
 
 
+def put_rows(array: wp.array, rows: np.ndarray, values: np.ndarray) -> None:
+    """array[i] = values[k] for the k-th system index i of `rows` (host -> device, one copy per row)."""
+    for k, i in enumerate(rows):
+        array[int(i)].assign(values[k])
+
+
+def get_rows(array: wp.array, rows: np.ndarray) -> np.ndarray:
+    """array[rows] on the host (device -> host, one copy per row), shape (len(rows), ...); rows not empty."""
+    return np.stack([array[int(i)].numpy().copy() for i in rows])
+
+
 def _runs(indenters: list[tuple[int, tuple[float, float, float, float]]]) -> list[tuple[int, int, int, tuple]]:
     """Contiguous runs (lo, hi, kind, dims) of systems with the same indenter."""
     runs: list[tuple[int, int, int, tuple]] = []
@@ -617,6 +690,11 @@ def _runs(indenters: list[tuple[int, tuple[float, float, float, float]]]) -> lis
         else:
             runs.append((i, i + 1, int(kind), dims))
     return runs
+
+
+def _tolerance(lin: BatchLinearization, settings: NewtonSettings) -> np.ndarray:
+    """Residual tolerance (B,) N of each system: absolute, or relative to its largest nodal load."""
+    return np.maximum(settings.force_tolerance, settings.relative_force_tolerance * lin.load)
 
 
 def _finish(which: np.ndarray, running: np.ndarray, message: list[str], text: str) -> None:

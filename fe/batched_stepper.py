@@ -7,10 +7,16 @@ state, the warm start extrapolates the last increment and pushes vertices out of
 friction slip is measured from the previous pose, and a system whose step fails refuses further steps
 until `reset`. Poses: rotation (3,3) indenter body -> sensor frame, tip position (3,) m; results are
 `fe.indentation.IncrementResult`s (forces in N, sensor frame), `wall_s` being the whole batch step's time.
+
+The step is built from two calls that also serve continuous batching (`fe.batched_campaign`): `admit`
+starts new increments for some systems while others are mid-solve, and `advance` runs one Newton
+iteration of every running system and reports those that finished, so a system never waits for the
+slowest one of the batch.
 """
 
 from __future__ import annotations
 
+import dataclasses
 import time
 from collections.abc import Sequence
 
@@ -19,7 +25,7 @@ import scipy.sparse as sp
 import warp as wp
 
 from assets.indenters import get_indenter
-from fe.batched import BatchedShell, InflatedSkin
+from fe.batched import BatchedShell, InflatedSkin, NewtonBatch, get_rows, put_rows
 from fe.indentation import IncrementResult
 
 
@@ -52,22 +58,23 @@ class BatchedStepper:
         self.skin, self.batch = skin, len(shapes)
         if self.batch == 0:
             raise ValueError("a batch needs at least one trajectory")
+        self.indenters = list(indenters)
         self.shell = BatchedShell(skin, [(s.kind, s.dims) for s in shapes], device)
-        V, T = len(skin.vertices), len(skin.triangles)
+        B, V, T = self.batch, len(skin.vertices), len(skin.triangles)
         rows = skin.triangles.ravel()
-        # (V, T) incidence / 3: lumped vertex areas of B deformed meshes in one product.
+        # (V, T) incidence / 3: lumped vertex areas of a deformed mesh in one product.
         self._lump = sp.csr_matrix((np.full(3 * T, 1.0 / 3.0), (rows, np.repeat(np.arange(T), 3))), shape=(V, T))
-        self._reference = np.broadcast_to(skin.reference, (self.batch, V, 3))
-        self._reference_w = wp.array(self._reference, dtype=wp.vec3d, device=device)
-        self.shell.x.assign(self._reference)
-        rest = self.shell.evaluate(self._reference_w, False, np.full(self.batch, skin.pressure))
+        reference = np.broadcast_to(skin.reference, (B, V, 3))
+        self._reference_w = wp.array(reference, dtype=wp.vec3d, device=device)
+        self.shell.x.assign(reference)
+        rest = self.shell.evaluate(self._reference_w, False, np.full(B, skin.pressure))
         self._rest_volume, self._rest_residual = float(rest.volume[0]), float(rest.residual_inf[0])
-        self._rest_balance = float(self._force_balance(np.full(self.batch, skin.pressure))[1][0])
-        B, V = self.batch, len(skin.vertices)
-        self.x = self._reference.copy()
+        self._rest_balance = self._force_balance(0, skin.pressure)[1]
+        self.x = reference.copy()
         """(B,V,3) skin mid-surface positions (m) of the last accepted state."""
         self.pressure = np.full(B, skin.pressure)
         self.pose_rotation, self.pose_translation = np.tile(np.eye(3), (B, 1, 1)), np.zeros((B, 3))
+        self._start_rotation, self._start_translation = self.pose_rotation.copy(), self.pose_translation.copy()
         self.posed = np.zeros(B, dtype=bool)
         """Whether a system has been stepped since its reset (its pose is the start of the next increment)."""
         self.origin, self.has_origin = np.zeros((B, 3)), np.zeros(B, dtype=bool)
@@ -75,13 +82,19 @@ class BatchedStepper:
         self.in_contact = np.zeros(B, dtype=bool)
         self._motion, self._has_motion, self._travel = np.zeros((B, V, 3)), np.zeros(B, dtype=bool), np.zeros((B, 3))
         self._gap, self._gap_change = np.zeros((B, V)), np.zeros((B, V))
+        self.newton = NewtonBatch.idle(B, skin.target_volume)
+        """Newton state of the increments under way (`running` marks the systems mid-solve)."""
+        self._depth, self._admitted_at = np.zeros(B), np.zeros(B)
+        self._increment_travel = np.zeros((B, 3))
 
     # -- state -------------------------------------------------------------------------------------
     def reset(self, which: np.ndarray | None = None) -> None:
-        """Back to the inflated state, indenter released and depth origin cleared, for `which` systems (all)."""
+        """Back to the inflated state, indenter released and depth origin cleared, for `which` systems (all);
+        an increment under way for them is abandoned."""
         which = np.ones(self.batch, dtype=bool) if which is None else np.asarray(which, dtype=bool)
         self.posed[which] = False
         self.has_origin[which] = False
+        self.newton.running[which] = False
         for i in np.flatnonzero(which):
             self.failure[i] = None
         self._release(which)
@@ -102,133 +115,153 @@ class BatchedStepper:
     ) -> list[IncrementResult | None]:
         """Move each active system's indenter to its pose (B,3,3), (B,3) m and re-solve; None for inactive ones."""
         start = time.perf_counter()
-        active = np.ones(self.batch, dtype=bool) if active is None else np.asarray(active, dtype=bool).copy()
-        failed = [i for i in np.flatnonzero(active) if self.failure[i] is not None]
+        active = np.ones(self.batch, dtype=bool) if active is None else np.asarray(active, dtype=bool)
+        if np.any(active & self.newton.running):
+            raise RuntimeError("systems are mid-increment (admitted but not finished); advance() them first")
+        done = self.admit(active, rotation, translation)
+        while self.newton.running.any():
+            done |= self.advance()
+        wall = time.perf_counter() - start
+        return [dataclasses.replace(done[i], wall_s=wall) if i in done else None for i in range(self.batch)]
+
+    def admit(self, which: np.ndarray, rotation: np.ndarray, translation: np.ndarray) -> dict[int, IncrementResult]:
+        """Move the indenters of the `which` systems (B,) bool to their poses (rows of (B,3,3), (B,3) m; other
+        rows ignored) and start their increments. Returns the results of those whose pose needs no solve
+        (no contact); the others are solved by `advance`, which the systems mid-increment need not wait for."""
+        start = time.perf_counter()
+        which = np.asarray(which, dtype=bool).copy()
+        failed = [i for i in np.flatnonzero(which) if self.failure[i] is not None]
         if failed:
             raise RuntimeError(f"systems {failed} did not converge last step; reset() them before stepping again")
-        rotation, translation = _check_poses(rotation, translation, self.batch, active)
-        new_origin = active & ~self.has_origin
+        if np.any(which & self.newton.running):
+            raise RuntimeError(f"systems {np.flatnonzero(which & self.newton.running)} are mid-increment")
+        rotation, translation = _check_poses(rotation, translation, self.batch, which)
+        new_origin = which & ~self.has_origin
         self.origin[new_origin] = translation[new_origin]
         self.has_origin |= new_origin
-        moved = active & self.posed
-        rotation_start = np.where(moved[:, None, None], self.pose_rotation, rotation)
-        translation_start = np.where(moved[:, None], self.pose_translation, translation)
-        self.pose_rotation[active], self.pose_translation[active] = rotation[active], translation[active]
-        self.posed |= active
+        moved = which & self.posed
+        self._start_rotation[which] = np.where(moved[:, None, None], self.pose_rotation, rotation)[which]
+        self._start_translation[which] = np.where(moved[:, None], self.pose_translation, translation)[which]
+        self.pose_rotation[which], self.pose_translation[which] = rotation[which], translation[which]
+        self.posed |= which
         depth = np.einsum("bi,bi->b", self.origin - translation, rotation[:, :, 2])
-        shell = self.shell
-        shell.set_poses(self.pose_rotation, self.pose_translation, rotation_start, translation_start)
-        free_now = shell.proximity(self._upload(self.x))[0].min(axis=1) >= 0.0
-        free_ref = shell.proximity(self._reference_w)[0].min(axis=1) >= 0.0
-        untouched = active & free_now & ~self.in_contact
-        released = active & free_now & self.in_contact & free_ref
+        self._depth[which] = depth[which]
+        shell, rows = self.shell, np.flatnonzero(which)
+        shell.set_poses(self.pose_rotation, self.pose_translation, self._start_rotation, self._start_translation)
+        put_rows(shell.x_trial, rows, self.x[rows])
+        free_now = np.zeros(self.batch, dtype=bool)
+        free_ref = np.zeros(self.batch, dtype=bool)
+        free_now[rows] = shell.proximity(shell.x_trial, rows)[0].min(axis=1) >= 0.0
+        free_ref[rows] = shell.proximity(self._reference_w, rows)[0].min(axis=1) >= 0.0
+        untouched = which & free_now & ~self.in_contact
+        released = which & free_now & self.in_contact & free_ref
         self._release(released)
-        solving = active & ~untouched & ~released
-        results: list[IncrementResult | None] = [None] * self.batch
+        solving = which & ~untouched & ~released
         if solving.any():
-            self._solve(solving, translation - translation_start)
-            solved = self._finish(solving, depth, rotation, translation, translation_start, start)
-            for i in np.flatnonzero(solving):
-                results[i] = solved[i]
-        wall = time.perf_counter() - start
-        for i in np.flatnonzero(untouched | released):
-            results[i] = self._free_result(i, depth[i], wall)
+            travel = translation - self._start_translation
+            self._increment_travel[solving] = travel[solving]
+            self._admitted_at[solving] = start
+            self._start_solves(solving, travel)
+        return {int(i): self._free_result(int(i), float(depth[i])) for i in np.flatnonzero(untouched | released)}
+
+    def advance(self) -> dict[int, IncrementResult]:
+        """One Newton iteration of every system mid-increment; returns the results of those that finished
+        (converged, or failed: such a system refuses further steps until `reset`)."""
+        shell, state = self.shell, self.newton
+        lin = shell.evaluate(shell.x, True, state.pressure)
+        stopped = shell.check(state, lin, self.skin.params.friction > 0.0)
+        results = self._finish(np.flatnonzero(stopped)) if stopped.any() else {}
+        if state.running.any():
+            shell.iterate(state, lin)
         return results
 
-    def _upload(self, x: np.ndarray) -> wp.array:
-        self.shell.x_trial.assign(x)
-        return self.shell.x_trial
-
-    def _predict(self, solving: np.ndarray, travel: np.ndarray) -> np.ndarray:
-        """Warm starts (B,V,3) m: the last increment's displacement extrapolated by the share of its tip travel
-        that the new move repeats, then vertices deeper in the indenter than at the last equilibrium pushed out."""
-        moved = np.einsum("bi,bi->b", self._travel, self._travel)
-        share = np.where(
-            self._has_motion & (moved > 0.0),
-            np.clip(np.einsum("bi,bi->b", travel, self._travel) / np.where(moved > 0.0, moved, 1.0), 0.0, 1.0),
-            0.0,
-        )
-        x = self.x + share[:, None, None] * np.where(self._has_motion[:, None, None], self._motion, 0.0)
-        gap, normal = self.shell.proximity(self._upload(x))
-        depth = np.minimum(self._gap + share[:, None] * self._gap_change, 0.0)
-        x = x + np.maximum(depth - gap, 0.0)[:, :, None] * normal
-        return np.where(solving[:, None, None], x, self.x)
-
-    def _solve(self, solving: np.ndarray, travel: np.ndarray) -> None:
-        shell = self.shell
-        shell.x_start.assign(self.x)
-        x0 = self._predict(solving, travel)
-        shell.x.assign(x0)
-        friction = self.skin.params.friction > 0.0
+    def _start_solves(self, solving: np.ndarray, travel: np.ndarray) -> None:
+        """Warm-start the `solving` systems from their last equilibria and begin their Newton solves."""
+        shell, rows = self.shell, np.flatnonzero(solving)
+        put_rows(shell.x_start, rows, self.x[rows])
+        put_rows(shell.x, rows, self._predict(rows, travel[rows]))
         shell.lag_contact(shell.x, solving)
-        self._newton = shell.solve(self.pressure, np.full(self.batch, self.skin.target_volume), solving, friction)
+        shell.begin(self.newton, solving, self.pressure)
 
-    def _force_balance(self, pressure: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """Indenter forces (B,3) N and relative force-balance errors (B,) of the last evaluation."""
-        g = self.shell.gradients.numpy()
-        gv = self.shell.buf["volume_gradient"].numpy()
-        residual = g.sum(axis=0) - pressure[:, None, None] * gv
-        anchors = np.where(self.shell.fixed[None], residual, 0.0).sum(axis=1)
-        f_indenter, f_core = -g[2].sum(axis=1), -g[1].sum(axis=1)
-        f_pressure = pressure[:, None] * gv.sum(axis=1)
-        imbalance = np.linalg.norm(f_indenter + f_core + f_pressure + anchors, axis=1)
-        scale = np.maximum(np.maximum(np.linalg.norm(f_indenter, axis=1), np.linalg.norm(f_pressure, axis=1)), 1e-300)
-        return f_indenter, imbalance / scale
+    def _predict(self, rows: np.ndarray, travel: np.ndarray) -> np.ndarray:
+        """Warm starts (k,V,3) m of systems `rows` moving their tips by `travel` (k,3) m: the last increment's
+        displacement extrapolated by the share of its tip travel that the new move repeats, then vertices
+        deeper in the indenter than at the last equilibrium pushed out."""
+        last = self._travel[rows]
+        moved = np.einsum("bi,bi->b", last, last)
+        has_motion = self._has_motion[rows] & (moved > 0.0)
+        repeat = np.einsum("bi,bi->b", travel, last) / np.where(moved > 0.0, moved, 1.0)
+        share = np.where(has_motion, np.clip(repeat, 0.0, 1.0), 0.0)
+        x = self.x[rows] + share[:, None, None] * np.where(has_motion[:, None, None], self._motion[rows], 0.0)
+        put_rows(self.shell.x_trial, rows, x)
+        gap, normal = self.shell.proximity(self.shell.x_trial, rows)
+        depth = np.minimum(self._gap[rows] + share[:, None] * self._gap_change[rows], 0.0)
+        return x + np.maximum(depth - gap, 0.0)[:, :, None] * normal
 
-    def _finish(
-        self,
-        solving: np.ndarray,
-        depth: np.ndarray,
-        rotation: np.ndarray,
-        translation: np.ndarray,
-        translation_start: np.ndarray,
-        start: float,
-    ) -> list[IncrementResult | None]:
-        """Accept converged systems as their new state (or record failures) and report them."""
-        shell, newton = self.shell, self._newton
-        x = shell.x.numpy().copy()
-        terms = shell.evaluate(shell.x, False, newton.pressure)
-        force, balance = self._force_balance(newton.pressure)
-        gap = shell.buf["indenter_gap"].numpy().copy()
-        in_contact = gap < 0.0
-        ok = solving & newton.converged
-        self._motion[ok] = x[ok] - self.x[ok]
-        self._has_motion |= ok
-        self._travel[ok] = (translation - translation_start)[ok]
-        self._gap_change[ok] = np.minimum(gap[ok], 0.0) - np.minimum(self._gap[ok], 0.0)
-        self._gap[ok] = gap[ok]
-        self.x[ok], self.pressure[ok] = x[ok], newton.pressure[ok]
-        self.in_contact[ok] = in_contact[ok].any(axis=1)
-        for i in np.flatnonzero(solving & ~newton.converged):
-            self.failure[i] = newton.message[i]
-        p0, p1, p2 = (x[:, self.skin.triangles[:, k]] for k in range(3))
-        areas = 0.5 * np.linalg.norm(np.cross(p1 - p0, p2 - p0), axis=2)  # (B, T)
-        vertex_area = (self._lump @ areas.T).T
-        axis = rotation[:, :, 2]
-        rel = x - translation[:, None, :]
-        radial = rel - np.einsum("bv,bi->bvi", np.einsum("bvi,bi->bv", rel, axis), axis)
-        radius = np.where(in_contact, np.linalg.norm(radial, axis=2), 0.0).max(axis=1)
-        wall = time.perf_counter() - start
-        results: list[IncrementResult | None] = [None] * self.batch
-        for i in np.flatnonzero(solving):
-            results[i] = IncrementResult(
-                depth=float(depth[i]),
-                force=force[i],
-                pressure=float(newton.pressure[i]),
-                volume=float(terms.volume[i]),
-                contact_area=float(vertex_area[i][in_contact[i]].sum()),
-                contact_radius=float(radius[i]),
-                displacement=x[i] - self.skin.reference,
-                newton_iterations=int(newton.iterations[i]),
-                residual=float(newton.residual[i]),
-                equilibrium_error=float(balance[i]),
-                converged=bool(newton.converged[i]),
-                message=newton.message[i],
-                wall_s=wall,
-            )
+    def _force_balance(self, i: int, pressure: float) -> tuple[np.ndarray, float]:
+        """System i's indenter force (3,) N and relative force-balance error of the last evaluation."""
+        g = np.stack([self.shell.gradients[k][i].numpy() for k in range(3)])
+        gv = self.shell.buf["volume_gradient"][i].numpy()
+        residual = g.sum(axis=0) - pressure * gv
+        anchors = np.where(self.shell.fixed, residual, 0.0).sum(axis=0)
+        f_indenter, f_core, f_pressure = -g[2].sum(axis=0), -g[1].sum(axis=0), pressure * gv.sum(axis=0)
+        imbalance = np.linalg.norm(f_indenter + f_core + f_pressure + anchors)
+        scale = max(np.linalg.norm(f_indenter), np.linalg.norm(f_pressure), 1e-300)
+        return f_indenter, float(imbalance / scale)
+
+    def _finish(self, rows: np.ndarray) -> dict[int, IncrementResult]:
+        """Accept the converged systems among `rows` as their new states (record the failures) and report
+        them, from the evaluation at their final positions (still in the shell's buffers)."""
+        shell, state, now = self.shell, self.newton, time.perf_counter()
+        x_rows = get_rows(shell.x, rows)
+        gap_rows = get_rows(shell.buf["indenter_gap"], rows)
+        results = {}
+        for k, i in enumerate(int(r) for r in rows):
+            x, gap = x_rows[k], gap_rows[k]
+            force, balance = self._force_balance(i, state.pressure[i])
+            in_contact = gap < 0.0
+            if state.converged[i]:
+                self._motion[i] = x - self.x[i]
+                self._has_motion[i] = True
+                self._travel[i] = self._increment_travel[i]
+                self._gap_change[i] = np.minimum(gap, 0.0) - np.minimum(self._gap[i], 0.0)
+                self._gap[i] = gap
+                self.x[i], self.pressure[i] = x, state.pressure[i]
+                self.in_contact[i] = in_contact.any()
+            else:
+                self.failure[i] = state.message[i]
+            results[i] = self._increment_result(i, x, gap, force, balance, now)
         return results
 
-    def _free_result(self, i: int, depth: float, wall: float) -> IncrementResult:
+    def _increment_result(
+        self, i: int, x: np.ndarray, gap: np.ndarray, force: np.ndarray, balance: float, now: float
+    ) -> IncrementResult:
+        """System i's finished increment: contact area and radius from its final positions x (V,3) m and
+        indenter gaps (V,) m."""
+        state, in_contact = self.newton, gap < 0.0
+        p0, p1, p2 = (x[self.skin.triangles[:, k]] for k in range(3))
+        vertex_area = self._lump @ (0.5 * np.linalg.norm(np.cross(p1 - p0, p2 - p0), axis=1))
+        axis = self.pose_rotation[i, :, 2]
+        rel = x - self.pose_translation[i]
+        radial = rel - np.outer(rel @ axis, axis)
+        radius = np.linalg.norm(radial, axis=1)[in_contact].max(initial=0.0)
+        return IncrementResult(
+            depth=float(self._depth[i]),
+            force=force,
+            pressure=float(state.pressure[i]),
+            volume=float(state.volume[i]),
+            contact_area=float(vertex_area[in_contact].sum()),
+            contact_radius=float(radius),
+            displacement=x - self.skin.reference,
+            newton_iterations=int(state.iterations[i]),
+            residual=float(state.residual[i]),
+            equilibrium_error=balance,
+            converged=bool(state.converged[i]),
+            message=state.message[i],
+            wall_s=now - self._admitted_at[i],
+        )
+
+    def _free_result(self, i: int, depth: float) -> IncrementResult:
         return IncrementResult(
             depth=float(depth),
             force=np.zeros(3),
@@ -242,5 +275,5 @@ class BatchedStepper:
             equilibrium_error=self._rest_balance,
             converged=True,
             message="no contact",
-            wall_s=wall,
+            wall_s=0.0,
         )

@@ -16,6 +16,7 @@ import warp as wp
 
 from assets.indenters import get_indenter
 from fe.batched import InflatedSkin
+from fe.batched_runner import PoseTrajectory, allocate_slots, run_trajectories
 from fe.batched_stepper import BatchedStepper
 from fe.device_solver import CG_CONVERGED, CG_NEGATIVE_CURVATURE, BatchedBlockMatrix, BatchedCG, BlockPattern
 from fe.params import SkinParameters
@@ -97,10 +98,25 @@ def _batched(model: BioTacModel, paths: list, tmp_path: Path) -> list[list]:
     return out
 
 
-@pytest.mark.parametrize(
-    ("fixture", "force_rtol", "displacement_atol", "area_rtol"),
-    [("frictionless_biotac", 1e-6, 1e-9, 1e-6), ("frictional_biotac", 1e-3, 1e-6, 1e-4)],
-)
+TOLERANCES = [("frictionless_biotac", 1e-6, 1e-9, 1e-6), ("frictional_biotac", 1e-3, 1e-6, 1e-4)]
+"""Fixture, force (relative to |F|), displacement (m) and contact-area (relative) tolerances."""
+
+
+def _assert_agree(cpu: list, batched: list, force_rtol: float, displacement_atol: float, area_rtol: float) -> None:
+    """Increment-by-increment agreement of one trajectory, converged throughout."""
+    assert len(batched) == len(cpu)
+    for a, b in zip(cpu, batched, strict=True):
+        assert a.converged and b.converged, b.message
+        assert b.depth == pytest.approx(a.depth, abs=1e-12)
+        scale = max(np.linalg.norm(a.force), 1e-3)
+        assert np.linalg.norm(b.force - a.force) <= force_rtol * scale
+        assert b.pressure == pytest.approx(a.pressure, rel=1e-5)
+        np.testing.assert_allclose(b.displacement, a.displacement, rtol=0, atol=displacement_atol)
+        assert b.contact_area == pytest.approx(a.contact_area, rel=area_rtol, abs=1e-12)
+        assert b.equilibrium_error < 1e-5
+
+
+@pytest.mark.parametrize(("fixture", "force_rtol", "displacement_atol", "area_rtol"), TOLERANCES)
 def test_batched_stepper_matches_the_cpu_stepper(
     fixture: str,
     force_rtol: float,
@@ -115,16 +131,49 @@ def test_batched_stepper_matches_the_cpu_stepper(
     for trajectory_cpu, trajectory_batched in zip(cpu, batched, strict=True):
         assert len(trajectory_batched) == len(STEPS)
         assert trajectory_batched[0].message == "no contact" and trajectory_batched[0].newton_iterations == 0
-        for a, b in zip(trajectory_cpu, trajectory_batched, strict=True):
-            assert a.converged and b.converged, b.message
-            assert b.depth == pytest.approx(a.depth, abs=1e-12)
-            scale = max(np.linalg.norm(a.force), 1e-3)
-            assert np.linalg.norm(b.force - a.force) <= force_rtol * scale
-            assert b.pressure == pytest.approx(a.pressure, rel=1e-5)
-            np.testing.assert_allclose(b.displacement, a.displacement, rtol=0, atol=displacement_atol)
-            assert b.contact_area == pytest.approx(a.contact_area, rel=area_rtol, abs=1e-12)
-            assert b.equilibrium_error < 1e-5
+        _assert_agree(trajectory_cpu, trajectory_batched, force_rtol, displacement_atol, area_rtol)
         assert trajectory_batched[-1].force[2] > 0.1  # pressed into the pad
+
+
+@pytest.mark.parametrize(("fixture", "force_rtol", "displacement_atol", "area_rtol"), TOLERANCES)
+def test_continuous_batching_matches_the_cpu_stepper(
+    fixture: str, force_rtol: float, displacement_atol: float, area_rtol: float, request: pytest.FixtureRequest
+) -> None:
+    """Two slots for three trajectories (one queued behind another of its indenter), systems admitted while
+    others iterate, and a force limit that ends the frictional trajectories early."""
+    model: BioTacModel = request.getfixturevalue(fixture)
+    paths = _paths(model)
+    cpu = _cpu(model, paths)
+    limit = 0.9 * max(np.linalg.norm(t[-2].force) for t in cpu) if fixture == "frictional_biotac" else np.inf
+    trajectories = [
+        PoseTrajectory(name, np.repeat(p.rotation[None], len(STEPS), 0), p.touch_point + STEPS[:, None] * p.direction)
+        for (name, *_), p in zip(PATHS, paths, strict=True)
+    ]
+    ended: list[int] = []
+    run = run_trajectories(
+        InflatedSkin.from_model(model),
+        trajectories,
+        "cpu",
+        slots=2,
+        force_limit=limit,
+        on_trajectory=lambda index, increments: ended.append(index),
+    )
+    assert run.slots == {"cylinder_short_small": 1, "sphere_medium": 1}
+    assert sorted(ended) == [0, 1, 2]
+    for trajectory_cpu, trajectory_batched in zip(cpu, run.results, strict=True):
+        over = [np.linalg.norm(r.force) > limit for r in trajectory_cpu]
+        stop = over.index(True) + 1 if any(over) else len(STEPS)  # the first increment past the limit ends it
+        _assert_agree(trajectory_cpu[:stop], trajectory_batched, force_rtol, displacement_atol, area_rtol)
+    if np.isfinite(limit):
+        assert any(len(t) < len(STEPS) for t in run.results)
+
+
+def test_slots_follow_the_indenter_mix() -> None:
+    assert allocate_slots({"a": 70, "b": 20, "c": 10}, 10) == {"a": 7, "b": 2, "c": 1}
+    assert allocate_slots({"a": 1, "b": 99}, 10) == {"a": 1, "b": 9}
+    assert allocate_slots({"a": 3, "b": 2}, 64) == {"a": 3, "b": 2}
+    with pytest.raises(ValueError, match="at least 2"):
+        allocate_slots({"a": 3, "b": 2}, 1)
 
 
 def test_batched_solver_rejects_effects_it_does_not_model(frictionless_biotac: BioTacModel) -> None:

@@ -1,0 +1,170 @@
+"""Many indentation trajectories through a fixed number of batched FE slots, continuously batched.
+
+`run_trajectories(skin, trajectories, device, slots)` keeps `slots` systems of one `BatchedStepper` busy:
+each slot holds one trajectory at a time, a system that finishes an increment starts its next pose at
+once (`BatchedStepper.admit`) while the others go on iterating (`BatchedStepper.advance`), and a slot
+whose trajectory ends takes the next queued trajectory of the same indenter. So no system waits for the
+slowest one of the batch, as a lock-step `BatchedStepper.step` per pose would make it.
+
+A trajectory ends after its last pose, at its first increment that does not converge, or at its first
+increment whose indenter force exceeds `force_limit` (N), as the campaign controller stops a press.
+Poses: rotation (3,3) indenter body -> sensor frame, tip position (3,) m; results are
+`fe.indentation.IncrementResult`s (forces in N, sensor frame; `wall_s` from a pose's admission to its result).
+"""
+
+from __future__ import annotations
+
+import time
+from collections import deque
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass
+
+import numpy as np
+
+from fe.batched import InflatedSkin
+from fe.batched_stepper import BatchedStepper
+from fe.indentation import IncrementResult
+
+
+@dataclass(frozen=True)
+class PoseTrajectory:
+    """One indenter's poses: rotations (K,3,3) body -> sensor frame and tip positions (K,3) m."""
+
+    indenter: str
+    rotations: np.ndarray
+    translations: np.ndarray
+
+    def __post_init__(self) -> None:
+        rotations, translations = np.asarray(self.rotations), np.asarray(self.translations)
+        if rotations.ndim != 3 or rotations.shape[1:] != (3, 3) or translations.shape != (len(rotations), 3):
+            raise ValueError(
+                f"a trajectory's poses are rotations (K,3,3) and translations (K,3), got "
+                f"{rotations.shape} and {translations.shape}"
+            )
+        if len(rotations) == 0:
+            raise ValueError("a trajectory needs at least one pose")
+
+
+@dataclass
+class BatchedRun:
+    """Outcome of `run_trajectories`: per trajectory its increments (in pose order, ending where the
+    trajectory stopped), the number of global Newton iterations (one `advance` each), the wall time (s),
+    the slots per indenter and the shell's work counters (`fe.batched.BatchedShell.counters`)."""
+
+    results: list[list[IncrementResult]]
+    iterations: int
+    wall_s: float
+    slots: dict[str, int]
+    counters: dict[str, float]
+
+
+def allocate_slots(counts: dict[str, int], slots: int) -> dict[str, int]:
+    """Slots per indenter, in proportion to its trajectory count (largest remainders), at least one each
+    and never more than its trajectories."""
+    if slots < len(counts):
+        raise ValueError(f"{slots} slots cannot hold {len(counts)} indenters; give at least {len(counts)}")
+    total = sum(counts.values())
+    slots = min(slots, total)
+    share = {name: slots * n / total for name, n in counts.items()}
+    given = {name: max(1, min(counts[name], int(share[name]))) for name in counts}
+    by_remainder = sorted(counts, key=lambda name: share[name] - int(share[name]), reverse=True)
+    while sum(given.values()) < slots:
+        for name in by_remainder:
+            if sum(given.values()) < slots and given[name] < counts[name]:
+                given[name] += 1
+    while sum(given.values()) > slots:
+        name = max(given, key=lambda n: given[n] - share[n])
+        given[name] -= 1
+    return given
+
+
+def run_trajectories(
+    skin: InflatedSkin,
+    trajectories: Sequence[PoseTrajectory],
+    device: str = "cpu",
+    slots: int = 256,
+    force_limit: float = np.inf,
+    on_trajectory: Callable[[int, list[IncrementResult]], None] | None = None,
+) -> BatchedRun:
+    """Solve every trajectory's poses in order on `slots` continuously batched systems on the warp `device`;
+    `on_trajectory(index, increments)` is called as each trajectory ends (for progress and streaming)."""
+    if not trajectories:
+        raise ValueError("no trajectories to run")
+    counts: dict[str, int] = {}
+    for trajectory in trajectories:
+        counts[trajectory.indenter] = counts.get(trajectory.indenter, 0) + 1
+    per_indenter = allocate_slots(dict(sorted(counts.items())), slots)
+    slot_indenters = [name for name, n in per_indenter.items() for _ in range(n)]
+    queues = {name: deque(i for i, t in enumerate(trajectories) if t.indenter == name) for name in per_indenter}
+    start = time.perf_counter()
+    stepper = BatchedStepper(skin, slot_indenters, device)
+    schedule = _Schedule(trajectories, slot_indenters, queues, force_limit, on_trajectory, stepper)
+    iterations = 0
+    while True:
+        while schedule.waiting.any():
+            rotation, translation = schedule.poses()
+            admitted = schedule.waiting.copy()
+            schedule.waiting[:] = False
+            schedule.record(stepper.admit(admitted, rotation, translation))
+        if not stepper.newton.running.any():
+            break
+        schedule.record(stepper.advance())
+        iterations += 1
+    counters = dict(stepper.shell.counters)
+    return BatchedRun(schedule.results, iterations, time.perf_counter() - start, per_indenter, counters)
+
+
+class _Schedule:
+    """Which trajectory and pose each slot is at; records results and refills slots."""
+
+    def __init__(
+        self,
+        trajectories: Sequence[PoseTrajectory],
+        slot_indenters: list[str],
+        queues: dict[str, deque],
+        force_limit: float,
+        on_trajectory: Callable[[int, list[IncrementResult]], None] | None,
+        stepper: BatchedStepper,
+    ) -> None:
+        self.trajectories, self.slot_indenters, self.queues = trajectories, slot_indenters, queues
+        self.force_limit, self.on_trajectory, self.stepper = force_limit, on_trajectory, stepper
+        n = len(slot_indenters)
+        self.results: list[list[IncrementResult]] = [[] for _ in trajectories]
+        self.current = np.full(n, -1)
+        self.pose = np.zeros(n, dtype=int)
+        self.waiting = np.zeros(n, dtype=bool)
+        """Slots whose next pose is to be admitted."""
+        for slot in range(n):
+            self._take(slot)
+
+    def _take(self, slot: int) -> None:
+        """Give the slot the next queued trajectory of its indenter (or leave it empty)."""
+        queue = self.queues[self.slot_indenters[slot]]
+        self.current[slot] = queue.popleft() if queue else -1
+        self.pose[slot] = 0
+        self.waiting[slot] = self.current[slot] >= 0
+
+    def poses(self) -> tuple[np.ndarray, np.ndarray]:
+        """Rotations (S,3,3) and tip positions (S,3) m of the waiting slots' next poses (identity elsewhere)."""
+        n = len(self.slot_indenters)
+        rotation, translation = np.tile(np.eye(3), (n, 1, 1)), np.zeros((n, 3))
+        for slot in np.flatnonzero(self.waiting):
+            trajectory = self.trajectories[self.current[slot]]
+            rotation[slot] = trajectory.rotations[self.pose[slot]]
+            translation[slot] = trajectory.translations[self.pose[slot]]
+        return rotation, translation
+
+    def record(self, finished: dict[int, IncrementResult]) -> None:
+        """File the slots' finished increments; queue their next poses, or end their trajectories."""
+        for slot, result in finished.items():
+            index = int(self.current[slot])
+            self.results[index].append(result)
+            self.pose[slot] += 1
+            pressed = float(np.linalg.norm(result.force)) > self.force_limit
+            if result.converged and not pressed and self.pose[slot] < len(self.trajectories[index].rotations):
+                self.waiting[slot] = True
+                continue
+            if self.on_trajectory is not None:
+                self.on_trajectory(index, self.results[index])
+            self.stepper.reset(np.arange(len(self.slot_indenters)) == slot)
+            self._take(slot)
