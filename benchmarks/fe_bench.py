@@ -6,14 +6,20 @@ and the force change between a default and a finer mesh at the final depth.
 The issue's target on the 2-core CPU: at most 1 s per 0.1 mm increment at >= 4000 skin nodes.
 s / increment is the median wall time of the loaded increments; Newton / incr. their mean iteration count.
 
-Batched throughput (`fe.batched_stepper`, docs/scale.md): B trajectories stepped together on a warp device,
+Batched throughput (`fe.batched_runner`, docs/scale.md): M trajectories through N continuously batched
+slots on a warp device,
 
-    python benchmarks/fe_bench.py --batch N --device cuda|cpu [--mesh-mm 0.5] [--problem DIR] [--serial K]
+    python benchmarks/fe_bench.py --batch N --device cuda|cpu [--trajectories M] [--mesh-mm 0.5]
+        [--problem DIR] [--lockstep-s T] [--serial K] [--kernel-timing]
 
-prints trajectories/s and loaded increments/s. The inflated skin and the planned trajectories are cached in
---problem DIR (built here with the CPU model when missing), so a GPU machine without trimesh's planning
-needs only that folder. --serial K also runs K of the trajectories one by one through the CPU stepper
-(`fe.sensor.BioTacModel.stepper`, PARDISO) for the speed ratio and the force agreement.
+prints trajectories/s, loaded increments/s and the time for 700 trajectories (measured when M >= 700
+finish within --time-limit, else extrapolated). --lockstep-s T first runs the previous scheme for T
+seconds in the same process as the baseline of the ratio: the first N trajectories stepped pose by pose in
+lock-step (`BatchedStepper.step`), every system waiting for the slowest. The inflated skin and the planned
+trajectories are cached in --problem DIR (built here with the CPU model when missing), so a GPU machine
+without trimesh's planning needs only that folder. --serial K also runs K of the trajectories one by one
+through the CPU stepper (`fe.sensor.BioTacModel.stepper`, PARDISO) for the CPU ratio and the force
+agreement. --kernel-timing prints the GPU time per warp kernel over a short extra run.
 """
 
 import argparse
@@ -55,7 +61,10 @@ def run(mesh_mm: float, indenter: str, point_mm: list[float], depth_mm: float, s
 
 def add_batch_arguments(parser: argparse.ArgumentParser) -> None:
     """Options of the batched benchmark."""
-    parser.add_argument("--batch", type=int, default=None, help="trajectories solved together (batched mode)")
+    parser.add_argument("--batch", type=int, default=None, help="slots: trajectories solved together (batched mode)")
+    parser.add_argument("--trajectories", type=int, default=None, help="trajectories to run (default: --batch)")
+    parser.add_argument("--lockstep-s", type=float, default=0.0, help="seconds of the lock-step baseline first")
+    parser.add_argument("--kernel-timing", action="store_true", help="GPU time per kernel over a short run")
     parser.add_argument("--device", default="cpu", help="warp device of the batched solve: cpu, cuda, cuda:0, ...")
     parser.add_argument("--mesh-mm", type=float, default=0.5, help="skin mesh of the batched benchmark")
     parser.add_argument("--indenters", default="sphere_medium", help="comma-separated names or 'all', cycled")
@@ -65,7 +74,7 @@ def add_batch_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--json", default=None, help="also write the batched results to this JSON file")
     parser.add_argument("--forces", default=None, help="write the batched forces (poses, B, 3) N to this .npz")
     parser.add_argument("--force-limit", type=float, default=25.0, help="N; a trajectory stops above it")
-    parser.add_argument("--time-limit", type=float, default=1e9, help="stop stepping after this many seconds")
+    parser.add_argument("--time-limit", type=float, default=1e9, help="stop the continuous run after this many s")
 
 
 def plan_batch(args: argparse.Namespace) -> tuple[InflatedSkin, dict[str, np.ndarray], BioTacModel | None]:
@@ -75,8 +84,8 @@ def plan_batch(args: argparse.Namespace) -> tuple[InflatedSkin, dict[str, np.nda
     if folder is not None and (folder / "skin.npz").exists():
         with np.load(folder / "paths.npz") as data:
             paths = {k: data[k] for k in data.files}
-        if len(paths["names"]) >= args.batch:  # an even spread over the cached ones keeps the indenter mix
-            pick = np.linspace(0, len(paths["names"]) - 1, args.batch).round().astype(int)
+        if len(paths["names"]) >= _count(args):  # an even spread over the cached ones keeps the indenter mix
+            pick = np.linspace(0, len(paths["names"]) - 1, _count(args)).round().astype(int)
             return InflatedSkin.load(folder / "skin.npz"), {k: v[pick] for k, v in paths.items()}, None
     model = BioTacModel(make_biotac(max_edge=args.mesh_mm * 1e-3))
     if not model.inflate().converged:
@@ -85,7 +94,7 @@ def plan_batch(args: argparse.Namespace) -> tuple[InflatedSkin, dict[str, np.nda
     rng = np.random.default_rng(args.seed)
     ventral = model.reference[model.geometry.skin.ventral]
     rows: dict[str, list] = {"names": [], "touch": [], "direction": [], "rotation": []}
-    while len(rows["names"]) < args.batch:
+    while len(rows["names"]) < _count(args):
         name = names[len(rows["names"]) % len(names)]
         point = ventral[rng.integers(len(ventral))]
         try:
@@ -106,113 +115,172 @@ def plan_batch(args: argparse.Namespace) -> tuple[InflatedSkin, dict[str, np.nda
     return skin, paths, model
 
 
+def _count(args: argparse.Namespace) -> int:
+    """Trajectories of the batched benchmark."""
+    return args.trajectories or args.batch
+
+
 def run_batch_benchmark(args: argparse.Namespace) -> None:
-    """Step B trajectories together (first pose 0.1 mm before touch, then to --depth-mm in --step-mm) and
-    print throughput; with --serial K, the same K trajectories through the CPU stepper beside it."""
+    """Run the trajectories (first pose 0.1 mm before touch, then to --depth-mm in --step-mm) through --batch
+    continuously batched slots and print throughput, beside the lock-step baseline and the CPU stepper."""
     import json
 
     import warp as wp
 
-    from fe.batched_stepper import BatchedStepper
+    from fe.batched_runner import PoseTrajectory, run_trajectories
 
     skin, paths, model = plan_batch(args)
     travels = np.arange(-1, int(round(args.depth_mm / args.step_mm)) + 1) * args.step_mm * 1e-3
+    trajectories = [
+        PoseTrajectory(str(name), np.repeat(rotation[None], len(travels), 0), touch + travels[:, None] * direction)
+        for name, rotation, touch, direction in zip(
+            paths["names"], paths["rotation"], paths["touch"], paths["direction"], strict=True
+        )
+    ]
     console = Console(width=200)
     start = time.perf_counter()
-    first = {k: v[:1] for k, v in paths.items()}
-    warmup = BatchedStepper(skin, list(first["names"]), args.device)  # compiles (or loads) every kernel
-    for t in travels[:3]:
-        warmup.step(first["rotation"], _poses(first, t))
+    run_trajectories(skin, [_cut(trajectories[0], 3)], args.device, slots=1)  # compiles (or loads) every kernel
     compile_s = time.perf_counter() - start
-    start = time.perf_counter()
-    stepper = BatchedStepper(skin, list(paths["names"]), args.device)
-    setup_s = time.perf_counter() - start
+    rows = []
+    if args.lockstep_s > 0:
+        rows.append(_lockstep(skin, trajectories[: args.batch], args))
     wp.synchronize()
-    start = time.perf_counter()
-    results = []
-    running = np.ones(args.batch, dtype=bool)
-    for t in travels:
-        if time.perf_counter() - start > args.time_limit:
-            break
-        results.append(stepper.step(paths["rotation"], _poses(paths, t), running))
-        # As in a campaign, a failed trajectory stops, and so does one past the controller's force limit.
-        pressed = np.array([r is not None and np.linalg.norm(r.force) > args.force_limit for r in results[-1]])
-        running &= ~pressed & np.array([f is None for f in stepper.failure])
-    wall = time.perf_counter() - start
-    loaded = [r for step in results for r in step if r is not None and r.message != "no contact"]
-    failed = sum(not r.converged for r in loaded)
-    row = {
-        "device": str(wp.get_device(args.device)),
-        "mesh_mm": args.mesh_mm,
-        "nodes": len(skin.vertices),
-        "batch": args.batch,
-        "poses_per_trajectory": len(travels),
-        "poses_stepped": len(results),
-        "loaded_increments": len(loaded),
-        "failed": failed,
-        "stopped_at_force_limit": int(args.batch - running.sum() - len([f for f in stepper.failure if f])),
-        "compile_s": compile_s,
-        "setup_s": setup_s,
-        "wall_s": wall,
-        "trajectories_per_s": args.batch * len(results) / len(travels) / wall,
-        "increments_per_s": len(loaded) / wall,
-        "newton_per_increment": float(np.mean([r.newton_iterations for r in loaded])) if loaded else 0.0,
-    }
-    solves = max(stepper.shell.counters["linear_solves"], 1)
-    row |= {
-        "evaluate_s": stepper.shell.counters["evaluate_s"],
-        "linear_solve_s": stepper.shell.counters["linear_solve_s"],
-        "cg_iterations_per_solve_max": stepper.shell.counters["cg_iterations_max"] / solves,
-        "cg_iterations_per_solve_mean": stepper.shell.counters["cg_iterations_mean"] / solves,
-    }
-    if args.serial:
-        row.update(_serial(args, paths, travels, results, model))
-    table = Table("quantity", "value")
-    for key, value in row.items():
-        table.add_row(key, f"{value:.4g}" if isinstance(value, float) else str(value))
-    console.print(table)
-    per_trajectory = len(travels) - 1  # every pose after the free approach pose is loaded
-    minutes = 700 * per_trajectory / row["increments_per_s"] / 60 if loaded else float("inf")
-    console.print(
-        f"extrapolated: 700 trajectories x {per_trajectory} loaded increments at {row['increments_per_s']:.3g} "
-        f"increments/s = {minutes:.1f} min"
+    ended: list[int] = []
+    run = run_trajectories(
+        skin, trajectories, args.device, args.batch, args.force_limit, lambda i, _: ended.append(i), args.time_limit
     )
-    row["extrapolated_700_min"] = minutes
+    rows.append(_summary("continuous", args.batch, run.results, run.wall_s, run.counters, run.complete, len(ended)))
+    # Both modes are extrapolated with the whole trajectories' mean length (lock-step ones are cut by time).
+    per_trajectory = rows[-1]["loaded_increments_per_trajectory"]
+    for row in rows:
+        row["minutes_for_700"] = 700 * per_trajectory / max(row["increments_per_s"], 1e-12) / 60
+        row |= {"device": str(wp.get_device(args.device)), "mesh_mm": args.mesh_mm, "nodes": len(skin.vertices)}
+        row["compile_s"] = compile_s
+    if args.serial:
+        rows[-1].update(_serial(args, paths, travels, run.results, model))
+    table = Table("quantity", *(row["mode"] for row in rows))
+    for key in rows[-1]:
+        cells = [row.get(key, "") for row in rows]
+        table.add_row(key, *(f"{v:.4g}" if isinstance(v, float) else str(v) for v in cells))
+    console.print(table)
+    if len(rows) == 2:
+        ratio = rows[1]["increments_per_s"] / max(rows[0]["increments_per_s"], 1e-12)
+        console.print(f"continuous / lock-step increments per second: {ratio:.2f}x (same process, same device)")
+    if args.kernel_timing:
+        _kernel_timing(skin, trajectories[: args.batch], args, console)
     if args.json:
-        Path(args.json).write_text(json.dumps(row, indent=1))
+        Path(args.json).write_text(json.dumps(rows, indent=1))
     if args.forces:
-        nan = np.full(3, np.nan)
-        forces = [[nan if r is None else r.force for r in step] for step in results]
-        force = np.array(forces).reshape(len(results), args.batch, 3)
-        np.savez(args.forces, force=force, travel=travels[: len(results)], names=paths["names"])
+        np.savez(args.forces, **_forces(run.results, paths["names"]))
 
 
-def _poses(paths: dict[str, np.ndarray], travel: float) -> np.ndarray:
-    """Tip positions (B,3) m at `travel` past first touch along each trajectory."""
-    return paths["touch"] + travel * paths["direction"]
+def _cut(trajectory, poses: int):
+    """The first `poses` poses of a trajectory."""
+    return type(trajectory)(trajectory.indenter, trajectory.rotations[:poses], trajectory.translations[:poses])
+
+
+def _summary(mode: str, slots: int, results: list, wall: float, counters: dict, complete: bool, finished: int) -> dict:
+    """Throughput of one run: trajectories started and finished, loaded increments, and their rates."""
+    loaded = [r for trajectory in results for r in trajectory if r.message != "no contact"]
+    per_trajectory = len(loaded) / max(sum(bool(t) for t in results), 1)
+    increments_per_s = len(loaded) / wall
+    solves = max(counters["linear_solves"], 1)
+    return {
+        "mode": mode,
+        "slots": slots,
+        "trajectories": sum(bool(t) for t in results),
+        "complete": complete,
+        "loaded_increments": len(loaded),
+        "not_converged": sum(not r.converged for r in loaded),
+        "wall_s": wall,
+        "increments_per_s": increments_per_s,
+        "loaded_increments_per_trajectory": per_trajectory,
+        "finished_trajectories": finished,
+        "finished_trajectories_per_s": finished / wall,
+        "newton_per_increment": float(np.mean([r.newton_iterations for r in loaded])) if loaded else 0.0,
+        "evaluate_s": counters["evaluate_s"],
+        "linear_solve_s": counters["linear_solve_s"],
+        "cg_iterations_per_solve_max": counters["cg_iterations_max"] / solves,
+        "cg_iterations_per_solve_mean": counters["cg_iterations_mean"] / solves,
+    }
+
+
+def _lockstep(skin: InflatedSkin, trajectories: list, args: argparse.Namespace) -> dict:
+    """The baseline: one `BatchedStepper.step` per pose for all systems, for --lockstep-s seconds."""
+    from fe.batched_stepper import BatchedStepper
+
+    stepper = BatchedStepper(skin, [t.indenter for t in trajectories], args.device)
+    results: list[list] = [[] for _ in trajectories]
+    running = np.ones(len(trajectories), dtype=bool)
+    start = time.perf_counter()
+    rotation = np.stack([t.rotations[0] for t in trajectories])
+    for k in range(len(trajectories[0].translations)):
+        if time.perf_counter() - start > args.lockstep_s or not running.any():
+            break
+        translation = np.stack([t.translations[k] for t in trajectories])
+        for i, result in enumerate(stepper.step(rotation, translation, running)):
+            if result is not None:
+                results[i].append(result)
+                # As in a campaign, a failed trajectory stops, and so does one past the force limit.
+                running[i] &= result.converged and np.linalg.norm(result.force) <= args.force_limit
+    wall, finished = time.perf_counter() - start, int((~running).sum())
+    return _summary("lock-step", len(trajectories), results, wall, stepper.shell.counters, False, finished)
+
+
+def _kernel_timing(skin: InflatedSkin, trajectories: list, args: argparse.Namespace, console: Console) -> None:
+    """GPU time per kernel (summed over launches) of a 30 s continuous run, largest first."""
+    import warp as wp
+
+    from fe.batched_runner import run_trajectories
+
+    wp.timing_begin(cuda_filter=wp.TIMING_KERNEL | wp.TIMING_MEMCPY)
+    run_trajectories(skin, trajectories, args.device, args.batch, args.force_limit, time_limit_s=30.0)
+    timings = wp.timing_end()
+    totals: dict[str, list[float]] = {}
+    for t in timings:
+        entry = totals.setdefault(t.name, [0.0, 0])
+        entry[0] += t.elapsed
+        entry[1] += 1
+    table = Table("kernel / copy", "GPU ms", "calls", "ms / call")
+    for name, (ms, calls) in sorted(totals.items(), key=lambda item: -item[1][0])[:25]:
+        table.add_row(name[:80], f"{ms:.1f}", str(calls), f"{ms / calls:.3f}")
+    console.print(table)
+
+
+def _forces(results: list, names: np.ndarray) -> dict:
+    """Forces (trajectories, poses, 3) N of a run, NaN after a trajectory stopped."""
+    poses = max(len(t) for t in results)
+    force = np.full((len(results), poses, 3), np.nan)
+    for i, trajectory in enumerate(results):
+        for k, r in enumerate(trajectory):
+            force[i, k] = r.force
+    return {"force": force, "names": names[: len(results)]}
 
 
 def _serial(args: argparse.Namespace, paths: dict, travels: np.ndarray, batched: list, model) -> dict:
-    """The first --serial trajectories one by one through the CPU stepper: speed and agreement with the batch."""
+    """The first --serial trajectories one by one through the CPU stepper, stopping like the batch: speed and
+    the largest force difference from the batch (relative to |F|, at least 1 mN)."""
     if model is None:
         model = BioTacModel(make_biotac(max_edge=args.mesh_mm * 1e-3))
         model.inflate()
+    count = min(args.serial, len(batched))
     worst, increments = 0.0, 0
     start = time.perf_counter()
-    for i in range(min(args.serial, args.batch)):
+    for i in range(count):
         stepper = model.stepper(str(paths["names"][i]))
         for k, t in enumerate(travels):
             result = stepper.step(paths["rotation"][i], paths["touch"][i] + t * paths["direction"][i])
             increments += result.message != "no contact"
-            if k >= len(batched) or batched[k][i] is None:
+            if k < len(batched[i]):
+                diff = np.linalg.norm(result.force - batched[i][k].force) / max(np.linalg.norm(result.force), 1e-3)
+                worst = max(worst, diff)
+            if not result.converged or np.linalg.norm(result.force) > args.force_limit:
                 break
-            other = batched[k][i]
-            worst = max(worst, np.linalg.norm(result.force - other.force) / max(np.linalg.norm(result.force), 1e-3))
     wall = time.perf_counter() - start
     return {
-        "serial_trajectories": min(args.serial, args.batch),
+        "serial_trajectories": count,
         "serial_increments_per_s": increments / wall,
-        "serial_trajectories_per_s": min(args.serial, args.batch) / wall,
+        "serial_trajectories_per_s": count / wall,
         "max_rel_force_diff": worst,
     }
 

@@ -294,7 +294,8 @@ class BatchedShell:
         self.pose = {name: z(B, wp.mat33d if "rotation" in name else wp.vec3d) for name in _POSE}
         far = np.tile([0.0, 0.0, 1.0], (B, 1))  # 1 m away: no contact until a pose is set
         self.set_poses(np.tile(np.eye(3), (B, 1, 1)), far, np.tile(np.eye(3), (B, 1, 1)), far)
-        self._runs = _runs(indenters)
+        self.indenters = [(int(kind), tuple(float(d) for d in dims)) for kind, dims in indenters]
+        self._runs = _runs(self.indenters)
         connectivities = [tri, stencils, np.arange(V)[:, None]]
         self.matrix = BatchedBlockMatrix(BlockPattern.from_connectivities(connectivities, V), B, self.free, device)
         self.cg = BatchedCG(self.matrix, 2 * B)
@@ -312,6 +313,12 @@ class BatchedShell:
         """Indenter poses (B,3,3) body->sensor and tip positions (B,3) m, now and at the increment's start."""
         for name, value in zip(_POSE, (rotation, translation, rotation_start, translation_start), strict=True):
             self.pose[name].assign(np.asarray(value, dtype=np.float64))
+
+    def set_indenter(self, system: int, kind: int, dims: tuple[float, float, float, float]) -> None:
+        """Give one system another indenter (kind, dims of `fe.indenter_sdf`); its contact launch then runs
+        separately unless its neighbours share the indenter."""
+        self.indenters[system] = (int(kind), tuple(float(d) for d in dims))
+        self._runs = _runs(self.indenters)
 
     # -- evaluation ------------------------------------------------------------------------------
     def evaluate(self, x: wp.array, want_hessian: bool, pressure: np.ndarray) -> BatchLinearization:

@@ -3,8 +3,10 @@
 `run_trajectories(skin, trajectories, device, slots)` keeps `slots` systems of one `BatchedStepper` busy:
 each slot holds one trajectory at a time, a system that finishes an increment starts its next pose at
 once (`BatchedStepper.admit`) while the others go on iterating (`BatchedStepper.advance`), and a slot
-whose trajectory ends takes the next queued trajectory of the same indenter. So no system waits for the
-slowest one of the batch, as a lock-step `BatchedStepper.step` per pose would make it.
+whose trajectory ends takes the next queued trajectory of its indenter, or, when none is left, one of the
+indenter with the longest queue (slots start in proportion to the indenter mix and grouped, so that the
+contact kernels launch once per indenter). So no system waits for the slowest one of the batch, as a
+lock-step `BatchedStepper.step` per pose would make it, and no slot idles while trajectories are queued.
 
 A trajectory ends after its last pose, at its first increment that does not converge, or at its first
 increment whose indenter force exceeds `force_limit` (N), as the campaign controller stops a press.
@@ -49,24 +51,25 @@ class PoseTrajectory:
 class BatchedRun:
     """Outcome of `run_trajectories`: per trajectory its increments (in pose order, ending where the
     trajectory stopped), the number of global Newton iterations (one `advance` each), the wall time (s),
-    the slots per indenter and the shell's work counters (`fe.batched.BatchedShell.counters`)."""
+    the slots per indenter, the shell's work counters (`fe.batched.BatchedShell.counters`) and whether every
+    trajectory ended (False after a time limit)."""
 
     results: list[list[IncrementResult]]
     iterations: int
     wall_s: float
     slots: dict[str, int]
     counters: dict[str, float]
+    complete: bool
 
 
 def allocate_slots(counts: dict[str, int], slots: int) -> dict[str, int]:
-    """Slots per indenter, in proportion to its trajectory count (largest remainders), at least one each
-    and never more than its trajectories."""
-    if slots < len(counts):
-        raise ValueError(f"{slots} slots cannot hold {len(counts)} indenters; give at least {len(counts)}")
+    """Slots per indenter, in proportion to its trajectory count (largest remainders), never more than its
+    trajectories, and at least one each where there are as many slots as indenters."""
     total = sum(counts.values())
     slots = min(slots, total)
     share = {name: slots * n / total for name, n in counts.items()}
-    given = {name: max(1, min(counts[name], int(share[name]))) for name in counts}
+    floor = 1 if slots >= len(counts) else 0
+    given = {name: max(floor, int(share[name])) for name in counts}
     by_remainder = sorted(counts, key=lambda name: share[name] - int(share[name]), reverse=True)
     while sum(given.values()) < slots:
         for name in by_remainder:
@@ -75,7 +78,7 @@ def allocate_slots(counts: dict[str, int], slots: int) -> dict[str, int]:
     while sum(given.values()) > slots:
         name = max(given, key=lambda n: given[n] - share[n])
         given[name] -= 1
-    return given
+    return {name: n for name, n in given.items() if n}
 
 
 def run_trajectories(
@@ -85,22 +88,31 @@ def run_trajectories(
     slots: int = 256,
     force_limit: float = np.inf,
     on_trajectory: Callable[[int, list[IncrementResult]], None] | None = None,
+    time_limit_s: float = np.inf,
 ) -> BatchedRun:
     """Solve every trajectory's poses in order on `slots` continuously batched systems on the warp `device`;
-    `on_trajectory(index, increments)` is called as each trajectory ends (for progress and streaming)."""
+    `on_trajectory(index, increments)` is called as each trajectory ends (for progress and streaming). After
+    `time_limit_s` the run stops where it is (`BatchedRun.complete` False; unfinished trajectories keep the
+    increments they finished)."""
     if not trajectories:
         raise ValueError("no trajectories to run")
+    if slots < 1:
+        raise ValueError(f"slots must be at least 1, got {slots}")
     counts: dict[str, int] = {}
     for trajectory in trajectories:
         counts[trajectory.indenter] = counts.get(trajectory.indenter, 0) + 1
     per_indenter = allocate_slots(dict(sorted(counts.items())), slots)
     slot_indenters = [name for name, n in per_indenter.items() for _ in range(n)]
-    queues = {name: deque(i for i, t in enumerate(trajectories) if t.indenter == name) for name in per_indenter}
+    queues = {name: deque(i for i, t in enumerate(trajectories) if t.indenter == name) for name in counts}
     start = time.perf_counter()
     stepper = BatchedStepper(skin, slot_indenters, device)
     schedule = _Schedule(trajectories, slot_indenters, queues, force_limit, on_trajectory, stepper)
     iterations = 0
+    complete = True
     while True:
+        if time.perf_counter() - start > time_limit_s:
+            complete = False
+            break
         while schedule.waiting.any():
             rotation, translation = schedule.poses()
             admitted = schedule.waiting.copy()
@@ -111,7 +123,8 @@ def run_trajectories(
         schedule.record(stepper.advance())
         iterations += 1
     counters = dict(stepper.shell.counters)
-    return BatchedRun(schedule.results, iterations, time.perf_counter() - start, per_indenter, counters)
+    wall = time.perf_counter() - start
+    return BatchedRun(schedule.results, iterations, wall, per_indenter, counters, complete)
 
 
 class _Schedule:
@@ -138,8 +151,15 @@ class _Schedule:
             self._take(slot)
 
     def _take(self, slot: int) -> None:
-        """Give the slot the next queued trajectory of its indenter (or leave it empty)."""
-        queue = self.queues[self.slot_indenters[slot]]
+        """Give the slot the next queued trajectory of its indenter, else of the longest queue (or leave it
+        empty)."""
+        name = self.slot_indenters[slot]
+        if not self.queues[name]:
+            name = max(self.queues, key=lambda n: len(self.queues[n]))
+            if self.queues[name]:
+                self.stepper.set_indenter(slot, name)
+                self.slot_indenters[slot] = name
+        queue = self.queues[name]
         self.current[slot] = queue.popleft() if queue else -1
         self.pose[slot] = 0
         self.waiting[slot] = self.current[slot] >= 0

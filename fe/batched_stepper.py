@@ -109,6 +109,14 @@ class BatchedStepper:
         self._gap[which] = 0.0
         self._gap_change[which] = 0.0
 
+    def set_indenter(self, system: int, name: str) -> None:
+        """Change one system's indenter (reset it first: the new one starts from the inflated state)."""
+        if self.posed[system] or self.newton.running[system]:
+            raise RuntimeError(f"reset() system {system} before changing its indenter")
+        shape = get_indenter(name)
+        self.shell.set_indenter(system, shape.kind, shape.dims)
+        self.indenters[system] = name
+
     # -- stepping ----------------------------------------------------------------------------------
     def step(
         self, rotation: np.ndarray, translation: np.ndarray, active: np.ndarray | None = None
