@@ -3,7 +3,6 @@ nothing (the trajectory re-runs, no part is duplicated)."""
 
 import os
 import sys
-import threading
 from collections.abc import Callable, Iterator, Sequence
 from dataclasses import replace
 from pathlib import Path
@@ -17,31 +16,54 @@ from typer.testing import CliRunner
 from twin.campaign import QUICK_CONFIG, run_campaign
 from twin.cli import app
 from twin.executors import Executor, ExecutorUnavailable, LocalExecutor, make_executor
+from twin.protocol import QUICK_SETTINGS
 
-CONFIG = replace(QUICK_CONFIG, sensors=(2,), indenters=("sphere_medium",))
-"""Two trajectories (one normal, one angled) on one sensor, 2 mm mesh."""
+CONFIG = replace(
+    QUICK_CONFIG,
+    sensors=(2,),
+    indenters=("sphere_medium",),
+    settings=replace(QUICK_SETTINGS, normal_depth=0.4e-3, angled_depth=0.2e-3, pause_s=0.1),
+)
+"""Two short trajectories (one normal, one angled) on one sensor, 2 mm mesh: the tests' tiny campaign."""
+KILLED = 0
+"""Trajectory whose first attempt dies; the other one runs undisturbed on the second worker."""
+KILL_AFTER_SOLVES = 3
+"""The killed attempt's worker exits after this many fe solves of the trajectory (indenter in contact)."""
 
 
-def _die_mid_task(marker_dir: str, delay_s: float, task: Callable[..., Any], job: tuple) -> Any:
-    """Run the task; on its first attempt (no marker yet) the worker process dies `delay_s` into it."""
-    marker = Path(marker_dir) / f"{job[0].sensor_id}-{job[0].spec.trajectory_id}"
-    if not marker.exists():
-        marker.touch()
-        threading.Timer(delay_s, os._exit, (1,)).start()
-    return task(*job)
+def _die_mid_trajectory(attempts_dir: str, task: Callable[..., Any], job: tuple) -> Any:
+    """Run the task, logging each attempt; the first attempt of trajectory KILLED ends its worker process
+    (`os._exit`) right after its KILL_AFTER_SOLVES-th fe solve, before any part file is written."""
+    name = f"{job[0].sensor_id}-{job[0].spec.trajectory_id}"
+    attempt = sum(not p.name.endswith(".done") for p in Path(attempts_dir).glob(f"{name}.*")) + 1
+    (Path(attempts_dir) / f"{name}.{attempt}").touch()
+    if job[0].spec.trajectory_id == KILLED and attempt == 1:
+        from twin.sim_backend import SimBackend
+
+        advance = SimBackend.advance
+
+        def advance_then_die(self: SimBackend, dt: float) -> None:
+            advance(self, dt)
+            if len(self.solve_log) >= KILL_AFTER_SOLVES:
+                os._exit(1)
+
+        SimBackend.advance = advance_then_die  # this process dies with the patch in place
+    result = task(*job)
+    (Path(attempts_dir) / f"{name}.{attempt}.done").touch()
+    return result
 
 
 class _KillingExecutor(Executor):
-    """Wraps an executor so that every task's first attempt dies part-way through."""
+    """Wraps an executor so that trajectory KILLED's first attempt dies part-way through."""
 
-    def __init__(self, inner: Executor, marker_dir: Path, delay_s: float) -> None:
-        self.inner, self.marker_dir, self.delay_s = inner, marker_dir, delay_s
+    def __init__(self, inner: Executor, attempts_dir: Path) -> None:
+        self.inner, self.attempts_dir = inner, attempts_dir
 
     def map_unordered(
         self, task: Callable[..., Any], jobs: Sequence[tuple], setup: Callable[..., None], setup_args: tuple
     ) -> Iterator[Any]:
-        wrapped = [(str(self.marker_dir), self.delay_s, task, job) for job in jobs]
-        return self.inner.map_unordered(_die_mid_task, wrapped, setup, setup_args)
+        wrapped = [(str(self.attempts_dir), task, job) for job in jobs]
+        return self.inner.map_unordered(_die_mid_trajectory, wrapped, setup, setup_args)
 
 
 def _read_all(path: Path) -> dict[str, np.ndarray]:
@@ -51,25 +73,36 @@ def _read_all(path: Path) -> dict[str, np.ndarray]:
     return arrays
 
 
-def test_ray_with_killed_workers_writes_the_local_pool_dataset(tmp_path: Path) -> None:
+def test_ray_with_a_killed_worker_writes_the_local_pool_dataset(tmp_path: Path) -> None:
     ray = pytest.importorskip("ray")
     from ray import cloudpickle
 
     from twin.executors import RayExecutor
 
     cloudpickle.register_pickle_by_value(sys.modules[__name__])  # Ray workers cannot import this test module
-    local = run_campaign(CONFIG, tmp_path / "local", executor=LocalExecutor(2))
-    markers = tmp_path / "markers"
-    markers.mkdir()
+    attempts = tmp_path / "attempts"
+    attempts.mkdir()
+    executor = RayExecutor(num_cpus=2, object_store_memory=80 * 2**20)  # two workers, 3 retries
     try:
-        killing = _KillingExecutor(RayExecutor(num_cpus=2, max_retries=2), markers, delay_s=1.0)
-        result = run_campaign(CONFIG, tmp_path / "ray", executor=killing)
+        # The reference (while Ray's workers start): the default local pool, one process running both
+        # trajectories one after the other.
+        local = run_campaign(CONFIG, tmp_path / "local", executor=LocalExecutor(1))
+        result = run_campaign(CONFIG, tmp_path / "ray", executor=_KillingExecutor(executor, attempts))
     finally:
         ray.shutdown()
     assert local.ran == result.ran == 2 and result.incomplete == 0
-    assert len(list(markers.iterdir())) == 2, "every trajectory's first attempt was killed"
-    parts = sorted(p.name for p in (tmp_path / "ray" / "parts").rglob("*"))
-    assert parts == sorted(p.name for p in (tmp_path / "local" / "parts").rglob("*"))
+    other = 1 - KILLED
+    # The killed attempt never finished, its re-run did; the other trajectory ran once.
+    assert sorted(p.name for p in attempts.iterdir()) == [
+        f"2-{KILLED}.1",
+        f"2-{KILLED}.2",
+        f"2-{KILLED}.2.done",
+        f"2-{other}.1",
+        f"2-{other}.1.done",
+    ]
+    # Nothing lost or duplicated: the same part files (no leftovers of the killed attempt), the same arrays.
+    parts = sorted(str(p.relative_to(tmp_path / "ray")) for p in (tmp_path / "ray" / "parts").rglob("*"))
+    assert parts == sorted(str(p.relative_to(tmp_path / "local")) for p in (tmp_path / "local" / "parts").rglob("*"))
     a, b = _read_all(local.files[2]), _read_all(result.files[2])
     assert a.keys() == b.keys()
     for key in a:

@@ -77,11 +77,19 @@ def _ray_task(setup_key: str, setup: Callable[..., None], setup_args: tuple, tas
 class RayExecutor(Executor):
     """Ray tasks, one CPU each, on the cluster at `address` (None: start or join a local Ray).
 
-    `num_cpus` limits a locally started Ray (ignored when joining a cluster). Tasks whose worker
-    process dies are retried up to `max_retries` times; a task that raises is not retried.
+    `num_cpus` and `object_store_memory` (bytes; Ray's default is 30 % of the memory) size a locally
+    started Ray (ignored when joining a cluster); tasks pass only small arguments and results, the part
+    files go to disk. Tasks whose worker process dies are retried up to `max_retries` times; a task
+    that raises is not retried.
     """
 
-    def __init__(self, address: str | None = None, num_cpus: int | None = None, max_retries: int = 3) -> None:
+    def __init__(
+        self,
+        address: str | None = None,
+        num_cpus: int | None = None,
+        max_retries: int = 3,
+        object_store_memory: int | None = None,
+    ) -> None:
         try:
             import ray
         except ImportError as error:
@@ -94,6 +102,8 @@ class RayExecutor(Executor):
             options: dict[str, Any] = {"address": address, "include_dashboard": False, "log_to_driver": False}
             if address is None and num_cpus is not None:
                 options["num_cpus"] = num_cpus
+            if address is None and object_store_memory is not None:
+                options["object_store_memory"] = object_store_memory
             try:
                 ray.init(**options)
             except (ConnectionError, RuntimeError, ValueError) as error:
