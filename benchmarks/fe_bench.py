@@ -65,6 +65,8 @@ def add_batch_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--trajectories", type=int, default=None, help="trajectories to run (default: --batch)")
     parser.add_argument("--lockstep-s", type=float, default=0.0, help="seconds of the lock-step baseline first")
     parser.add_argument("--kernel-timing", action="store_true", help="GPU time per kernel over a short run")
+    parser.add_argument("--forcing", default="adaptive", help="CG tolerance rule of the continuous run")
+    parser.add_argument("--strict-s", type=float, default=0.0, help="seconds of a continuous 'strict' run first")
     parser.add_argument("--device", default="cpu", help="warp device of the batched solve: cpu, cuda, cuda:0, ...")
     parser.add_argument("--mesh-mm", type=float, default=0.5, help="skin mesh of the batched benchmark")
     parser.add_argument("--indenters", default="sphere_medium", help="comma-separated names or 'all', cycled")
@@ -144,12 +146,10 @@ def run_batch_benchmark(args: argparse.Namespace) -> None:
     rows = []
     if args.lockstep_s > 0:
         rows.append(_lockstep(skin, trajectories[: args.batch], args))
-    wp.synchronize()
-    ended: list[int] = []
-    run = run_trajectories(
-        skin, trajectories, args.device, args.batch, args.force_limit, lambda i, _: ended.append(i), args.time_limit
-    )
-    rows.append(_summary("continuous", args.batch, run.results, run.wall_s, run.counters, run.complete, len(ended)))
+    if args.strict_s > 0:
+        rows.append(_continuous(skin, trajectories, args, "strict", args.strict_s)[0])
+    row, run = _continuous(skin, trajectories, args, args.forcing, args.time_limit)
+    rows.append(row)
     # Both modes are extrapolated with the whole trajectories' mean length (lock-step ones are cut by time).
     per_trajectory = rows[-1]["loaded_increments_per_trajectory"]
     for row in rows:
@@ -163,9 +163,9 @@ def run_batch_benchmark(args: argparse.Namespace) -> None:
         cells = [row.get(key, "") for row in rows]
         table.add_row(key, *(f"{v:.4g}" if isinstance(v, float) else str(v) for v in cells))
     console.print(table)
-    if len(rows) == 2:
-        ratio = rows[1]["increments_per_s"] / max(rows[0]["increments_per_s"], 1e-12)
-        console.print(f"continuous / lock-step increments per second: {ratio:.2f}x (same process, same device)")
+    for row in rows[:-1]:
+        ratio = rows[-1]["increments_per_s"] / max(row["increments_per_s"], 1e-12)
+        console.print(f"{rows[-1]['mode']} / {row['mode']} increments per second: {ratio:.2f}x (same process)")
     if args.kernel_timing:
         _kernel_timing(skin, trajectories[: args.batch], args, console)
     if args.json:
@@ -205,11 +205,27 @@ def _summary(mode: str, slots: int, results: list, wall: float, counters: dict, 
     }
 
 
+def _continuous(skin: InflatedSkin, trajectories: list, args: argparse.Namespace, forcing: str, limit_s: float):
+    """A continuous run with the `forcing` rule for at most `limit_s` seconds: its summary row and the run."""
+    import warp as wp
+
+    from fe.batched_runner import run_trajectories
+
+    wp.synchronize()
+    ended: list[int] = []
+    run = run_trajectories(
+        skin, trajectories, args.device, args.batch, args.force_limit, lambda i, _: ended.append(i), limit_s, forcing
+    )
+    mode = f"continuous, {forcing}"
+    return _summary(mode, args.batch, run.results, run.wall_s, run.counters, run.complete, len(ended)), run
+
+
 def _lockstep(skin: InflatedSkin, trajectories: list, args: argparse.Namespace) -> dict:
-    """The baseline: one `BatchedStepper.step` per pose for all systems, for --lockstep-s seconds."""
+    """The baseline, the previous scheme: one `BatchedStepper.step` per pose for all systems, strict CG
+    tolerances, for --lockstep-s seconds."""
     from fe.batched_stepper import BatchedStepper
 
-    stepper = BatchedStepper(skin, [t.indenter for t in trajectories], args.device)
+    stepper = BatchedStepper(skin, [t.indenter for t in trajectories], args.device, forcing="strict")
     results: list[list] = [[] for _ in trajectories]
     running = np.ones(len(trajectories), dtype=bool)
     start = time.perf_counter()
@@ -228,13 +244,13 @@ def _lockstep(skin: InflatedSkin, trajectories: list, args: argparse.Namespace) 
 
 
 def _kernel_timing(skin: InflatedSkin, trajectories: list, args: argparse.Namespace, console: Console) -> None:
-    """GPU time per kernel (summed over launches) of a 30 s continuous run, largest first."""
+    """GPU time per kernel (summed over launches) of a 20 s continuous run, largest first."""
     import warp as wp
 
     from fe.batched_runner import run_trajectories
 
-    wp.timing_begin(cuda_filter=wp.TIMING_KERNEL | wp.TIMING_MEMCPY)
-    run_trajectories(skin, trajectories, args.device, args.batch, args.force_limit, time_limit_s=30.0)
+    wp.timing_begin(cuda_filter=wp.TIMING_KERNEL | wp.TIMING_MEMCPY | wp.TIMING_GRAPH)
+    run_trajectories(skin, trajectories, args.device, args.batch, args.force_limit, None, 20.0, args.forcing)
     timings = wp.timing_end()
     totals: dict[str, list[float]] = {}
     for t in timings:

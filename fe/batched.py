@@ -52,6 +52,10 @@ SUPPORTED_PARAMETERS = frozenset(
 state); any other field must keep its default value."""
 
 _ENERGY_RESOLUTION = 1e-12
+FORCING = ("adaptive", "strict")
+"""How tightly each Newton step's linear systems are solved (`BatchedShell._forcing`)."""
+_ETA_MAX = 0.1
+"""Loosest relative CG tolerance of an "adaptive" Newton step."""
 _DAMPING = (1e-2, 1e-1, 1.0, 1e1, 1e2)
 """Relative diagonal damping tried, in order, when the exact Newton matrix fails for a system."""
 
@@ -171,7 +175,8 @@ class NewtonBatch:
     """Per-system Newton state of a `BatchedShell` ((B,) host arrays), kept between global iterations so
     that systems can start and stop independently: pressure (Pa), target volume (m^3), whether a system
     runs, converged, failed its last line search or just had its lagged friction refreshed, its
-    iteration and friction-refresh counts, why it stopped, and its final residual (N) and volume (m^3)."""
+    iteration and friction-refresh counts, why it stopped, its final residual (N) and volume (m^3), and the
+    residual (N) and CG tolerance of its last Newton step (NaN before the first)."""
 
     pressure: np.ndarray
     target: np.ndarray
@@ -184,6 +189,8 @@ class NewtonBatch:
     message: list[str]
     residual: np.ndarray
     volume: np.ndarray
+    last_residual: np.ndarray
+    last_eta: np.ndarray
 
     @classmethod
     def idle(cls, batch: int, target_volume: np.ndarray | float) -> NewtonBatch:
@@ -191,7 +198,8 @@ class NewtonBatch:
         flags = [np.zeros(batch, dtype=bool) for _ in range(4)]
         counts = [np.zeros(batch, dtype=np.int64) for _ in range(2)]
         target = np.broadcast_to(np.asarray(target_volume, dtype=np.float64), (batch,)).copy()
-        return cls(np.zeros(batch), target, *flags, *counts, ["inactive"] * batch, np.zeros(batch), np.zeros(batch))
+        scalars = [np.zeros(batch), np.zeros(batch), np.full(batch, np.nan), np.zeros(batch)]
+        return cls(np.zeros(batch), target, *flags, *counts, ["inactive"] * batch, *scalars)
 
     def result(self) -> BatchNewtonResult:
         """The outcome of the systems' last solves."""
@@ -208,7 +216,8 @@ class NewtonBatch:
 class BatchedShell:
     """`batch` copies of an `InflatedSkin` on a warp `device`; indenter i of the batch is `indenters[i]`,
     given as (kind, dims) of `fe.indenter_sdf` (systems with the same indenter are best kept contiguous:
-    one contact launch per run of equal indenters)."""
+    one contact launch per run of equal indenters). `forcing`: one of `FORCING`, how tightly the CG solves
+    each Newton step (the converged states do not depend on it, only the work)."""
 
     def __init__(
         self,
@@ -216,9 +225,12 @@ class BatchedShell:
         indenters: list[tuple[int, tuple[float, float, float, float]]],
         device: str = "cpu",
         cg_max_iterations: int = 20000,
+        forcing: str = "adaptive",
     ) -> None:
+        if forcing not in FORCING:
+            raise ValueError(f"forcing must be one of {FORCING}, got {forcing!r}")
         self.skin, self.device, self.batch = skin, device, len(indenters)
-        self.cg_max_iterations = cg_max_iterations
+        self.cg_max_iterations, self.forcing = cg_max_iterations, forcing
         B, V = self.batch, len(skin.vertices)
         self.n_vertices = V
         tri = skin.triangles
@@ -463,6 +475,8 @@ class BatchedShell:
         state.refreshed[which] = False
         state.iterations[which] = 0
         state.passes[which] = 0
+        state.last_residual[which] = np.nan
+        state.last_eta[which] = 0.0
         for i in np.flatnonzero(which):
             state.message[i] = ""
 
@@ -500,9 +514,27 @@ class BatchedShell:
         stepping = state.running & ~state.refreshed
         if stepping.any():
             c = lin.volume - state.target
-            tol = _tolerance(lin, self.skin.newton)
-            state.failed |= self._newton_step(lin, state.pressure, state.target, c, tol, stepping)
+            eta = self._forcing(state, lin)
+            state.failed |= self._newton_step(lin, state.pressure, state.target, c, eta, stepping)
+            state.last_residual[stepping], state.last_eta[stepping] = lin.residual_inf[stepping], eta[stepping]
         state.iterations[state.running & ~state.failed] += 1
+
+    def _forcing(self, state: NewtonBatch, lin: BatchLinearization) -> np.ndarray:
+        """Relative CG tolerances (B,) of the next Newton step. "strict": a linear residual of 1 % of the
+        Newton tolerance, whatever the residual (eta = 1e-2 tol / |r|, within 1e-10 ... 1e-3). "adaptive":
+        Eisenstat and Walker's choice 2 (SIAM J. Sci. Comput. 17, 1996), eta = 0.9 (|r| / |r_prev|)^2,
+        safeguarded by 0.9 eta_prev^2, at most 0.1 (the first step of a solve: 0.1), and never asking for
+        a linear residual below half the Newton tolerance: solves are loose far from the solution."""
+        tol, residual = _tolerance(lin, self.skin.newton), np.maximum(lin.residual_inf, 1e-300)
+        if self.forcing == "strict":
+            return np.clip(1e-2 * tol / residual, 1e-10, 1e-3)
+        first = ~np.isfinite(state.last_residual)
+        ratio = residual / np.where(first, 1.0, np.maximum(state.last_residual, 1e-300))
+        eta = 0.9 * ratio**2
+        safeguard = 0.9 * state.last_eta**2
+        eta = np.where(safeguard > 0.1, np.maximum(eta, safeguard), eta)
+        eta = np.where(first, _ETA_MAX, np.minimum(eta, _ETA_MAX))
+        return np.clip(np.maximum(eta, 0.5 * tol / residual), 1e-10, _ETA_MAX)
 
     def solve(
         self, pressure0: np.ndarray, target_volume: np.ndarray, active: np.ndarray, friction: bool
@@ -526,14 +558,13 @@ class BatchedShell:
         pressure: np.ndarray,
         target: np.ndarray,
         c: np.ndarray,
-        tol: np.ndarray,
+        eta: np.ndarray,
         mask: np.ndarray,
     ) -> np.ndarray:
-        """One damped Newton step with line search for the masked systems (x and pressure updated in place);
-        returns the systems for which no step was found."""
+        """One damped Newton step with line search for the masked systems (x and pressure updated in place),
+        the linear systems solved to relative residuals `eta` (B,); returns the systems for which no step
+        was found."""
         todo = mask.copy()
-        residual_inf = lin.residual_inf.copy()
-        eta = np.clip(1e-2 * tol / np.maximum(residual_inf, 1e-300), 1e-10, 1e-3)
         for attempt, damping in enumerate((0.0, *_DAMPING)):
             if not todo.any():
                 break

@@ -89,11 +89,12 @@ def run_trajectories(
     force_limit: float = np.inf,
     on_trajectory: Callable[[int, list[IncrementResult]], None] | None = None,
     time_limit_s: float = np.inf,
+    forcing: str = "adaptive",
 ) -> BatchedRun:
     """Solve every trajectory's poses in order on `slots` continuously batched systems on the warp `device`;
     `on_trajectory(index, increments)` is called as each trajectory ends (for progress and streaming). After
     `time_limit_s` the run stops where it is (`BatchedRun.complete` False; unfinished trajectories keep the
-    increments they finished)."""
+    increments they finished). `forcing`: the CG tolerance rule of `fe.batched.BatchedShell`."""
     if not trajectories:
         raise ValueError("no trajectories to run")
     if slots < 1:
@@ -105,7 +106,7 @@ def run_trajectories(
     slot_indenters = [name for name, n in per_indenter.items() for _ in range(n)]
     queues = {name: deque(i for i, t in enumerate(trajectories) if t.indenter == name) for name in counts}
     start = time.perf_counter()
-    stepper = BatchedStepper(skin, slot_indenters, device)
+    stepper = BatchedStepper(skin, slot_indenters, device, forcing)
     schedule = _Schedule(trajectories, slot_indenters, queues, force_limit, on_trajectory, stepper)
     iterations = 0
     complete = True

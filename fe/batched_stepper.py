@@ -50,16 +50,19 @@ def _check_poses(
 class BatchedStepper:
     """B independent indentation trajectories of one inflated skin, stepped together on `device`.
 
-    `indenters`: one indenter name per system (keep equal names contiguous: one contact launch per run).
+    `indenters`: one indenter name per system (keep equal names contiguous: one contact launch per run);
+    `forcing`: the CG tolerance rule of `fe.batched.BatchedShell`.
     """
 
-    def __init__(self, skin: InflatedSkin, indenters: Sequence[str], device: str = "cpu") -> None:
+    def __init__(
+        self, skin: InflatedSkin, indenters: Sequence[str], device: str = "cpu", forcing: str = "adaptive"
+    ) -> None:
         shapes = [get_indenter(name) for name in indenters]
         self.skin, self.batch = skin, len(shapes)
         if self.batch == 0:
             raise ValueError("a batch needs at least one trajectory")
         self.indenters = list(indenters)
-        self.shell = BatchedShell(skin, [(s.kind, s.dims) for s in shapes], device)
+        self.shell = BatchedShell(skin, [(s.kind, s.dims) for s in shapes], device, forcing=forcing)
         B, V, T = self.batch, len(skin.vertices), len(skin.triangles)
         rows = skin.triangles.ravel()
         # (V, T) incidence / 3: lumped vertex areas of a deformed mesh in one product.
