@@ -5,11 +5,17 @@ friction lagging and state) into warp arrays with a leading batch axis, evaluate
 `fe.shell.ShellSystem` for all of them with one launch per kernel (the kernels of fe/membrane.py,
 fe/bending.py, fe/volume.py and fe/contact.py, which take the batch axis), assembles the B Newton
 matrices into one batched block-sparse matrix on the device and solves them with the batched CG of
-`fe.device_solver`. `solve_batch` is Newton's method of `fe.newton.solve_equilibrium`, per system:
-the same KKT system through its Schur complement (K u1 = -r, K u2 = b), the same stopping rules,
-merit function and backtracking, the same lagged-friction refreshes. Where the CPU path falls back to
-PSD-projected element Hessians (a step of non-positive curvature, or no acceptable length), this one
-damps the diagonal instead (K + s diag(K), s = 1e-2 ... 1e2), since CG needs a positive definite matrix.
+`fe.device_solver`. Newton's method is that of `fe.newton.solve_equilibrium`, per system: the same KKT
+system through its Schur complement (K u1 = -r, K u2 = b), the same stopping rules, merit function and
+backtracking, the same lagged-friction refreshes. Where the CPU path falls back to PSD-projected element
+Hessians (a step of non-positive curvature, or no acceptable length), this one damps the diagonal instead
+(K + s diag(K), s = 1e-2 ... 1e2), since CG needs a positive definite matrix.
+
+Newton runs in rounds (`evaluate_round`, `settle`, `check`, `iterate`) in which every system does one
+evaluation, wherever it is: at its positions (then a convergence check and a new direction) or at the
+next trial point of its line search. So a system that backtracks costs the others nothing, an accepted
+trial's evaluation (with Hessians) serves as the next Newton evaluation, and systems can join and leave
+between rounds (`fe.batched_stepper.BatchedStepper.admit`).
 Units: m, N, Pa, m^3; positions in the sensor (biotac) frame.
 """
 
@@ -56,8 +62,9 @@ FORCING = ("adaptive", "strict")
 """How tightly each Newton step's linear systems are solved (`BatchedShell._forcing`)."""
 _ETA_MAX = 0.1
 """Loosest relative CG tolerance of an "adaptive" Newton step."""
-_DAMPING = (1e-2, 1e-1, 1.0, 1e1, 1e2)
-"""Relative diagonal damping tried, in order, when the exact Newton matrix fails for a system."""
+_DAMPING = np.array([0.0, 1e-2, 1e-1, 1.0, 1e1, 1e2])
+"""Relative diagonal damping of each attempt: the exact Newton matrix first, then more damping each time a
+system finds no step."""
 
 
 @dataclass(frozen=True)
@@ -158,25 +165,24 @@ class BatchLinearization:
     load: np.ndarray
 
 
-@dataclass
-class BatchNewtonResult:
-    """Per-system outcome of `BatchedShell.solve` ((B,) host arrays; positions stay in `shell.x`)."""
-
-    pressure: np.ndarray
-    converged: np.ndarray
-    iterations: np.ndarray
-    residual: np.ndarray
-    volume: np.ndarray
-    message: list[str]
+AT_X, ENERGY_SEARCH, RESIDUAL_SEARCH = 0, 1, 2
+"""Newton phases of a system: evaluated at its positions (ready for a convergence check and a new
+direction), or backtracking along its direction on the energy merit function or on the residual norm."""
 
 
 @dataclass
 class NewtonBatch:
-    """Per-system Newton state of a `BatchedShell` ((B,) host arrays), kept between global iterations so
-    that systems can start and stop independently: pressure (Pa), target volume (m^3), whether a system
-    runs, converged, failed its last line search or just had its lagged friction refreshed, its
-    iteration and friction-refresh counts, why it stopped, its final residual (N) and volume (m^3), and the
-    residual (N) and CG tolerance of its last Newton step (NaN before the first)."""
+    """Per-system Newton state of a `BatchedShell` ((B,) host arrays), kept between rounds so that systems
+    start, search and stop independently.
+
+    pressure (Pa), target volume (m^3); whether a system runs, converged, failed (no step found even with
+    the strongest damping) or just had its lagged friction refreshed; its Newton iteration and
+    friction-refresh counts; why it stopped; its final residual (N) and volume (m^3); the residual (N) and
+    CG tolerance of its last Newton step (NaN before the first). Line search: `phase` (AT_X,
+    ENERGY_SEARCH, RESIDUAL_SEARCH), the trial `step` along (dq, dp), backtracks so far, the damping
+    `attempt` (0: exact Newton matrix), the pressure step dp (Pa), the merit function's pressure new_p
+    (Pa), penalty rho, value phi0 (J) and slope (J) at the start, and the residual 2-norm there (N).
+    """
 
     pressure: np.ndarray
     target: np.ndarray
@@ -191,26 +197,29 @@ class NewtonBatch:
     volume: np.ndarray
     last_residual: np.ndarray
     last_eta: np.ndarray
+    phase: np.ndarray
+    step: np.ndarray
+    backtracks: np.ndarray
+    attempt: np.ndarray
+    dp: np.ndarray
+    new_p: np.ndarray
+    rho: np.ndarray
+    phi0: np.ndarray
+    slope: np.ndarray
+    rnorm: np.ndarray
 
     @classmethod
     def idle(cls, batch: int, target_volume: np.ndarray | float) -> NewtonBatch:
         """B systems, none running, holding their volumes at `target_volume` (m^3)."""
-        flags = [np.zeros(batch, dtype=bool) for _ in range(4)]
-        counts = [np.zeros(batch, dtype=np.int64) for _ in range(2)]
-        target = np.broadcast_to(np.asarray(target_volume, dtype=np.float64), (batch,)).copy()
-        scalars = [np.zeros(batch), np.zeros(batch), np.full(batch, np.nan), np.zeros(batch)]
-        return cls(np.zeros(batch), target, *flags, *counts, ["inactive"] * batch, *scalars)
-
-    def result(self) -> BatchNewtonResult:
-        """The outcome of the systems' last solves."""
-        return BatchNewtonResult(
-            self.pressure.copy(),
-            self.converged.copy(),
-            self.iterations.copy(),
-            self.residual.copy(),
-            self.volume.copy(),
-            list(self.message),
-        )
+        values: dict = {}
+        for f in fields(cls):
+            kind = {"running": bool, "converged": bool, "failed": bool, "refreshed": bool}.get(f.name, float)
+            kind = np.int64 if f.name in ("iterations", "passes", "phase", "backtracks", "attempt") else kind
+            values[f.name] = np.zeros(batch, dtype=kind)
+        values["target"] = np.broadcast_to(np.asarray(target_volume, dtype=np.float64), (batch,)).copy()
+        values["message"] = ["inactive"] * batch
+        values["last_residual"] = np.full(batch, np.nan)
+        return cls(**values)
 
 
 class BatchedShell:
@@ -466,58 +475,132 @@ class BatchedShell:
 
     def begin(self, state: NewtonBatch, which: np.ndarray, pressure: np.ndarray) -> None:
         """Start Newton for the systems in `which` (B,) bool from the positions in `self.x` and their
-        `pressure` (B,) Pa: iteration 0, no friction refreshes yet."""
+        `pressure` (B,) Pa: iteration 0, no friction refreshes yet, evaluated at x in the next round."""
         which = np.asarray(which, dtype=bool)
         state.pressure[which] = np.asarray(pressure, dtype=np.float64)[which]
         state.running |= which
-        state.converged[which] = False
-        state.failed[which] = False
-        state.refreshed[which] = False
-        state.iterations[which] = 0
-        state.passes[which] = 0
+        for name in ("converged", "failed", "refreshed", "iterations", "passes", "last_eta", "phase", "step"):
+            getattr(state, name)[which] = 0
+        state.attempt[which] = 0
         state.last_residual[which] = np.nan
-        state.last_eta[which] = 0.0
         for i in np.flatnonzero(which):
             state.message[i] = ""
 
-    def check(self, state: NewtonBatch, lin: BatchLinearization, friction: bool) -> np.ndarray:
-        """The stopping rules of `fe.newton.solve_equilibrium` for the running systems, given `lin` evaluated
-        at `self.x`: refresh lagged friction near convergence (`friction`), then stop systems that converged,
-        failed or reached the iteration limit. Returns the systems that stopped now ((B,) bool); their
-        residual and volume are recorded in `state`."""
+    def evaluate_round(self, state: NewtonBatch) -> BatchLinearization:
+        """One evaluation of every system where it stands (with Hessians): at its positions, or, in a line
+        search, at its trial point x + step dq with pressure p + step dp (in `self.x_trial`)."""
+        step = np.where(state.running & (state.phase != AT_X), state.step, 0.0)
+        self._axpy(self.x, step, self.x_trial)
+        return self.evaluate(self.x_trial, True, state.pressure + step * state.dp)
+
+    def settle(self, state: NewtonBatch, lin: BatchLinearization) -> np.ndarray:
+        """Decide the line-search trials just evaluated (`fe.newton._line_search`'s rules, one trial per
+        round): accepted systems move there, the others halve their step, and a search that runs out of
+        backtracks goes on with the residual norm, then with the next damping. Returns the running systems
+        evaluated at their (possibly new) positions, ready for `check` and `iterate`."""
+        at_x = state.running & (state.phase == AT_X)
+        searching = state.running & (state.phase != AT_X)
+        if not searching.any():
+            return at_x
+        cv = lin.volume - state.target
+        phi = lin.energy - state.new_p * cv + 0.5 * state.rho * cv * cv
+        energy_ok = np.isfinite(phi) & (phi <= state.phi0 + 1e-4 * state.step * state.slope)
+        residual_ok = lin.residual_2 < (1.0 - 1e-4 * state.step) * state.rnorm
+        accepted = searching & np.where(state.phase == ENERGY_SEARCH, energy_ok, residual_ok)
+        self._axpy(self.x, np.where(accepted, state.step, 0.0), self.x)
+        state.pressure[accepted] += state.step[accepted] * state.dp[accepted]
+        state.phase[accepted], state.attempt[accepted] = AT_X, 0
+        rejected = searching & ~accepted
+        state.backtracks[rejected] += 1
+        state.step[rejected] *= 0.5
+        exhausted = rejected & (state.backtracks >= self.skin.newton.max_backtracks)
+        to_residual = exhausted & (state.phase == ENERGY_SEARCH)
+        state.phase[to_residual], state.step[to_residual], state.backtracks[to_residual] = RESIDUAL_SEARCH, 1.0, 0
+        self._retry(state, exhausted & ~to_residual)
+        return at_x | accepted
+
+    def check(self, state: NewtonBatch, lin: BatchLinearization, friction: bool, at_x: np.ndarray) -> np.ndarray:
+        """The stopping rules of `fe.newton.solve_equilibrium` for the running systems evaluated at their
+        positions (`at_x`): refresh lagged friction near convergence (`friction`), then stop systems that
+        converged, failed or reached the iteration limit. Returns the systems that stopped now ((B,) bool);
+        their residual and volume are recorded in `state`."""
         settings, before = self.skin.newton, state.running.copy()
         running = state.running
-        _finish(running & ~np.isfinite(lin.residual_inf), running, state.message, "non-finite residual")
-        _finish(state.failed, running, state.message, "line search failed")
+        _finish(at_x & ~np.isfinite(lin.residual_inf), running, state.message, "non-finite residual")
+        _finish(at_x & state.failed, running, state.message, "line search failed")
+        here = at_x & running
         tol = _tolerance(lin, settings)
         state.refreshed[:] = False
         if friction:
-            near = running & (lin.residual_inf <= settings.refresh_factor * tol)
+            near = here & (lin.residual_inf <= settings.refresh_factor * tol)
             near &= state.passes < self.skin.contact.friction_passes
             if near.any():
                 state.refreshed[:] = self.lag_contact(self.x, near)
                 state.passes += near
         c = lin.volume - state.target
         scale = np.where(state.target != 0.0, np.abs(state.target), 1.0)
-        done = running & ~state.refreshed & (lin.residual_inf <= tol) & (np.abs(c) <= settings.volume_tolerance * scale)
+        done = here & ~state.refreshed & (lin.residual_inf <= tol) & (np.abs(c) <= settings.volume_tolerance * scale)
         state.converged |= done
         _finish(done, running, state.message, "converged")
-        _finish(running & (state.iterations >= settings.max_iterations), running, state.message, "iteration limit")
+        _finish(here & (state.iterations >= settings.max_iterations), running, state.message, "iteration limit")
         stopped = before & ~running
         state.residual[stopped] = lin.residual_inf[stopped]
         state.volume[stopped] = lin.volume[stopped]
+        state.phase[stopped] = AT_X
         return stopped
 
-    def iterate(self, state: NewtonBatch, lin: BatchLinearization) -> None:
-        """One damped Newton step for every running system whose friction was not just refreshed (x and
-        pressure updated in place); a system for which no step is found stops at the next `check`."""
-        stepping = state.running & ~state.refreshed
+    def iterate(self, state: NewtonBatch, lin: BatchLinearization, at_x: np.ndarray) -> None:
+        """A Newton direction for every running system evaluated at its positions (`at_x`) whose friction was
+        not just refreshed, damped per its `attempt`, and its line search set up (the trials are evaluated
+        by the next rounds); a system for which no damping gives a usable direction fails."""
+        here = state.running & at_x
+        stepping = here & ~state.refreshed
         if stepping.any():
             c = lin.volume - state.target
             eta = self._forcing(state, lin)
-            state.failed |= self._newton_step(lin, state.pressure, state.target, c, eta, stepping)
+            todo = stepping.copy()
+            while todo.any():
+                damping = np.where(todo, _DAMPING[np.minimum(state.attempt, len(_DAMPING) - 1)], 0.0)
+                dp, ok = self._direction(lin, state.pressure, c, todo, damping, eta)
+                curvature = self._curvature(todo)
+                ok &= (curvature > 0.0) | ((state.attempt > 0) & (c != 0.0))
+                self._start_search(state, lin, c, dp, curvature, todo & ok)
+                unusable = todo & ~ok
+                self._retry(state, unusable)
+                todo = unusable & ~state.failed
             state.last_residual[stepping], state.last_eta[stepping] = lin.residual_inf[stepping], eta[stepping]
-        state.iterations[state.running & ~state.failed] += 1
+        state.iterations[here] += 1
+
+    def _retry(self, state: NewtonBatch, which: np.ndarray) -> None:
+        """The systems in `which` found no step: back at their positions with the next damping, or failed."""
+        state.attempt[which] += 1
+        state.failed |= which & (state.attempt >= len(_DAMPING))
+        state.phase[which], state.step[which] = AT_X, 0.0
+
+    def _start_search(
+        self,
+        state: NewtonBatch,
+        lin: BatchLinearization,
+        c: np.ndarray,
+        dp: np.ndarray,
+        curvature: np.ndarray,
+        which: np.ndarray,
+    ) -> None:
+        """Set up the backtracking of `fe.newton._line_search` along (self.dq, dp) for the systems in `which`:
+        on the merit function E - p_new (V - V0) + rho/2 (V - V0)^2 where its slope is resolved, else on the
+        residual norm; the first trial is the full step."""
+        cc = np.where(c != 0.0, c * c, 1.0)
+        rho = np.where((state.attempt > 0) & (c != 0.0), 3.0 * np.maximum(0.0, -curvature) / cc, 0.0)
+        new_p = state.pressure + dp
+        phi0 = lin.energy - new_p * c + 0.5 * rho * c * c
+        slope = batched_dot(self.gradient, self.dq, self._sums) - new_p * batched_dot(self.bvec, self.dq, self._sums)
+        slope -= rho * c * c
+        energy = -slope > _ENERGY_RESOLUTION * np.maximum(np.abs(phi0), np.abs(lin.energy))
+        for name, value in (("dp", dp), ("new_p", new_p), ("rho", rho), ("phi0", phi0), ("slope", slope)):
+            getattr(state, name)[which] = value[which]
+        state.rnorm[which] = lin.residual_2[which]
+        state.phase[which] = np.where(energy, ENERGY_SEARCH, RESIDUAL_SEARCH)[which]
+        state.step[which], state.backtracks[which] = 1.0, 0
 
     def _forcing(self, state: NewtonBatch, lin: BatchLinearization) -> np.ndarray:
         """Relative CG tolerances (B,) of the next Newton step. "strict": a linear residual of 1 % of the
@@ -536,48 +619,6 @@ class BatchedShell:
         eta = np.where(first, _ETA_MAX, np.minimum(eta, _ETA_MAX))
         return np.clip(np.maximum(eta, 0.5 * tol / residual), 1e-10, _ETA_MAX)
 
-    def solve(
-        self, pressure0: np.ndarray, target_volume: np.ndarray, active: np.ndarray, friction: bool
-    ) -> BatchNewtonResult:
-        """Newton-solve the `active` systems from the positions in `self.x` and `pressure0` (B,) Pa with the
-        volume held at `target_volume` (B,) m^3; converged positions are left in `self.x`. With `friction`
-        the lagged friction data are refreshed near convergence, at most `friction_passes` times."""
-        state = NewtonBatch.idle(self.batch, target_volume)
-        self.begin(state, active, pressure0)
-        while True:
-            lin = self.evaluate(self.x, True, state.pressure)
-            self.check(state, lin, friction)
-            if not state.running.any():
-                break
-            self.iterate(state, lin)
-        return state.result()
-
-    def _newton_step(
-        self,
-        lin: BatchLinearization,
-        pressure: np.ndarray,
-        target: np.ndarray,
-        c: np.ndarray,
-        eta: np.ndarray,
-        mask: np.ndarray,
-    ) -> np.ndarray:
-        """One damped Newton step with line search for the masked systems (x and pressure updated in place),
-        the linear systems solved to relative residuals `eta` (B,); returns the systems for which no step
-        was found."""
-        todo = mask.copy()
-        for attempt, damping in enumerate((0.0, *_DAMPING)):
-            if not todo.any():
-                break
-            robust = attempt > 0
-            if robust:  # the line search re-evaluated x_trial: restore the Hessians at x
-                lin = self.evaluate(self.x, True, pressure)
-            dp, ok = self._direction(lin, pressure, c, todo, np.where(todo, damping, 0.0), eta)
-            curvature = self._curvature(todo)
-            ok &= (curvature > 0.0) | (robust & (c != 0.0))
-            accepted = self._line_search(lin, pressure, target, c, dp, curvature, ok, robust)
-            todo &= ~accepted
-        return todo
-
     def _direction(
         self,
         lin: BatchLinearization,
@@ -587,7 +628,8 @@ class BatchedShell:
         damping: np.ndarray,
         eta: np.ndarray,
     ) -> tuple[np.ndarray, np.ndarray]:
-        """Assemble K = H_E - p H_V (+ damping), solve K u1 = -r, K u2 = b by CG; dq (in self.dq) and dp (B,)."""
+        """Assemble K = H_E - p H_V (+ damping), solve K u1 = -r, K u2 = b by CG; dq of the masked systems
+        (in self.dq; the other rows keep theirs) and dp (B,)."""
         buf, B = self.buf, self.batch
         start = time.perf_counter()
         self.matrix.assemble(
@@ -617,7 +659,7 @@ class BatchedShell:
         wp.launch(
             bk.combine,
             (B, self.n_vertices),
-            [u, wp.array(dp, dtype=wp.float64, device=self.device), self.dq],
+            [u, wp.array(dp, dtype=wp.float64, device=self.device), self._flags(mask), self.dq],
             device=self.device,
         )
         return dp, ok
@@ -627,76 +669,17 @@ class BatchedShell:
         self.matrix.multiply(self.dq, self.kdq, self._system_of_b)
         return np.where(mask, batched_dot(self.dq, self.kdq, self._sums), 0.0)
 
-    def _line_search(
-        self,
-        lin: BatchLinearization,
-        pressure: np.ndarray,
-        target: np.ndarray,
-        c: np.ndarray,
-        dp: np.ndarray,
-        curvature: np.ndarray,
-        mask: np.ndarray,
-        robust: bool,
-    ) -> np.ndarray:
-        """Backtracking of `fe.newton._line_search` per system along (self.dq, dp); accepted systems move
-        (self.x, pressure updated). Returns the accepted mask."""
-        cc = np.where(c != 0.0, c * c, 1.0)
-        rho = np.where(robust & (c != 0.0), 3.0 * np.maximum(0.0, -curvature) / cc, 0.0)
-        new_p = pressure + dp
-        phi0 = lin.energy - new_p * (lin.volume - target) + 0.5 * rho * c * c
-        slope = batched_dot(self.gradient, self.dq, self._sums) - new_p * batched_dot(self.bvec, self.dq, self._sums)
-        slope -= rho * c * c
-        settings = self.skin.newton
-        accepted = np.zeros(self.batch, dtype=bool)
-        step = np.ones(self.batch)
-        undecided = mask & (-slope > _ENERGY_RESOLUTION * np.maximum(np.abs(phi0), np.abs(lin.energy)))
-        for _ in range(settings.max_backtracks):
-            if not undecided.any():
-                break
-            trial = self._trial(np.where(undecided, step, 0.0), new_p)
-            cv = trial.volume - target
-            phi = trial.energy - new_p * cv + 0.5 * rho * cv * cv
-            ok = undecided & np.isfinite(phi) & (phi <= phi0 + 1e-4 * step * slope)
-            self._accept(ok, step, pressure, dp)
-            accepted |= ok
-            undecided &= ~ok
-            step = np.where(undecided, 0.5 * step, step)
-        # Where the energy cannot resolve the step, backtrack on the Euclidean norm of the residual force.
-        undecided = mask & ~accepted
-        step = np.ones(self.batch)
-        rnorm = lin.residual_2
-        for _ in range(settings.max_backtracks):
-            if not undecided.any():
-                break
-            trial = self._trial(np.where(undecided, step, 0.0), pressure + step * dp)
-            ok = undecided & (trial.residual_2 < (1.0 - 1e-4 * step) * rnorm)
-            self._accept(ok, step, pressure, dp)
-            accepted |= ok
-            undecided &= ~ok
-            step = np.where(undecided, 0.5 * step, step)
-        return accepted
-
-    def _trial(self, step: np.ndarray, pressure: np.ndarray) -> BatchLinearization:
+    def _axpy(self, x: wp.array, step: np.ndarray, out: wp.array) -> None:
+        """out = x + step dq per system (rows with step 0 copied from x, whatever dq holds)."""
         wp.launch(
             bk.axpy,
             (self.batch, self.n_vertices),
-            [self.x, wp.array(step, dtype=wp.float64, device=self.device), self.dq, self.x_trial],
+            [x, wp.array(step, dtype=wp.float64, device=self.device), self.dq, out],
             device=self.device,
         )
-        return self.evaluate(self.x_trial, False, pressure)
 
-    def _accept(self, ok: np.ndarray, step: np.ndarray, pressure: np.ndarray, dp: np.ndarray) -> None:
-        """Move the accepted systems: x += step dq, pressure += step dp."""
-        if not ok.any():
-            return
-        taken = np.where(ok, step, 0.0)
-        wp.launch(
-            bk.axpy,
-            (self.batch, self.n_vertices),
-            [self.x, wp.array(taken, dtype=wp.float64, device=self.device), self.dq, self.x],
-            device=self.device,
-        )
-        pressure += taken * dp
+    def _flags(self, mask: np.ndarray) -> wp.array:
+        return wp.array(np.asarray(mask, dtype=np.int32), dtype=wp.int32, device=self.device)
 
 
 _POSE = ("rotation", "translation", "rotation_start", "translation_start")

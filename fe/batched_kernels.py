@@ -43,9 +43,12 @@ def axpy(
     d: wp.array2d(dtype=wp.vec3d),
     out: wp.array2d(dtype=wp.vec3d),
 ):
-    """out[b] = x[b] + step[b] d[b]."""
+    """out[b] = x[b] + step[b] d[b]; rows with step 0 are copied from x (whatever d holds, NaN included)."""
     b, v = wp.tid()
-    out[b, v] = x[b, v] + step[b] * d[b, v]
+    if step[b] == wp.float64(0.0):
+        out[b, v] = x[b, v]
+    else:
+        out[b, v] = x[b, v] + step[b] * d[b, v]
 
 
 @wp.kernel
@@ -58,10 +61,16 @@ def newton_rhs(residual: wp.array2d(dtype=wp.vec3d), bvec: wp.array2d(dtype=wp.v
 
 
 @wp.kernel
-def combine(u: wp.array2d(dtype=wp.vec3d), dp: wp.array(dtype=wp.float64), dq: wp.array2d(dtype=wp.vec3d)):
-    """dq = u1 + dp u2 with u1 = u[b], u2 = u[B + b]."""
+def combine(
+    u: wp.array2d(dtype=wp.vec3d),
+    dp: wp.array(dtype=wp.float64),
+    active: wp.array(dtype=wp.int32),
+    dq: wp.array2d(dtype=wp.vec3d),
+):
+    """dq = u1 + dp u2 with u1 = u[b], u2 = u[B + b], for the active systems."""
     b, v = wp.tid()
-    dq[b, v] = u[b, v] + dp[b] * u[dq.shape[0] + b, v]
+    if active[b] != 0:
+        dq[b, v] = u[b, v] + dp[b] * u[dq.shape[0] + b, v]
 
 
 @wp.kernel

@@ -176,14 +176,17 @@ class BatchedStepper:
         return {int(i): self._free_result(int(i), float(depth[i])) for i in np.flatnonzero(untouched | released)}
 
     def advance(self) -> dict[int, IncrementResult]:
-        """One Newton iteration of every system mid-increment; returns the results of those that finished
-        (converged, or failed: such a system refuses further steps until `reset`)."""
+        """One round for every system mid-increment: one evaluation each (at its positions or its line-search
+        trial), then a convergence check and a new Newton direction where it stands at its positions.
+        Returns the results of the systems that finished (converged, or failed: such a system refuses
+        further steps until `reset`)."""
         shell, state = self.shell, self.newton
-        lin = shell.evaluate(shell.x, True, state.pressure)
-        stopped = shell.check(state, lin, self.skin.params.friction > 0.0)
+        lin = shell.evaluate_round(state)
+        at_x = shell.settle(state, lin)
+        stopped = shell.check(state, lin, self.skin.params.friction > 0.0, at_x)
         results = self._finish(np.flatnonzero(stopped)) if stopped.any() else {}
         if state.running.any():
-            shell.iterate(state, lin)
+            shell.iterate(state, lin, at_x)
         return results
 
     def _start_solves(self, solving: np.ndarray, travel: np.ndarray) -> None:
