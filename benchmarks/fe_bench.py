@@ -24,6 +24,7 @@ agreement. --kernel-timing prints the GPU time per warp kernel over a short extr
 
 import argparse
 import time
+from collections import Counter
 from pathlib import Path
 
 import numpy as np
@@ -198,6 +199,9 @@ def _summary(mode: str, slots: int, results: list, wall: float, counters: dict, 
         "finished_trajectories": finished,
         "finished_trajectories_per_s": finished / wall,
         "newton_per_increment": float(np.mean([r.newton_iterations for r in loaded])) if loaded else 0.0,
+        "failures": dict(Counter(r.message for r in loaded if not r.converged)),
+        "evaluations": counters["evaluations"],
+        "linear_solves": counters["linear_solves"],
         "evaluate_s": counters["evaluate_s"],
         "linear_solve_s": counters["linear_solve_s"],
         "cg_iterations_per_solve_max": counters["cg_iterations_max"] / solves,
@@ -206,18 +210,32 @@ def _summary(mode: str, slots: int, results: list, wall: float, counters: dict, 
 
 
 def _continuous(skin: InflatedSkin, trajectories: list, args: argparse.Namespace, forcing: str, limit_s: float):
-    """A continuous run with the `forcing` rule for at most `limit_s` seconds: its summary row and the run."""
+    """A continuous run with the `forcing` rule for at most `limit_s` seconds: its summary row (with the
+    times by which half, 90 %, 99 % and all trajectories had ended) and the run."""
     import warp as wp
 
     from fe.batched_runner import run_trajectories
 
     wp.synchronize()
-    ended: list[int] = []
+    ended: list[float] = []
+    start = time.perf_counter()
     run = run_trajectories(
-        skin, trajectories, args.device, args.batch, args.force_limit, lambda i, _: ended.append(i), limit_s, forcing
+        skin,
+        trajectories,
+        args.device,
+        args.batch,
+        args.force_limit,
+        lambda i, _: ended.append(time.perf_counter() - start),
+        limit_s,
+        forcing,
     )
     mode = f"continuous, {forcing}"
-    return _summary(mode, args.batch, run.results, run.wall_s, run.counters, run.complete, len(ended)), run
+    row = _summary(mode, args.batch, run.results, run.wall_s, run.counters, run.complete, len(ended))
+    row["rounds"] = run.iterations
+    for share in (0.5, 0.9, 0.99, 1.0):
+        k = int(np.ceil(share * len(trajectories)))
+        row[f"s_to_{share:.0%}_ended"] = ended[k - 1] if len(ended) >= k else float("nan")
+    return row, run
 
 
 def _lockstep(skin: InflatedSkin, trajectories: list, args: argparse.Namespace) -> dict:

@@ -8,7 +8,8 @@ indenter with the longest queue (slots start in proportion to the indenter mix a
 contact kernels launch once per indenter). So no system waits for the slowest one of the batch, as a
 lock-step `BatchedStepper.step` per pose would make it, and no slot idles while trajectories are queued.
 
-A trajectory ends after its last pose, at its first increment that does not converge, or at its first
+A trajectory ends after its last pose, at its first increment that does not converge even in smaller
+steps (cut-backs through midpoints of the failed step, whose results are not reported), or at its first
 increment whose indenter force exceeds `force_limit` (N), as the campaign controller stops a press.
 Poses: rotation (3,3) indenter body -> sensor frame, tip position (3,) m; results are
 `fe.indentation.IncrementResult`s (forces in N, sensor frame; `wall_s` from a pose's admission to its result).
@@ -22,6 +23,7 @@ from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 
 import numpy as np
+from scipy.spatial.transform import Rotation, Slerp
 
 from fe.batched import InflatedSkin
 from fe.batched_stepper import BatchedStepper
@@ -90,11 +92,14 @@ def run_trajectories(
     on_trajectory: Callable[[int, list[IncrementResult]], None] | None = None,
     time_limit_s: float = np.inf,
     forcing: str = "adaptive",
+    max_cuts: int = 3,
 ) -> BatchedRun:
     """Solve every trajectory's poses in order on `slots` continuously batched systems on the warp `device`;
     `on_trajectory(index, increments)` is called as each trajectory ends (for progress and streaming). After
     `time_limit_s` the run stops where it is (`BatchedRun.complete` False; unfinished trajectories keep the
-    increments they finished). `forcing`: the CG tolerance rule of `fe.batched.BatchedShell`."""
+    increments they finished). `forcing`: the CG tolerance rule of `fe.batched.BatchedShell`. A failed
+    increment is cut back: retried from the last accepted pose through the midpoint, and so on up to
+    `max_cuts` halvings of one step, before it ends the trajectory."""
     if not trajectories:
         raise ValueError("no trajectories to run")
     if slots < 1:
@@ -107,7 +112,7 @@ def run_trajectories(
     queues = {name: deque(i for i, t in enumerate(trajectories) if t.indenter == name) for name in counts}
     start = time.perf_counter()
     stepper = BatchedStepper(skin, slot_indenters, device, forcing)
-    schedule = _Schedule(trajectories, slot_indenters, queues, force_limit, on_trajectory, stepper)
+    schedule = _Schedule(trajectories, slot_indenters, queues, force_limit, on_trajectory, stepper, max_cuts)
     iterations = 0
     complete = True
     while True:
@@ -139,15 +144,21 @@ class _Schedule:
         force_limit: float,
         on_trajectory: Callable[[int, list[IncrementResult]], None] | None,
         stepper: BatchedStepper,
+        max_cuts: int,
     ) -> None:
         self.trajectories, self.slot_indenters, self.queues = trajectories, slot_indenters, queues
         self.force_limit, self.on_trajectory, self.stepper = force_limit, on_trajectory, stepper
+        self.max_cuts = max_cuts
         n = len(slot_indenters)
         self.results: list[list[IncrementResult]] = [[] for _ in trajectories]
         self.current = np.full(n, -1)
         self.pose = np.zeros(n, dtype=int)
         self.waiting = np.zeros(n, dtype=bool)
         """Slots whose next pose is to be admitted."""
+        self.detours: list[list[tuple[np.ndarray, np.ndarray]]] = [[] for _ in range(n)]
+        """Per slot, the intermediate poses still to visit before its trajectory's next pose (cut-backs)."""
+        self.cuts = np.zeros(n, dtype=int)
+        """Per slot, how often the step to its trajectory's next pose has been halved."""
         for slot in range(n):
             self._take(slot)
 
@@ -163,6 +174,8 @@ class _Schedule:
         queue = self.queues[name]
         self.current[slot] = queue.popleft() if queue else -1
         self.pose[slot] = 0
+        self.cuts[slot] = 0
+        self.detours[slot] = []
         self.waiting[slot] = self.current[slot] >= 0
 
     def poses(self) -> tuple[np.ndarray, np.ndarray]:
@@ -170,14 +183,28 @@ class _Schedule:
         n = len(self.slot_indenters)
         rotation, translation = np.tile(np.eye(3), (n, 1, 1)), np.zeros((n, 3))
         for slot in np.flatnonzero(self.waiting):
-            trajectory = self.trajectories[self.current[slot]]
-            rotation[slot] = trajectory.rotations[self.pose[slot]]
-            translation[slot] = trajectory.translations[self.pose[slot]]
+            rotation[slot], translation[slot] = self._next_pose(slot)
         return rotation, translation
 
+    def _next_pose(self, slot: int) -> tuple[np.ndarray, np.ndarray]:
+        """The slot's next pose: its first intermediate pose, else its trajectory's next one."""
+        if self.detours[slot]:
+            return self.detours[slot][0]
+        trajectory = self.trajectories[self.current[slot]]
+        return trajectory.rotations[self.pose[slot]], trajectory.translations[self.pose[slot]]
+
     def record(self, finished: dict[int, IncrementResult]) -> None:
-        """File the slots' finished increments; queue their next poses, or end their trajectories."""
+        """File the slots' finished increments; queue their next poses, cut failed steps back, or end their
+        trajectories."""
         for slot, result in finished.items():
+            if not result.converged and self.cuts[slot] < self.max_cuts:
+                self._cut_back(slot)
+                continue
+            if result.converged and self.detours[slot]:  # an intermediate pose: not among the results
+                self.detours[slot].pop(0)
+                self.waiting[slot] = True
+                continue
+            self.cuts[slot] = 0  # a trajectory pose reached, or a failure that ends the trajectory
             index = int(self.current[slot])
             self.results[index].append(result)
             self.pose[slot] += 1
@@ -189,3 +216,13 @@ class _Schedule:
                 self.on_trajectory(index, self.results[index])
             self.stepper.reset(np.arange(len(self.slot_indenters)) == slot)
             self._take(slot)
+
+    def _cut_back(self, slot: int) -> None:
+        """After a failed increment, step again from the last accepted pose in two halves (the pose that
+        failed is reached through its midpoint)."""
+        start_rotation, start_translation = self.stepper.retreat(slot)
+        end_rotation, end_translation = self._next_pose(slot)
+        mid = Slerp([0.0, 1.0], Rotation.from_matrix(np.stack([start_rotation, end_rotation])))(0.5).as_matrix()
+        self.detours[slot].insert(0, (mid, 0.5 * (start_translation + end_translation)))
+        self.cuts[slot] += 1
+        self.waiting[slot] = True

@@ -78,6 +78,7 @@ class BatchedStepper:
         self.pressure = np.full(B, skin.pressure)
         self.pose_rotation, self.pose_translation = np.tile(np.eye(3), (B, 1, 1)), np.zeros((B, 3))
         self._start_rotation, self._start_translation = self.pose_rotation.copy(), self.pose_translation.copy()
+        self._was_posed = np.zeros(B, dtype=bool)
         self.posed = np.zeros(B, dtype=bool)
         """Whether a system has been stepped since its reset (its pose is the start of the next increment)."""
         self.origin, self.has_origin = np.zeros((B, 3)), np.zeros(B, dtype=bool)
@@ -120,6 +121,17 @@ class BatchedStepper:
         self.shell.set_indenter(system, shape.kind, shape.dims)
         self.indenters[system] = name
 
+    def retreat(self, system: int) -> tuple[np.ndarray, np.ndarray]:
+        """Undo a failed increment of `system`: back to its last accepted state and pose, ready to step again
+        (e.g. in smaller steps). Returns that pose: rotation (3,3) and tip position (3,) m."""
+        if self.failure[system] is None:
+            raise RuntimeError(f"system {system} has no failed increment to undo")
+        self.failure[system] = None
+        self.pose_rotation[system] = self._start_rotation[system]
+        self.pose_translation[system] = self._start_translation[system]
+        self.posed[system] = self._was_posed[system]
+        return self.pose_rotation[system].copy(), self.pose_translation[system].copy()
+
     # -- stepping ----------------------------------------------------------------------------------
     def step(
         self, rotation: np.ndarray, translation: np.ndarray, active: np.ndarray | None = None
@@ -151,6 +163,7 @@ class BatchedStepper:
         self.origin[new_origin] = translation[new_origin]
         self.has_origin |= new_origin
         moved = which & self.posed
+        self._was_posed[which] = self.posed[which]
         self._start_rotation[which] = np.where(moved[:, None, None], self.pose_rotation, rotation)[which]
         self._start_translation[which] = np.where(moved[:, None], self.pose_translation, translation)[which]
         self.pose_rotation[which], self.pose_translation[which] = rotation[which], translation[which]

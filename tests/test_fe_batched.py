@@ -8,6 +8,7 @@ since the lagged friction forces are only refreshed until they change by less th
 paths refresh at different iterates.
 """
 
+import dataclasses
 from pathlib import Path
 
 import numpy as np
@@ -29,6 +30,8 @@ PATHS = [  # indenter, point (m), angle (deg), azimuth (deg)
 ]
 STEPS = np.array([-0.2e-3, 0.0, 0.3e-3, 0.6e-3])
 """Tip travel (m) past first touch; the first pose is out of contact."""
+CAPPED_NEWTON = 5
+"""A Newton iteration cap under which the full steps fail (the uncapped ones take more)."""
 
 
 def _random_spd(rng: np.random.Generator, n: int) -> np.ndarray:
@@ -183,3 +186,21 @@ def test_batched_solver_rejects_effects_it_does_not_model(frictionless_biotac: B
         InflatedSkin(**{**skin.__dict__, "params": SkinParameters(air_volume_fraction=0.1)})
     with pytest.raises(ValueError, match="orthonormal"):
         BatchedStepper(skin, ["sphere_medium"], "cpu").step(np.zeros((1, 3, 3)), np.zeros((1, 3)))
+
+
+def test_failed_steps_are_cut_back(frictionless_biotac: BioTacModel) -> None:
+    """With Newton capped at a few iterations the 0.3 mm steps fail; halving them (poses through the
+    midpoints, not reported) reaches every pose, at the same equilibria as the uncapped CPU stepper."""
+    model = frictionless_biotac
+    paths = _paths(model)
+    cpu = _cpu(model, paths)[1]
+    skin = InflatedSkin.from_model(model)
+    capped = dataclasses.replace(skin, newton=dataclasses.replace(skin.newton, max_iterations=CAPPED_NEWTON))
+    name, path = PATHS[1][0], paths[1]  # the tilted sphere: its last step needs more than the cap
+    trajectory = PoseTrajectory(
+        name, np.repeat(path.rotation[None], len(STEPS), 0), path.touch_point + STEPS[:, None] * path.direction
+    )
+    plain = run_trajectories(capped, [trajectory], "cpu", slots=1, max_cuts=0).results[0]
+    assert not plain[-1].converged  # the cap bites without cut-backs
+    cut = run_trajectories(capped, [trajectory], "cpu", slots=1, max_cuts=3).results[0]
+    _assert_agree(cpu, cut, 1e-6, 1e-9, 1e-6)
