@@ -494,10 +494,11 @@ class BatchedShell:
         return self.evaluate(self.x_trial, True, state.pressure + step * state.dp)
 
     def settle(self, state: NewtonBatch, lin: BatchLinearization) -> np.ndarray:
-        """Decide the line-search trials just evaluated (`fe.newton._line_search`'s rules, one trial per
-        round): accepted systems move there, the others halve their step, and a search that runs out of
-        backtracks goes on with the residual norm, then with the next damping. Returns the running systems
-        evaluated at their (possibly new) positions, ready for `check` and `iterate`."""
+        """Decide the line-search trials just evaluated (`fe.newton._line_search`'s acceptance rules, one
+        trial per round): accepted systems move there, the others shorten their step (`_backtrack`), and a
+        search that runs out of backtracks goes on with the residual norm, then with the next damping.
+        Returns the running systems evaluated at their (possibly new) positions, ready for `check` and
+        `iterate`."""
         at_x = state.running & (state.phase == AT_X)
         searching = state.running & (state.phase != AT_X)
         if not searching.any():
@@ -512,7 +513,7 @@ class BatchedShell:
         state.phase[accepted], state.attempt[accepted] = AT_X, 0
         rejected = searching & ~accepted
         state.backtracks[rejected] += 1
-        state.step[rejected] *= 0.5
+        state.step[:] = _backtrack(state, phi, rejected)
         exhausted = rejected & (state.backtracks >= self.skin.newton.max_backtracks)
         to_residual = exhausted & (state.phase == ENERGY_SEARCH)
         state.phase[to_residual], state.step[to_residual], state.backtracks[to_residual] = RESIDUAL_SEARCH, 1.0, 0
@@ -711,6 +712,18 @@ def _runs(indenters: list[tuple[int, tuple[float, float, float, float]]]) -> lis
         else:
             runs.append((i, i + 1, int(kind), dims))
     return runs
+
+
+def _backtrack(state: NewtonBatch, phi: np.ndarray, rejected: np.ndarray) -> np.ndarray:
+    """Next trial steps (B,) after rejections: on the energy merit function the minimiser of the quadratic
+    through phi0, its slope and the rejected trial phi(t), kept within [0.1 t, 0.5 t] (Dennis and
+    Schnabel, Numerical Methods for Unconstrained Optimization, 6.3.2), so that a step far too long is cut
+    in one round, not in many halvings; on the residual norm, t / 2."""
+    t = state.step
+    curvature = phi - state.phi0 - state.slope * t
+    quadratic = np.where(np.isfinite(curvature) & (curvature > 0.0), -state.slope * t * t / (2.0 * curvature), 0.1 * t)
+    energy = np.clip(quadratic, 0.1 * t, 0.5 * t)
+    return np.where(rejected, np.where(state.phase == ENERGY_SEARCH, energy, 0.5 * t), t)
 
 
 def _tolerance(lin: BatchLinearization, settings: NewtonSettings) -> np.ndarray:
