@@ -552,25 +552,26 @@ class BatchedShell:
 
     def iterate(self, state: NewtonBatch, lin: BatchLinearization, at_x: np.ndarray) -> None:
         """A Newton direction for every running system evaluated at its positions (`at_x`) whose friction was
-        not just refreshed, damped per its `attempt`, and its line search set up (the trials are evaluated
-        by the next rounds); a system for which no damping gives a usable direction fails."""
+        not just refreshed, damped per its `attempt`, all in one linear solve, and its line search set up
+        (the trials are evaluated by the next rounds). A system whose direction is unusable tries the next
+        damping in the next round (with everyone else's solve, not in an extra one of its own); one that
+        runs out of dampings fails."""
         here = state.running & at_x
         stepping = here & ~state.refreshed
+        unusable = np.zeros(self.batch, dtype=bool)
         if stepping.any():
             c = lin.volume - state.target
             eta = self._forcing(state, lin)
-            todo = stepping.copy()
-            while todo.any():
-                damping = np.where(todo, _DAMPING[np.minimum(state.attempt, len(_DAMPING) - 1)], 0.0)
-                dp, ok = self._direction(lin, state.pressure, c, todo, damping, eta)
-                curvature = self._curvature(todo)
-                ok &= (curvature > 0.0) | ((state.attempt > 0) & (c != 0.0))
-                self._start_search(state, lin, c, dp, curvature, todo & ok)
-                unusable = todo & ~ok
-                self._retry(state, unusable)
-                todo = unusable & ~state.failed
-            state.last_residual[stepping], state.last_eta[stepping] = lin.residual_inf[stepping], eta[stepping]
-        state.iterations[here] += 1
+            damping = np.where(stepping, _DAMPING[np.minimum(state.attempt, len(_DAMPING) - 1)], 0.0)
+            dp, ok = self._direction(lin, state.pressure, c, stepping, damping, eta)
+            curvature = self._curvature(stepping)
+            ok &= (curvature > 0.0) | ((state.attempt > 0) & (c != 0.0))
+            self._start_search(state, lin, c, dp, curvature, stepping & ok)
+            unusable = stepping & ~ok
+            self._retry(state, unusable)
+            usable = stepping & ok
+            state.last_residual[usable], state.last_eta[usable] = lin.residual_inf[usable], eta[usable]
+        state.iterations[here & ~unusable] += 1
 
     def _retry(self, state: NewtonBatch, which: np.ndarray) -> None:
         """The systems in `which` found no step: back at their positions with the next damping, or failed."""
@@ -721,7 +722,9 @@ def _backtrack(state: NewtonBatch, phi: np.ndarray, rejected: np.ndarray) -> np.
     in one round, not in many halvings; on the residual norm, t / 2."""
     t = state.step
     curvature = phi - state.phi0 - state.slope * t
-    quadratic = np.where(np.isfinite(curvature) & (curvature > 0.0), -state.slope * t * t / (2.0 * curvature), 0.1 * t)
+    usable = np.isfinite(curvature) & (curvature > 0.0)
+    quadratic = -state.slope * t * t / (2.0 * np.where(usable, curvature, 1.0))
+    quadratic = np.where(usable, quadratic, 0.1 * t)
     energy = np.clip(quadratic, 0.1 * t, 0.5 * t)
     return np.where(rejected, np.where(state.phase == ENERGY_SEARCH, energy, 0.5 * t), t)
 
