@@ -204,3 +204,38 @@ def test_failed_steps_are_cut_back(frictionless_biotac: BioTacModel) -> None:
     assert not plain[-1].converged  # the cap bites without cut-backs
     cut = run_trajectories(capped, [trajectory], "cpu", slots=1, max_cuts=3).results[0]
     _assert_agree(cpu, cut, 1e-6, 1e-9, 1e-6)
+
+
+def test_strict_forcing_reaches_the_same_equilibria(frictionless_biotac: BioTacModel) -> None:
+    """The CG tolerance rule changes the work, not the converged states."""
+    model = frictionless_biotac
+    paths = _paths(model)
+    skin = InflatedSkin.from_model(model)
+    trajectories = [
+        PoseTrajectory(name, np.repeat(p.rotation[None], len(STEPS), 0), p.touch_point + STEPS[:, None] * p.direction)
+        for (name, *_), p in zip(PATHS, paths, strict=True)
+    ]
+    adaptive = run_trajectories(skin, trajectories, "cpu", slots=3)
+    strict = run_trajectories(skin, trajectories, "cpu", slots=3, forcing="strict")
+    for a, b in zip(adaptive.results, strict.results, strict=True):
+        _assert_agree(a, b, 1e-6, 1e-9, 1e-6)
+    assert strict.counters["cg_iterations_mean"] > adaptive.counters["cg_iterations_mean"]
+    with pytest.raises(ValueError, match="forcing"):
+        BatchedStepper(skin, ["sphere_medium"], "cpu", forcing="exact")
+
+
+def test_runner_checks_its_input_and_stops_at_its_time_limit(frictionless_biotac: BioTacModel) -> None:
+    skin = InflatedSkin.from_model(frictionless_biotac)
+    with pytest.raises(ValueError, match="rotations"):
+        PoseTrajectory("sphere_medium", np.eye(3), np.zeros(3))
+    with pytest.raises(ValueError, match="at least one pose"):
+        PoseTrajectory("sphere_medium", np.zeros((0, 3, 3)), np.zeros((0, 3)))
+    with pytest.raises(ValueError, match="no trajectories"):
+        run_trajectories(skin, [], "cpu")
+    trajectory = PoseTrajectory("sphere_medium", np.eye(3)[None], np.array([[0.0, 0.0, 1.0]]))
+    with pytest.raises(ValueError, match="slots"):
+        run_trajectories(skin, [trajectory], "cpu", slots=0)
+    stopped = run_trajectories(skin, [trajectory], "cpu", time_limit_s=0.0)
+    assert not stopped.complete and stopped.results == [[]]
+    free = run_trajectories(skin, [trajectory], "cpu")  # 1 m away from the skin: no contact, no Newton work
+    assert free.complete and free.results[0][0].message == "no contact" and free.iterations == 0
