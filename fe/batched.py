@@ -311,6 +311,7 @@ class BatchedShell:
         self.kdq = z((B, V), wp.vec3d)
         self._stats = z((B, 3), wp.float64)
         self._sums = z(B, wp.float64)
+        self._totals = z((B, 2), wp.float64)
         self._candidate = z((B, V), wp.float64)
         self.pose = {name: z(B, wp.mat33d if "rotation" in name else wp.vec3d) for name in _POSE}
         far = np.tile([0.0, 0.0, 1.0], (B, 1))  # 1 m away: no contact until a pose is set
@@ -397,11 +398,10 @@ class BatchedShell:
             "normal": buf["indenter_normal"],
         }
         self._launch_indenters(contact.indenter_contact_kernel, {**common, **outputs})
-        energy = sum(
-            self._per_system(buf[name])
-            for name in ("membrane_energy", "bending_energy", "core_energy", "indenter_energy")
-        )
-        vol = self._per_system(buf["volume"])
+        self._totals.zero_()  # per system: volume (m^3) and energy (J), summed on the device, fetched once
+        for name, column in _TOTALS.items():
+            if buf[name].shape[1]:
+                wp.launch(bk.row_sum, buf[name].shape, [buf[name], column, self._totals], device=dev)
         self._stats.zero_()
         launch(
             bk.free_residual,
@@ -418,10 +418,12 @@ class BatchedShell:
             },
             dev,
         )
-        stats = self._stats.numpy()
+        stats, totals = self._stats.numpy(), self._totals.numpy()
         self.counters["evaluations"] += 1
         self.counters["evaluate_s"] += time.perf_counter() - start
-        return BatchLinearization(energy, vol, stats[:, 0].copy(), np.sqrt(stats[:, 1]), stats[:, 2].copy())
+        return BatchLinearization(
+            totals[:, 1].copy(), totals[:, 0].copy(), stats[:, 0].copy(), np.sqrt(stats[:, 1]), stats[:, 2].copy()
+        )
 
     def proximity(self, x: wp.array, rows: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """Gap (k,V) m (negative inside the contact band) and unit SDF normals (k,V,3) of x to each indenter,
@@ -441,12 +443,6 @@ class BatchedShell:
             sliced = {k: (v[lo:hi] if k in _PER_SYSTEM else v) for k, v in values.items()}
             sliced |= {"kind": kind, "dims": wp.vec4d(*dims)}
             launch(kernel, (hi - lo, self.n_vertices), sliced, self.device)
-
-    def _per_system(self, a: wp.array) -> np.ndarray:
-        self._sums.zero_()
-        if a.shape[1]:
-            wp.launch(bk.row_sum, a.shape, [a, self._sums], device=self.device)
-        return self._sums.numpy().copy()
 
     # -- Newton ------------------------------------------------------------------------------------
     def lag_contact(self, x: wp.array, mask: np.ndarray) -> np.ndarray:
@@ -684,6 +680,8 @@ class BatchedShell:
         return wp.array(np.asarray(mask, dtype=np.int32), dtype=wp.int32, device=self.device)
 
 
+_TOTALS = {"volume": 0, "membrane_energy": 1, "bending_energy": 1, "core_energy": 1, "indenter_energy": 1}
+"""Column of `BatchedShell._totals` (per system: volume, energy) that each per-element buffer sums into."""
 _POSE = ("rotation", "translation", "rotation_start", "translation_start")
 _PER_SYSTEM = frozenset(
     {*_POSE, "x", "x_start", "lagged_force", "lagged_normal", "energy", "gradient", "hessian", "gap", "normal"}

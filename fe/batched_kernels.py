@@ -5,9 +5,10 @@ import warp as wp
 
 
 @wp.kernel
-def row_sum(a: wp.array2d(dtype=wp.float64), out: wp.array(dtype=wp.float64)):
+def row_sum(a: wp.array2d(dtype=wp.float64), column: int, out: wp.array2d(dtype=wp.float64)):
+    """out[b, column] += sum_i a[b, i]."""
     b, i = wp.tid()
-    wp.atomic_add(out, b, a[b, i])
+    wp.atomic_add(out, b, column, a[b, i])
 
 
 @wp.kernel
