@@ -29,6 +29,7 @@ from pathlib import Path
 
 import numpy as np
 from rich.console import Console
+from rich.progress import Progress, TimeElapsedColumn
 from rich.table import Table
 
 from assets.biotac import make_biotac
@@ -219,16 +220,16 @@ def _continuous(skin: InflatedSkin, trajectories: list, args: argparse.Namespace
     wp.synchronize()
     ended: list[float] = []
     start = time.perf_counter()
-    run = run_trajectories(
-        skin,
-        trajectories,
-        args.device,
-        args.batch,
-        args.force_limit,
-        lambda i, _: ended.append(time.perf_counter() - start),
-        limit_s,
-        forcing,
-    )
+    with Progress(*Progress.get_default_columns(), TimeElapsedColumn(), transient=True) as progress:
+        task = progress.add_task(f"{forcing}: trajectories", total=len(trajectories))
+
+        def finished(_index: int, _increments: list) -> None:
+            ended.append(time.perf_counter() - start)
+            progress.advance(task)
+
+        run = run_trajectories(
+            skin, trajectories, args.device, args.batch, args.force_limit, finished, limit_s, forcing
+        )
     mode = f"continuous, {forcing}"
     row = _summary(mode, args.batch, run.results, run.wall_s, run.counters, run.complete, len(ended))
     row["rounds"] = run.iterations
