@@ -639,6 +639,7 @@ class BatchedShell:
                 (0, buf["volume_hessian"], -pressure),
             ],
             damping,
+            mask,
         )
         wp.launch(bk.newton_rhs, (B, self.n_vertices), [self.residual, self.bvec, self.rhs], device=self.device)
         active = np.concatenate([mask, mask])

@@ -26,11 +26,14 @@ def _scatter_blocks(
     nodes_per_element: int,
     block_of: wp.array2d(dtype=wp.int32),
     scale: wp.array(dtype=wp.float64),
+    active: wp.array(dtype=wp.int32),
     values: wp.array2d(dtype=wp.mat33d),
 ):
     """Add scale[b] x the (i, j) 3x3 sub-block of element e's Hessian (3k x 3k, row-major in blocks[b, e])
-    to its matrix block."""
+    to its matrix block, for the active systems."""
     b, e, ij = wp.tid()
+    if active[b] == 0:
+        return
     i = ij // nodes_per_element
     j = ij % nodes_per_element
     n = 3 * nodes_per_element
@@ -55,10 +58,13 @@ def _constrain(
     columns: wp.array(dtype=wp.int32),
     free: wp.array(dtype=wp.vec3d),
     shift: wp.array(dtype=wp.float64),
+    active: wp.array(dtype=wp.int32),
 ):
     """Zero the rows and columns of fixed DOFs (free = 0) with a unit diagonal; add shift[b] tr(D)/3 to the
-    free diagonal entries (relative Levenberg damping)."""
+    free diagonal entries (relative Levenberg damping); active systems only."""
     b, k = wp.tid()
+    if active[b] == 0:
+        return
     row = block_row[k]
     col = columns[k]
     fr = free[row]
@@ -77,10 +83,16 @@ def _constrain(
 
 @wp.kernel
 def _invert_diagonal(
-    values: wp.array2d(dtype=wp.mat33d), diagonal: wp.array(dtype=wp.int32), inverse: wp.array2d(dtype=wp.mat33d)
+    values: wp.array2d(dtype=wp.mat33d),
+    diagonal: wp.array(dtype=wp.int32),
+    active: wp.array(dtype=wp.int32),
+    inverse: wp.array2d(dtype=wp.mat33d),
 ):
-    """Block-Jacobi preconditioner: the inverse of each node's 3x3 diagonal block (identity if singular)."""
+    """Block-Jacobi preconditioner: the inverse of each node's 3x3 diagonal block (identity if singular),
+    for the active systems."""
     b, v = wp.tid()
+    if active[b] == 0:
+        return
     d = values[b, diagonal[v]]
     if wp.abs(wp.determinant(d)) > wp.float64(0.0):
         inverse[b, v] = wp.inverse(d)
@@ -311,10 +323,18 @@ class BatchedBlockMatrix:
         self.preconditioner = wp.zeros((batch, pattern.n_nodes), dtype=wp.mat33d, device=device)
         self._ones = arr(np.ones(batch), wp.float64)
 
-    def assemble(self, terms: list[tuple[int, wp.array, np.ndarray | None]], shift: np.ndarray) -> None:
+    def assemble(
+        self,
+        terms: list[tuple[int, wp.array, np.ndarray | None]],
+        shift: np.ndarray,
+        active: np.ndarray | None = None,
+    ) -> None:
         """Sum element Hessians, each term (family index, (B, E_f) matrices, per-system scale (B,) or None),
         eliminate fixed DOFs, add the relative damping `shift` (B,) to the diagonal, and refresh the
-        block-Jacobi preconditioner."""
+        block-Jacobi preconditioner, for the `active` systems ((B,) bool; all by default; the others' matrices
+        are left zero)."""
+        flags = np.ones(self.batch, dtype=np.int32) if active is None else np.asarray(active, dtype=np.int32)
+        active_w = wp.array(flags, dtype=wp.int32, device=self.device)
         self.values.zero_()
         for family, blocks, scale in terms:
             block_of = self.block_of[family]
@@ -325,20 +345,20 @@ class BatchedBlockMatrix:
             wp.launch(
                 _scatter_blocks,
                 (self.batch, blocks.shape[1], k * k),
-                [scalar_view(blocks), k, block_of, weights, self.values],
+                [scalar_view(blocks), k, block_of, weights, active_w, self.values],
                 device=self.device,
             )
         shift_w = wp.array(np.asarray(shift, dtype=np.float64), dtype=wp.float64, device=self.device)
         wp.launch(
             _constrain,
             self.values.shape,
-            [self.values, self.block_row, self.columns, self.free, shift_w],
+            [self.values, self.block_row, self.columns, self.free, shift_w, active_w],
             device=self.device,
         )
         wp.launch(
             _invert_diagonal,
             (self.batch, self.pattern.n_nodes),
-            [self.values, self.diagonal, self.preconditioner],
+            [self.values, self.diagonal, active_w, self.preconditioner],
             device=self.device,
         )
 
