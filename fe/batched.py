@@ -475,7 +475,7 @@ class BatchedShell:
         which = np.asarray(which, dtype=bool)
         state.pressure[which] = np.asarray(pressure, dtype=np.float64)[which]
         state.running |= which
-        for name in ("converged", "failed", "refreshed", "iterations", "passes", "last_eta", "phase", "step"):
+        for name in ("converged", "failed", "refreshed", "iterations", "passes", "last_eta", "phase", "step", "dp"):
             getattr(state, name)[which] = 0
         state.attempt[which] = 0
         state.last_residual[which] = np.nan
@@ -487,7 +487,7 @@ class BatchedShell:
         search, at its trial point x + step dq with pressure p + step dp (in `self.x_trial`)."""
         step = np.where(state.running & (state.phase != AT_X), state.step, 0.0)
         self._axpy(self.x, step, self.x_trial)
-        return self.evaluate(self.x_trial, True, state.pressure + step * state.dp)
+        return self.evaluate(self.x_trial, True, state.pressure + np.where(step != 0.0, step * state.dp, 0.0))
 
     def settle(self, state: NewtonBatch, lin: BatchLinearization) -> np.ndarray:
         """Decide the line-search trials just evaluated (`fe.newton._line_search`'s acceptance rules, one
@@ -523,7 +523,9 @@ class BatchedShell:
         their residual and volume are recorded in `state`."""
         settings, before = self.skin.newton, state.running.copy()
         running = state.running
-        _finish(at_x & ~np.isfinite(lin.residual_inf), running, state.message, "non-finite residual")
+        finite = np.isfinite(lin.residual_2) & np.isfinite(lin.residual_inf)  # a sum keeps NaN; atomic_max drops it
+        finite &= np.isfinite(lin.energy) & np.isfinite(lin.volume)
+        _finish(at_x & ~finite, running, state.message, "non-finite residual")
         _finish(at_x & state.failed, running, state.message, "line search failed")
         here = at_x & running
         tol = _tolerance(lin, settings)
@@ -553,8 +555,8 @@ class BatchedShell:
         damping in the next round (with everyone else's solve, not in an extra one of its own); one that
         runs out of dampings fails."""
         here = state.running & at_x
+        fresh = here & (state.attempt == 0)  # a retry with damping belongs to the Newton iteration it retries
         stepping = here & ~state.refreshed
-        unusable = np.zeros(self.batch, dtype=bool)
         if stepping.any():
             c = lin.volume - state.target
             eta = self._forcing(state, lin)
@@ -563,11 +565,10 @@ class BatchedShell:
             curvature = self._curvature(stepping)
             ok &= (curvature > 0.0) | ((state.attempt > 0) & (c != 0.0))
             self._start_search(state, lin, c, dp, curvature, stepping & ok)
-            unusable = stepping & ~ok
-            self._retry(state, unusable)
+            self._retry(state, stepping & ~ok)
             usable = stepping & ok
             state.last_residual[usable], state.last_eta[usable] = lin.residual_inf[usable], eta[usable]
-        state.iterations[here & ~unusable] += 1
+        state.iterations[fresh] += 1
 
     def _retry(self, state: NewtonBatch, which: np.ndarray) -> None:
         """The systems in `which` found no step: back at their positions with the next damping, or failed."""

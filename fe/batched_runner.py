@@ -78,7 +78,7 @@ def allocate_slots(counts: dict[str, int], slots: int) -> dict[str, int]:
             if sum(given.values()) < slots and given[name] < counts[name]:
                 given[name] += 1
     while sum(given.values()) > slots:
-        name = max(given, key=lambda n: given[n] - share[n])
+        name = max((n for n in given if given[n] > floor), key=lambda n: given[n] - share[n])
         given[name] -= 1
     return {name: n for name, n in given.items() if n}
 
@@ -197,7 +197,7 @@ class _Schedule:
         """File the slots' finished increments; queue their next poses, cut failed steps back, or end their
         trajectories."""
         for slot, result in finished.items():
-            if not result.converged and self.cuts[slot] < self.max_cuts:
+            if not result.converged and self.cuts[slot] < self.max_cuts and self.stepper.can_retreat(slot):
                 self._cut_back(slot)
                 continue
             if result.converged and self.detours[slot]:  # an intermediate pose: not among the results

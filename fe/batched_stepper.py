@@ -121,11 +121,15 @@ class BatchedStepper:
         self.shell.set_indenter(system, shape.kind, shape.dims)
         self.indenters[system] = name
 
+    def can_retreat(self, system: int) -> bool:
+        """Whether `system` failed an increment that started from an earlier pose (one to step back to)."""
+        return self.failure[system] is not None and bool(self._was_posed[system])
+
     def retreat(self, system: int) -> tuple[np.ndarray, np.ndarray]:
         """Undo a failed increment of `system`: back to its last accepted state and pose, ready to step again
         (e.g. in smaller steps). Returns that pose: rotation (3,3) and tip position (3,) m."""
-        if self.failure[system] is None:
-            raise RuntimeError(f"system {system} has no failed increment to undo")
+        if not self.can_retreat(system):
+            raise RuntimeError(f"system {system} has no failed increment from an earlier pose to undo")
         self.failure[system] = None
         self.pose_rotation[system] = self._start_rotation[system]
         self.pose_translation[system] = self._start_translation[system]
@@ -139,7 +143,7 @@ class BatchedStepper:
         """Move each active system's indenter to its pose (B,3,3), (B,3) m and re-solve; None for inactive ones."""
         start = time.perf_counter()
         active = np.ones(self.batch, dtype=bool) if active is None else np.asarray(active, dtype=bool)
-        if np.any(active & self.newton.running):
+        if np.any(self.newton.running):
             raise RuntimeError("systems are mid-increment (admitted but not finished); advance() them first")
         done = self.admit(active, rotation, translation)
         while self.newton.running.any():

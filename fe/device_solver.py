@@ -17,7 +17,8 @@ import numpy as np
 import warp as wp
 
 CG_RUNNING, CG_CONVERGED, CG_NEGATIVE_CURVATURE, CG_ITERATION_LIMIT = 1, 0, -1, -2
-"""Per-column states of `BatchedCG.solve`."""
+"""Per-column states of `BatchedCG.solve` (CG_NEGATIVE_CURVATURE also marks a non-finite curvature or
+right-hand side: no usable solution)."""
 
 
 @wp.kernel
@@ -213,7 +214,7 @@ def _cg_update(
 ):
     """x += alpha p, r -= alpha Ap, z = M^-1 r with alpha = rz / pAp (skipped on non-positive curvature)."""
     c, v = wp.tid()
-    if state[c] != 1 or pap[c] <= wp.float64(0.0):
+    if state[c] != 1 or not (pap[c] > wp.float64(0.0)):
         return
     alpha = rz[c] / pap[c]
     x[c, v] = x[c, v] + alpha * p[c, v]
@@ -243,7 +244,7 @@ def _cg_scalars(
     if state[c] != 1:
         return
     iterations[c] = iterations[c] + 1
-    if pap[c] <= wp.float64(0.0):
+    if not (pap[c] > wp.float64(0.0)):  # non-positive curvature, or NaN
         state[c] = -1
     elif rr_new[c] <= tolerance[c] * tolerance[c] * bb[c]:
         state[c] = 0
@@ -446,7 +447,10 @@ class BatchedCG:
             device=device,
         )
         bb = self.bb.numpy()
-        self.state.assign(np.where(np.asarray(active) & (bb > 0.0), CG_RUNNING, CG_CONVERGED).astype(np.int32))
+        active = np.asarray(active, dtype=bool)
+        state = np.where(active & (bb > 0.0), CG_RUNNING, CG_CONVERGED)
+        state = np.where(active & ~np.isfinite(bb), CG_NEGATIVE_CURVATURE, state)  # a non-finite right-hand side
+        self.state.assign(state.astype(np.int32))
         use_graph = self.use_graph
         if use_graph and (self._graph is None or self._max_iterations != max_iterations):
             self._max_iterations = max_iterations

@@ -178,6 +178,8 @@ def test_slots_follow_the_indenter_mix() -> None:
     assert allocate_slots({"a": 1, "b": 99}, 10) == {"a": 1, "b": 9}
     assert allocate_slots({"a": 3, "b": 2}, 64) == {"a": 3, "b": 2}
     assert allocate_slots({"a": 3, "b": 2, "c": 1}, 2) == {"a": 1, "b": 1}  # "c" waits for a free slot
+    assert allocate_slots({"a": 1, "b": 1, "c": 98}, 3) == {"a": 1, "b": 1, "c": 1}
+    assert allocate_slots({"a": 1, "b": 1, "c": 1, "d": 97}, 4) == {"a": 1, "b": 1, "c": 1, "d": 1}
 
 
 def test_batched_solver_rejects_effects_it_does_not_model(frictionless_biotac: BioTacModel) -> None:
@@ -239,3 +241,34 @@ def test_runner_checks_its_input_and_stops_at_its_time_limit(frictionless_biotac
     assert not stopped.complete and stopped.results == [[]]
     free = run_trajectories(skin, [trajectory], "cpu")  # 1 m away from the skin: no contact, no Newton work
     assert free.complete and free.results[0][0].message == "no contact" and free.iterations == 0
+
+
+def test_a_non_finite_system_is_flagged_not_solved() -> None:
+    """CG marks a column whose right-hand side or matrix holds NaN as unusable instead of converged or
+    running to its iteration cap."""
+    n_nodes = 4
+    elements = np.array([[0, 1], [1, 2], [2, 3]])
+    matrix = BatchedBlockMatrix(BlockPattern.from_connectivities([elements], n_nodes), 2, np.ones((n_nodes, 3)), "cpu")
+    blocks = np.stack([[_random_spd(np.random.default_rng(e), 6) for e in range(3)] for _ in range(2)])
+    blocks[1, 0, 0, 0] = np.nan  # system 1's matrix
+    mat66 = wp.types.matrix(shape=(6, 6), dtype=wp.float64)
+    matrix.assemble([(0, wp.array(blocks, dtype=mat66), None)], np.zeros(2))
+    rhs = np.ones((3, n_nodes, 3))
+    rhs[0, 2, 1] = np.nan  # column 0 (system 0): a NaN right-hand side
+    _, iterations, state = BatchedCG(matrix, 3).solve(
+        wp.array(rhs, dtype=wp.vec3d), np.array([0, 1, 0]), np.ones(3, dtype=bool), np.full(3, 1e-10), 1000
+    )
+    assert state[0] == CG_NEGATIVE_CURVATURE and state[1] == CG_NEGATIVE_CURVATURE
+    assert state[2] == CG_CONVERGED and iterations[1] < 1000
+
+
+def test_a_failed_first_increment_is_not_cut_back_onto_itself(frictionless_biotac: BioTacModel) -> None:
+    """A trajectory's first pose has no earlier pose to step back to: it fails once, not max_cuts times."""
+    skin = InflatedSkin.from_model(frictionless_biotac)
+    capped = dataclasses.replace(skin, newton=dataclasses.replace(skin.newton, max_iterations=3))
+    path = _paths(frictionless_biotac)[0]
+    trajectory = PoseTrajectory(PATHS[0][0], path.rotation[None], (path.touch_point + 0.6e-3 * path.direction)[None])
+    plain = run_trajectories(capped, [trajectory], "cpu", slots=1, max_cuts=0)
+    cut = run_trajectories(capped, [trajectory], "cpu", slots=1, max_cuts=3)
+    assert not cut.results[0][-1].converged and len(cut.results[0]) == 1
+    assert cut.counters["evaluations"] == plain.counters["evaluations"]
