@@ -170,6 +170,11 @@ AT_X, ENERGY_SEARCH, RESIDUAL_SEARCH = 0, 1, 2
 direction), or backtracking along its direction on the energy merit function or on the residual norm."""
 
 
+_FLAGS = ("running", "converged", "failed", "refreshed")
+_COUNTS = ("iterations", "passes", "phase", "backtracks", "attempt")
+"""Boolean and integer fields of `NewtonBatch` (the others but `message` are float64)."""
+
+
 @dataclass
 class NewtonBatch:
     """Per-system Newton state of a `BatchedShell` ((B,) host arrays), kept between rounds so that systems
@@ -211,11 +216,8 @@ class NewtonBatch:
     @classmethod
     def idle(cls, batch: int, target_volume: np.ndarray | float) -> NewtonBatch:
         """B systems, none running, holding their volumes at `target_volume` (m^3)."""
-        values: dict = {}
-        for f in fields(cls):
-            kind = {"running": bool, "converged": bool, "failed": bool, "refreshed": bool}.get(f.name, float)
-            kind = np.int64 if f.name in ("iterations", "passes", "phase", "backtracks", "attempt") else kind
-            values[f.name] = np.zeros(batch, dtype=kind)
+        dtype = dict.fromkeys(_FLAGS, bool) | dict.fromkeys(_COUNTS, np.int64)
+        values = {f.name: np.zeros(batch, dtype=dtype.get(f.name, np.float64)) for f in fields(cls)}
         values["target"] = np.broadcast_to(np.asarray(target_volume, dtype=np.float64), (batch,)).copy()
         values["message"] = ["inactive"] * batch
         values["last_residual"] = np.full(batch, np.nan)
