@@ -12,23 +12,28 @@ slots on a warp device,
     python benchmarks/fe_bench.py --batch N --device cuda|cpu [--trajectories M] [--mesh-mm 0.5]
         [--problem DIR] [--lockstep-s T] [--serial K] [--kernel-timing]
 
-prints trajectories/s, loaded increments/s and the time for 700 trajectories (measured when M >= 700
-finish within --time-limit, else extrapolated). --lockstep-s T first runs the previous scheme for T
-seconds in the same process as the baseline of the ratio: the first N trajectories stepped pose by pose in
-lock-step (`BatchedStepper.step`), every system waiting for the slowest. The inflated skin and the planned
-trajectories are cached in --problem DIR (built here with the CPU model when missing), so a GPU machine
-without trimesh's planning needs only that folder. --serial K also runs K of the trajectories one by one
-through the CPU stepper (`fe.sensor.BioTacModel.stepper`, PARDISO) for the CPU ratio and the force
-agreement. --kernel-timing prints the GPU time per warp kernel over a short extra run.
+prints trajectories/s, loaded increments/s, the share of slot time spent solving, and the time for 700
+trajectories (measured when M = 700 finish within --time-limit; extrapolated from the increment rate,
+which leaves out the tail where slots run empty). The queue cycles through the indenters.
+--lockstep-s T first runs the previous scheme for T seconds in the same process as the baseline of the
+ratio: the first N trajectories stepped pose by pose in lock-step (`BatchedStepper.step`), every system
+waiting for the slowest. The inflated skin and the planned trajectories are cached in --problem DIR
+(built here with the CPU model when missing), so a GPU machine without trimesh's planning needs only that
+folder. --serial K also runs K of the trajectories one by one through the CPU stepper
+(`fe.sensor.BioTacModel.stepper`, PARDISO) for the CPU ratio and the force agreement. --kernel-timing
+prints the GPU time per warp kernel over a short extra run. --json also writes each round's end time and
+busy systems ("trace").
 """
 
 import argparse
 import dataclasses
+import json
 import time
 from collections import Counter
 from pathlib import Path
 
 import numpy as np
+import warp as wp
 from rich.console import Console
 from rich.progress import Progress, TimeElapsedColumn
 from rich.table import Table
@@ -36,6 +41,8 @@ from rich.table import Table
 from assets.biotac import make_biotac
 from assets.indenters import INDENTERS, get_indenter
 from fe.batched import InflatedSkin
+from fe.batched_runner import PoseTrajectory, run_trajectories
+from fe.batched_stepper import BatchedStepper
 from fe.sensor import BioTacModel
 
 
@@ -110,14 +117,22 @@ def plan_batch(args: argparse.Namespace) -> tuple[InflatedSkin, dict[str, np.nda
             continue
         for key, value in zip(rows, (name, path.touch_point, path.direction, path.rotation), strict=True):
             rows[key].append(value)
-    order = np.argsort(rows["names"], kind="stable")  # equal indenters contiguous: one contact launch per run
-    paths = {k: np.asarray(v)[order] for k, v in rows.items()}
+    paths = {k: np.asarray(v) for k, v in rows.items()}
     skin = InflatedSkin.from_model(model)
     if folder is not None:
         folder.mkdir(parents=True, exist_ok=True)
         skin.save(folder / "skin.npz")
         np.savez(folder / "paths.npz", **paths)
     return skin, paths, model
+
+
+def _round_robin(names: np.ndarray) -> np.ndarray:
+    """An order of the trajectories that cycles through the indenters (the k-th of each, then the k+1-th),
+    so that the run's queue keeps the indenter mix from start to end."""
+    rank = np.zeros(len(names), dtype=int)
+    for name in np.unique(names):
+        rank[names == name] = np.arange(np.count_nonzero(names == name))
+    return np.lexsort((names, rank))
 
 
 def _count(args: argparse.Namespace) -> int:
@@ -128,13 +143,8 @@ def _count(args: argparse.Namespace) -> int:
 def run_batch_benchmark(args: argparse.Namespace) -> None:
     """Run the trajectories (first pose 0.1 mm before touch, then to --depth-mm in --step-mm) through --batch
     continuously batched slots and print throughput, beside the lock-step baseline and the CPU stepper."""
-    import json
-
-    import warp as wp
-
-    from fe.batched_runner import PoseTrajectory, run_trajectories
-
     skin, paths, model = plan_batch(args)
+    paths = {k: v[_round_robin(paths["names"])] for k, v in paths.items()}
     travels = np.arange(-1, int(round(args.depth_mm / args.step_mm)) + 1) * args.step_mm * 1e-3
     trajectories = [
         PoseTrajectory(str(name), np.repeat(rotation[None], len(travels), 0), touch + travels[:, None] * direction)
@@ -155,10 +165,13 @@ def run_batch_benchmark(args: argparse.Namespace) -> None:
         rows.append(_continuous(skin, trajectories, args, "strict", args.strict_s)[0])
     row, run = _continuous(skin, trajectories, args, args.forcing, args.time_limit)
     rows.append(row)
-    # Both modes are extrapolated with the whole trajectories' mean length (lock-step ones are cut by time).
+    # Extrapolated with the continuous run's mean trajectory length (lock-step ones are cut by time); measured
+    # only where 700 trajectories ran to the end.
     per_trajectory = rows[-1]["loaded_increments_per_trajectory"]
     for row in rows:
-        row["minutes_for_700"] = 700 * per_trajectory / max(row["increments_per_s"], 1e-12) / 60
+        row["minutes_for_700_extrapolated"] = 700 * per_trajectory / max(row["increments_per_s"], 1e-12) / 60
+        measured = row["complete"] and row["finished_trajectories"] == 700
+        row["minutes_for_700_measured"] = row["wall_s"] / 60 if measured else float("nan")
         row |= {"device": str(wp.get_device(args.device)), "mesh_mm": args.mesh_mm, "nodes": len(skin.vertices)}
         row["compile_s"] = compile_s
     if args.serial:
@@ -174,7 +187,8 @@ def run_batch_benchmark(args: argparse.Namespace) -> None:
     if args.kernel_timing:
         _kernel_timing(skin, trajectories[: args.batch], args, console)
     if args.json:
-        Path(args.json).write_text(json.dumps(rows, indent=1))
+        trace = {"round_end_s": run.round_end_s.round(4).tolist(), "round_systems": run.round_systems.tolist()}
+        Path(args.json).write_text(json.dumps({"rows": rows, "trace": trace}, indent=1))
     if args.forces:
         np.savez(args.forces, **_forces(run.results, paths["names"]))
 
@@ -198,6 +212,8 @@ def _summary(mode: str, slots: int, results: list, wall: float, counters: dict, 
         "finished_trajectories": finished,
         "finished_trajectories_per_s": finished / wall,
         "newton_per_increment": float(np.mean([r.newton_iterations for r in loaded])) if loaded else 0.0,
+        "system_evaluations_per_increment": counters["system_evaluations"] / max(len(loaded), 1),
+        "cut_backs": counters.get("cut_backs", 0),
         "failures": dict(Counter(r.message for r in loaded if not r.converged)),
         "evaluations": counters["evaluations"],
         "linear_solves": counters["linear_solves"],
@@ -211,10 +227,6 @@ def _summary(mode: str, slots: int, results: list, wall: float, counters: dict, 
 def _continuous(skin: InflatedSkin, trajectories: list, args: argparse.Namespace, forcing: str, limit_s: float):
     """A continuous run with the `forcing` rule for at most `limit_s` seconds: its summary row (with the
     times by which half, 90 %, 99 % and all trajectories had ended) and the run."""
-    import warp as wp
-
-    from fe.batched_runner import run_trajectories
-
     wp.synchronize()
     ended: list[float] = []
     start = time.perf_counter()
@@ -226,11 +238,20 @@ def _continuous(skin: InflatedSkin, trajectories: list, args: argparse.Namespace
             progress.advance(task)
 
         run = run_trajectories(
-            skin, trajectories, args.device, args.batch, args.force_limit, finished, limit_s, forcing
+            skin,
+            trajectories,
+            args.device,
+            args.batch,
+            args.force_limit,
+            finished,
+            limit_s,
+            forcing,
         )
     mode = f"continuous, {forcing}"
     row = _summary(mode, args.batch, run.results, run.wall_s, run.counters, run.complete, len(ended))
     row["rounds"] = run.iterations
+    durations = np.diff(run.round_end_s, prepend=0.0)
+    row["slot_occupancy"] = float(durations @ run.round_systems / max(run.slots * run.wall_s, 1e-12))
     for share in (0.5, 0.9, 0.99, 1.0):
         k = int(np.ceil(share * len(trajectories)))
         row[f"s_to_{share:.0%}_ended"] = ended[k - 1] if len(ended) >= k else float("nan")
@@ -240,9 +261,9 @@ def _continuous(skin: InflatedSkin, trajectories: list, args: argparse.Namespace
 def _lockstep(skin: InflatedSkin, trajectories: list, args: argparse.Namespace) -> dict:
     """The baseline, the previous scheme: one `BatchedStepper.step` per pose for all systems, strict CG
     tolerances, for --lockstep-s seconds."""
-    from fe.batched_stepper import BatchedStepper
 
-    stepper = BatchedStepper(skin, [t.indenter for t in trajectories], args.device, forcing="strict")
+    indenters = [t.indenter for t in trajectories]
+    stepper = BatchedStepper(skin, indenters, args.device, forcing="strict")
     results: list[list] = [[] for _ in trajectories]
     running = np.ones(len(trajectories), dtype=bool)
     start = time.perf_counter()
@@ -262,10 +283,6 @@ def _lockstep(skin: InflatedSkin, trajectories: list, args: argparse.Namespace) 
 
 def _kernel_timing(skin: InflatedSkin, trajectories: list, args: argparse.Namespace, console: Console) -> None:
     """GPU time per kernel (summed over launches) of a 20 s continuous run, largest first."""
-    import warp as wp
-
-    from fe.batched_runner import run_trajectories
-
     wp.timing_begin(cuda_filter=wp.TIMING_KERNEL | wp.TIMING_MEMCPY | wp.TIMING_GRAPH)
     run_trajectories(skin, trajectories, args.device, args.batch, args.force_limit, None, 20.0, args.forcing)
     timings = wp.timing_end()

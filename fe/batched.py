@@ -226,8 +226,8 @@ class NewtonBatch:
 
 class BatchedShell:
     """`batch` copies of an `InflatedSkin` on a warp `device`; indenter i of the batch is `indenters[i]`,
-    given as (kind, dims) of `fe.indenter_sdf` (systems with the same indenter are best kept contiguous:
-    one contact launch per run of equal indenters). `forcing`: one of `FORCING`, how tightly the CG solves
+    given as (kind, dims) of `fe.indenter_sdf` (any mix: the contact kernels read each system's own).
+    `forcing`: one of `FORCING`, how tightly the CG solves
     each Newton step (the converged states do not depend on it, only the work)."""
 
     def __init__(
@@ -319,16 +319,18 @@ class BatchedShell:
         far = np.tile([0.0, 0.0, 1.0], (B, 1))  # 1 m away: no contact until a pose is set
         self.set_poses(np.tile(np.eye(3), (B, 1, 1)), far, np.tile(np.eye(3), (B, 1, 1)), far)
         self.indenters = [(int(kind), tuple(float(d) for d in dims)) for kind, dims in indenters]
-        self._runs = _runs(self.indenters)
+        self._kind = arr(np.array([kind for kind, _ in self.indenters], dtype=np.int32), wp.int32)
+        self._dims = arr(np.array([dims for _, dims in self.indenters], dtype=np.float64), wp.vec4d)
         connectivities = [tri, stencils, np.arange(V)[:, None]]
         self.matrix = BatchedBlockMatrix(BlockPattern.from_connectivities(connectivities, V), B, self.free, device)
         self.cg = BatchedCG(self.matrix, 2 * B)
         self._system_of = np.concatenate([np.arange(B), np.arange(B)]).astype(np.int32)
         self._system_of_b = wp.array(np.arange(B, dtype=np.int32), dtype=wp.int32, device=device)
         self.counters = dict.fromkeys(("evaluations", "evaluate_s", "linear_solves", "linear_solve_s"), 0.0)
-        self.counters |= {"cg_iterations_max": 0.0, "cg_iterations_mean": 0.0}
+        self.counters |= {"cg_iterations_max": 0.0, "cg_iterations_mean": 0.0, "system_evaluations": 0.0}
         """Work done so far: evaluations and their wall time (s), linear solves (assembly + CG) and their
-        wall time, summed over solves the largest and the mean CG iteration count of the active columns."""
+        wall time, summed over solves the largest and the mean CG iteration count of the active columns, and
+        the systems evaluated in Newton rounds (`evaluate_round`) summed over rounds."""
 
     # -- data movement ---------------------------------------------------------------------------
     def set_poses(
@@ -339,10 +341,10 @@ class BatchedShell:
             self.pose[name].assign(np.asarray(value, dtype=np.float64))
 
     def set_indenter(self, system: int, kind: int, dims: tuple[float, float, float, float]) -> None:
-        """Give one system another indenter (kind, dims of `fe.indenter_sdf`); its contact launch then runs
-        separately unless its neighbours share the indenter."""
+        """Give one system another indenter (kind, dims of `fe.indenter_sdf`)."""
         self.indenters[system] = (int(kind), tuple(float(d) for d in dims))
-        self._runs = _runs(self.indenters)
+        self._kind[system : system + 1].assign(np.array([kind], dtype=np.int32))
+        self._dims[system : system + 1].assign(np.array([dims], dtype=np.float64))
 
     # -- evaluation ------------------------------------------------------------------------------
     def evaluate(self, x: wp.array, want_hessian: bool, pressure: np.ndarray) -> BatchLinearization:
@@ -439,12 +441,9 @@ class BatchedShell:
         self._launch_indenters(contact.indenter_gap_kernel, values)
 
     def _launch_indenters(self, kernel: wp.Kernel, values: dict) -> None:
-        """One launch of an indenter kernel per run of systems sharing an indenter, on batch slices."""
-        values = {**values, **self.pose}
-        for lo, hi, kind, dims in self._runs:
-            sliced = {k: (v[lo:hi] if k in _PER_SYSTEM else v) for k, v in values.items()}
-            sliced |= {"kind": kind, "dims": wp.vec4d(*dims)}
-            launch(kernel, (hi - lo, self.n_vertices), sliced, self.device)
+        """One launch of an indenter kernel for every system, each with its own indenter shape and pose."""
+        values = {**values, **self.pose, "kind": self._kind, "dims": self._dims}
+        launch(kernel, (self.batch, self.n_vertices), values, self.device)
 
     # -- Newton ------------------------------------------------------------------------------------
     def lag_contact(self, x: wp.array, mask: np.ndarray) -> np.ndarray:
@@ -488,6 +487,7 @@ class BatchedShell:
         """One evaluation of every system where it stands (with Hessians): at its positions, or, in a line
         search, at its trial point x + step dq with pressure p + step dp (in `self.x_trial`)."""
         step = np.where(state.running & (state.phase != AT_X), state.step, 0.0)
+        self.counters["system_evaluations"] += int(state.running.sum())
         self._axpy(self.x, step, self.x_trial)
         return self.evaluate(self.x_trial, True, state.pressure + np.where(step != 0.0, step * state.dp, 0.0))
 
@@ -687,11 +687,6 @@ class BatchedShell:
 _TOTALS = {"volume": 0, "membrane_energy": 1, "bending_energy": 1, "core_energy": 1, "indenter_energy": 1}
 """Column of `BatchedShell._totals` (per system: volume, energy) that each per-element buffer sums into."""
 _POSE = ("rotation", "translation", "rotation_start", "translation_start")
-_PER_SYSTEM = frozenset(
-    {*_POSE, "x", "x_start", "lagged_force", "lagged_normal", "energy", "gradient", "hessian", "gap", "normal"}
-    | {"offset", "friction"}
-)
-"""Indenter-kernel arguments with a leading batch axis (sliced per run of equal indenters)."""
 
 
 def put_rows(array: wp.array, rows: np.ndarray, values: np.ndarray) -> None:
@@ -703,18 +698,6 @@ def put_rows(array: wp.array, rows: np.ndarray, values: np.ndarray) -> None:
 def get_rows(array: wp.array, rows: np.ndarray) -> np.ndarray:
     """array[rows] on the host (device -> host, one copy per row), shape (len(rows), ...); rows not empty."""
     return np.stack([array[int(i)].numpy().copy() for i in rows])
-
-
-def _runs(indenters: list[tuple[int, tuple[float, float, float, float]]]) -> list[tuple[int, int, int, tuple]]:
-    """Contiguous runs (lo, hi, kind, dims) of systems with the same indenter."""
-    runs: list[tuple[int, int, int, tuple]] = []
-    for i, (kind, dims) in enumerate(indenters):
-        dims = tuple(float(d) for d in dims)
-        if runs and runs[-1][2] == kind and runs[-1][3] == dims:
-            runs[-1] = (runs[-1][0], i + 1, kind, dims)
-        else:
-            runs.append((i, i + 1, int(kind), dims))
-    return runs
 
 
 def _backtrack(state: NewtonBatch, phi: np.ndarray, rejected: np.ndarray) -> np.ndarray:

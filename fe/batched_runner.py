@@ -3,10 +3,9 @@
 `run_trajectories(skin, trajectories, device, slots)` keeps `slots` systems of one `BatchedStepper` busy:
 each slot holds one trajectory at a time, a system that finishes an increment starts its next pose at
 once (`BatchedStepper.admit`) while the others go on iterating (`BatchedStepper.advance`), and a slot
-whose trajectory ends takes the next queued trajectory of its indenter, or, when none is left, one of the
-indenter with the longest queue (slots start in proportion to the indenter mix and grouped, so that the
-contact kernels launch once per indenter). So no system waits for the slowest one of the batch, as a
-lock-step `BatchedStepper.step` per pose would make it, and no slot idles while trajectories are queued.
+whose trajectory ends takes the next queued trajectory, whatever its indenter (the contact kernels read
+each system's own). So no system waits for the slowest one of the batch, as a lock-step
+`BatchedStepper.step` per pose would make it, and no slot idles while trajectories are queued.
 
 A trajectory ends after its last pose, at its first increment that does not converge even in smaller
 steps (cut-backs through midpoints of the failed step, whose results are not reported), or at its first
@@ -52,35 +51,18 @@ class PoseTrajectory:
 @dataclass
 class BatchedRun:
     """Outcome of `run_trajectories`: per trajectory its increments (in pose order, ending where the
-    trajectory stopped), the number of global Newton iterations (one `advance` each), the wall time (s),
-    the slots per indenter, the shell's work counters (`fe.batched.BatchedShell.counters`) and whether every
-    trajectory ended (False after a time limit)."""
+    trajectory stopped), the number of rounds (one `advance` each), the wall time (s), the slots, the
+    shell's work counters (`fe.batched.BatchedShell.counters`), whether every trajectory ended (False after
+    a time limit), and per round the time it ended (s from the start) and the systems it iterated."""
 
     results: list[list[IncrementResult]]
     iterations: int
     wall_s: float
-    slots: dict[str, int]
+    slots: int
     counters: dict[str, float]
     complete: bool
-
-
-def allocate_slots(counts: dict[str, int], slots: int) -> dict[str, int]:
-    """Slots per indenter, in proportion to its trajectory count (largest remainders), never more than its
-    trajectories, and at least one each where there are as many slots as indenters."""
-    total = sum(counts.values())
-    slots = min(slots, total)
-    share = {name: slots * n / total for name, n in counts.items()}
-    floor = 1 if slots >= len(counts) else 0
-    given = {name: max(floor, int(share[name])) for name in counts}
-    by_remainder = sorted(counts, key=lambda name: share[name] - int(share[name]), reverse=True)
-    while sum(given.values()) < slots:
-        for name in by_remainder:
-            if sum(given.values()) < slots and given[name] < counts[name]:
-                given[name] += 1
-    while sum(given.values()) > slots:
-        name = max((n for n in given if given[n] > floor), key=lambda n: given[n] - share[n])
-        given[name] -= 1
-    return {name: n for name, n in given.items() if n}
+    round_end_s: np.ndarray
+    round_systems: np.ndarray
 
 
 def run_trajectories(
@@ -99,21 +81,17 @@ def run_trajectories(
     `time_limit_s` the run stops where it is (`BatchedRun.complete` False; unfinished trajectories keep the
     increments they finished). `forcing`: the CG tolerance rule of `fe.batched.BatchedShell`. A failed
     increment is cut back: retried from the last accepted pose through the midpoint, and so on up to
-    `max_cuts` halvings of one step, before it ends the trajectory."""
+    `max_cuts` halvings of one step, before it ends the trajectory (`BatchedRun.counters["cut_backs"]`)."""
     if not trajectories:
         raise ValueError("no trajectories to run")
     if slots < 1:
         raise ValueError(f"slots must be at least 1, got {slots}")
-    counts: dict[str, int] = {}
-    for trajectory in trajectories:
-        counts[trajectory.indenter] = counts.get(trajectory.indenter, 0) + 1
-    per_indenter = allocate_slots(dict(sorted(counts.items())), slots)
-    slot_indenters = [name for name, n in per_indenter.items() for _ in range(n)]
-    queues = {name: deque(i for i, t in enumerate(trajectories) if t.indenter == name) for name in counts}
+    slots = min(slots, len(trajectories))
     start = time.perf_counter()
-    stepper = BatchedStepper(skin, slot_indenters, device, forcing)
-    schedule = _Schedule(trajectories, slot_indenters, queues, force_limit, on_trajectory, stepper, max_cuts)
-    iterations = 0
+    stepper = BatchedStepper(skin, [t.indenter for t in trajectories[:slots]], device, forcing)
+    schedule = _Schedule(trajectories, force_limit, on_trajectory, stepper, max_cuts)
+    round_end_s: list[float] = []
+    round_systems: list[int] = []
     complete = True
     while True:
         if time.perf_counter() - start > time_limit_s:
@@ -126,11 +104,21 @@ def run_trajectories(
             schedule.record(stepper.admit(admitted, rotation, translation))
         if not stepper.newton.running.any():
             break
+        round_systems.append(int(stepper.newton.running.sum()))
         schedule.record(stepper.advance())
-        iterations += 1
-    counters = dict(stepper.shell.counters)
+        round_end_s.append(time.perf_counter() - start)
+    counters = dict(stepper.shell.counters) | {"cut_backs": schedule.cut_backs}
     wall = time.perf_counter() - start
-    return BatchedRun(schedule.results, iterations, wall, per_indenter, counters, complete)
+    return BatchedRun(
+        schedule.results,
+        len(round_end_s),
+        wall,
+        slots,
+        counters,
+        complete,
+        np.array(round_end_s),
+        np.array(round_systems, dtype=int),
+    )
 
 
 class _Schedule:
@@ -139,17 +127,15 @@ class _Schedule:
     def __init__(
         self,
         trajectories: Sequence[PoseTrajectory],
-        slot_indenters: list[str],
-        queues: dict[str, deque],
         force_limit: float,
         on_trajectory: Callable[[int, list[IncrementResult]], None] | None,
         stepper: BatchedStepper,
         max_cuts: int,
     ) -> None:
-        self.trajectories, self.slot_indenters, self.queues = trajectories, slot_indenters, queues
+        self.trajectories, self.queue = trajectories, deque(range(len(trajectories)))
         self.force_limit, self.on_trajectory, self.stepper = force_limit, on_trajectory, stepper
-        self.max_cuts = max_cuts
-        n = len(slot_indenters)
+        self.max_cuts, self.cut_backs = max_cuts, 0
+        n = stepper.batch
         self.results: list[list[IncrementResult]] = [[] for _ in trajectories]
         self.current = np.full(n, -1)
         self.pose = np.zeros(n, dtype=int)
@@ -163,16 +149,12 @@ class _Schedule:
             self._take(slot)
 
     def _take(self, slot: int) -> None:
-        """Give the slot the next queued trajectory of its indenter, else of the longest queue (or leave it
-        empty)."""
-        name = self.slot_indenters[slot]
-        if not self.queues[name]:
-            name = max(self.queues, key=lambda n: len(self.queues[n]))
-            if self.queues[name]:
+        """Give the slot the next queued trajectory (or leave it empty)."""
+        self.current[slot] = self.queue.popleft() if self.queue else -1
+        if self.current[slot] >= 0:
+            name = self.trajectories[self.current[slot]].indenter
+            if self.stepper.indenters[slot] != name:
                 self.stepper.set_indenter(slot, name)
-                self.slot_indenters[slot] = name
-        queue = self.queues[name]
-        self.current[slot] = queue.popleft() if queue else -1
         self.pose[slot] = 0
         self.cuts[slot] = 0
         self.detours[slot] = []
@@ -180,7 +162,7 @@ class _Schedule:
 
     def poses(self) -> tuple[np.ndarray, np.ndarray]:
         """Rotations (S,3,3) and tip positions (S,3) m of the waiting slots' next poses (identity elsewhere)."""
-        n = len(self.slot_indenters)
+        n = self.stepper.batch
         rotation, translation = np.tile(np.eye(3), (n, 1, 1)), np.zeros((n, 3))
         for slot in np.flatnonzero(self.waiting):
             rotation[slot], translation[slot] = self._next_pose(slot)
@@ -214,7 +196,7 @@ class _Schedule:
                 continue
             if self.on_trajectory is not None:
                 self.on_trajectory(index, self.results[index])
-            self.stepper.reset(np.arange(len(self.slot_indenters)) == slot)
+            self.stepper.reset(np.arange(self.stepper.batch) == slot)
             self._take(slot)
 
     def _cut_back(self, slot: int) -> None:
@@ -225,4 +207,5 @@ class _Schedule:
         mid = Slerp([0.0, 1.0], Rotation.from_matrix(np.stack([start_rotation, end_rotation])))(0.5).as_matrix()
         self.detours[slot].insert(0, (mid, 0.5 * (start_translation + end_translation)))
         self.cuts[slot] += 1
+        self.cut_backs += 1
         self.waiting[slot] = True

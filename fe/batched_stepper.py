@@ -50,8 +50,7 @@ def _check_poses(
 class BatchedStepper:
     """B independent indentation trajectories of one inflated skin, stepped together on `device`.
 
-    `indenters`: one indenter name per system (keep equal names contiguous: one contact launch per run);
-    `forcing`: the CG tolerance rule of `fe.batched.BatchedShell`.
+    `indenters`: one indenter name per system; `forcing`: the CG tolerance rule of `fe.batched.BatchedShell`.
     """
 
     def __init__(

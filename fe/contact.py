@@ -141,8 +141,8 @@ def indenter_contact_kernel(
     x: wp.array2d(dtype=wp.vec3d),
     x_start: wp.array2d(dtype=wp.vec3d),
     vertex_area: wp.array(dtype=wp.float64),
-    kind: int,
-    dims: wp.vec4d,
+    kind: wp.array(dtype=wp.int32),
+    dims: wp.array(dtype=wp.vec4d),
     rotation: wp.array(dtype=wp.mat33d),
     translation: wp.array(dtype=wp.vec3d),
     rotation_start: wp.array(dtype=wp.mat33d),
@@ -160,14 +160,17 @@ def indenter_contact_kernel(
     gap: wp.array2d(dtype=wp.float64),
     normal: wp.array2d(dtype=wp.vec3d),
 ):
-    """Penalty normal contact + lagged smoothed Coulomb friction of skin vertex v with the indenter of batch b."""
+    """Penalty normal contact + lagged smoothed Coulomb friction of skin vertex v with the indenter of batch b
+    (shape kind[b] with dims[b] of `fe.indenter_sdf`)."""
     b, v = wp.tid()
     p = x[b, v]
     R = rotation[b]
     t = translation[b]
+    shape = kind[b]
+    size = dims[b]
     zero = wp.float64(0.0)
-    g = _sdf_world(kind, dims, R, t, p) - offset[b]
-    n = _sdf_grad_world(kind, dims, R, t, p)
+    g = _sdf_world(shape, size, R, t, p) - offset[b]
+    n = _sdf_grad_world(shape, size, R, t, p)
     gap[b, v] = g
     normal[b, v] = n
     e = zero
@@ -184,7 +187,7 @@ def indenter_contact_kernel(
             for j in range(3):
                 dp = wp.vec3d()
                 dp[j] = h
-                col = (_sdf_grad_world(kind, dims, R, t, p + dp) - _sdf_grad_world(kind, dims, R, t, p - dp)) / (
+                col = (_sdf_grad_world(shape, size, R, t, p + dp) - _sdf_grad_world(shape, size, R, t, p - dp)) / (
                     wp.float64(2.0) * h
                 )
                 for i in range(3):
@@ -224,15 +227,16 @@ def indenter_contact_kernel(
 @wp.kernel
 def indenter_gap_kernel(
     x: wp.array2d(dtype=wp.vec3d),
-    kind: int,
-    dims: wp.vec4d,
+    kind: wp.array(dtype=wp.int32),
+    dims: wp.array(dtype=wp.vec4d),
     rotation: wp.array(dtype=wp.mat33d),
     translation: wp.array(dtype=wp.vec3d),
     offset: wp.array(dtype=wp.float64),
     gap: wp.array2d(dtype=wp.float64),
     normal: wp.array2d(dtype=wp.vec3d),
 ):
-    """Gap (m) of skin vertex v to the indenter of batch b (SDF minus the mid-surface offset), unit normal."""
+    """Gap (m) of skin vertex v to the indenter of batch b (kind[b], dims[b]; SDF minus the mid-surface
+    offset), unit normal."""
     b, v = wp.tid()
-    gap[b, v] = _sdf_world(kind, dims, rotation[b], translation[b], x[b, v]) - offset[b]
-    normal[b, v] = _sdf_grad_world(kind, dims, rotation[b], translation[b], x[b, v])
+    gap[b, v] = _sdf_world(kind[b], dims[b], rotation[b], translation[b], x[b, v]) - offset[b]
+    normal[b, v] = _sdf_grad_world(kind[b], dims[b], rotation[b], translation[b], x[b, v])

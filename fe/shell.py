@@ -76,6 +76,11 @@ class IndenterState:
     rotation_start: np.ndarray | None = None
 
 
+def _shape_arrays(indenter: IndenterState) -> tuple[wp.array, wp.array]:
+    """The indenter's kind and dims as the one-system (batch of 1) arrays of the contact kernels."""
+    return _cpu_array([indenter.kind], wp.int32), _cpu_array([indenter.dims], wp.vec4d)
+
+
 def lumped_areas(vertices: np.ndarray, triangles: np.ndarray) -> np.ndarray:
     """One third of the adjacent triangle areas per vertex (m^2)."""
     p0, p1, p2 = (vertices[triangles[:, k]] for k in range(3))
@@ -294,7 +299,7 @@ class ShellSystem:
         wp.launch(
             contact.indenter_contact_kernel,
             (1, nv),
-            [buf["x"], buf["x_start"], self._vertex_area, ind.kind, wp.vec4d(*ind.dims)]
+            [buf["x"], buf["x_start"], self._vertex_area, *_shape_arrays(ind)]
             + [_cpu_array([ind.rotation], wp.mat33d), _cpu_array([ind.translation], wp.vec3d)]
             + [_cpu_array([rotation_start], wp.mat33d), _cpu_array([ind.translation_start], wp.vec3d)]
             + [_cpu_array([ind.offset], wp.float64), kappa, self._friction, buf["lagged_force"]]
@@ -311,7 +316,7 @@ class ShellSystem:
         wp.launch(
             contact.indenter_gap_kernel,
             (1, self.n_vertices),
-            [buf["x"], indenter.kind, wp.vec4d(*indenter.dims), _cpu_array([indenter.rotation], wp.mat33d)]
+            [buf["x"], *_shape_arrays(indenter), _cpu_array([indenter.rotation], wp.mat33d)]
             + [_cpu_array([indenter.translation], wp.vec3d), _cpu_array([indenter.offset], wp.float64)]
             + [buf["indenter_gap"], buf["indenter_normal"]],
             device=CPU_DEVICE,
