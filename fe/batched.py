@@ -326,6 +326,8 @@ class BatchedShell:
         self.cg = BatchedCG(self.matrix, 2 * B)
         self._system_of = np.concatenate([np.arange(B), np.arange(B)]).astype(np.int32)
         self._system_of_b = wp.array(np.arange(B, dtype=np.int32), dtype=wp.int32, device=device)
+        self._active = z(B, wp.int32)
+        """Per system 1 where the current evaluation computes it (`evaluate`'s `which`)."""
         self.counters = dict.fromkeys(("evaluations", "evaluate_s", "linear_solves", "linear_solve_s"), 0.0)
         self.counters |= {"cg_iterations_max": 0.0, "cg_iterations_mean": 0.0, "system_evaluations": 0.0}
         """Work done so far: evaluations and their wall time (s), linear solves (assembly + CG) and their
@@ -347,16 +349,22 @@ class BatchedShell:
         self._dims[system : system + 1].assign(np.array([dims], dtype=np.float64))
 
     # -- evaluation ------------------------------------------------------------------------------
-    def evaluate(self, x: wp.array, want_hessian: bool, pressure: np.ndarray) -> BatchLinearization:
-        """All energy terms of every system at positions x (B,V) (m), their free-DOF residual at `pressure`
-        (B,) Pa (in `self.residual`, with grad E in `self.gradient` and grad V in `self.bvec`)."""
+    def evaluate(
+        self, x: wp.array, want_hessian: bool, pressure: np.ndarray, which: np.ndarray | None = None
+    ) -> BatchLinearization:
+        """All energy terms of the systems in `which` (B,) bool (default all) at positions x (B,V) (m), their
+        free-DOF residual at `pressure` (B,) Pa (in `self.residual`, with grad E in `self.gradient` and grad V
+        in `self.bvec`). The kernels skip the other systems: their scalars come back 0 and their gradients
+        0, their Hessians and residual rows are left as they were."""
         B, V, buf, dev = self.batch, self.n_vertices, self.buf, self.device
         start = time.perf_counter()
+        active = np.ones(B, dtype=bool) if which is None else np.asarray(which, dtype=bool)
+        self._active.assign(active.astype(np.int32))
         self.gradients.zero_()
         for name in ("volume_gradient", "core_energy", "core_hessian", "indenter_energy", "indenter_hessian"):
             buf[name].zero_()
         flag = 1 if want_hessian else 0
-        common = {**self._static, "x": x, "want_hessian": flag}
+        common = {**self._static, "x": x, "want_hessian": flag, "active": self._active}
         elastic = self.gradients[0]
         nt, nh = buf["membrane_energy"].shape[1], buf["bending_energy"].shape[1]
         launch(
@@ -405,7 +413,7 @@ class BatchedShell:
         self._totals.zero_()  # per system: volume (m^3) and energy (J), summed on the device, fetched once
         for name, column in _TOTALS.items():
             if buf[name].shape[1]:
-                wp.launch(bk.row_sum, buf[name].shape, [buf[name], column, self._totals], device=dev)
+                wp.launch(bk.row_sum, buf[name].shape, [buf[name], column, self._totals, self._active], device=dev)
         self._stats.zero_()
         launch(
             bk.free_residual,
@@ -419,6 +427,7 @@ class BatchedShell:
                 "gradient": self.gradient,
                 "bvec": self.bvec,
                 "stats": self._stats,
+                "active": self._active,
             },
             dev,
         )
@@ -489,7 +498,8 @@ class BatchedShell:
         step = np.where(state.running & (state.phase != AT_X), state.step, 0.0)
         self.counters["system_evaluations"] += int(state.running.sum())
         self._axpy(self.x, step, self.x_trial)
-        return self.evaluate(self.x_trial, True, state.pressure + np.where(step != 0.0, step * state.dp, 0.0))
+        pressure = state.pressure + np.where(step != 0.0, step * state.dp, 0.0)
+        return self.evaluate(self.x_trial, True, pressure, state.running)
 
     def settle(self, state: NewtonBatch, lin: BatchLinearization) -> np.ndarray:
         """Decide the line-search trials just evaluated (`fe.newton._line_search`'s acceptance rules, one

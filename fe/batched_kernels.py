@@ -5,9 +5,13 @@ import warp as wp
 
 
 @wp.kernel
-def row_sum(a: wp.array2d(dtype=wp.float64), column: int, out: wp.array2d(dtype=wp.float64)):
-    """out[b, column] += sum_i a[b, i]."""
+def row_sum(
+    a: wp.array2d(dtype=wp.float64), column: int, out: wp.array2d(dtype=wp.float64), active: wp.array(dtype=wp.int32)
+):
+    """out[b, column] += sum_i a[b, i] for the active systems b."""
     b, i = wp.tid()
+    if active[b] == 0:
+        return
     wp.atomic_add(out, b, column, a[b, i])
 
 
@@ -21,9 +25,12 @@ def free_residual(
     gradient: wp.array2d(dtype=wp.vec3d),
     bvec: wp.array2d(dtype=wp.vec3d),
     stats: wp.array2d(dtype=wp.float64),
+    active: wp.array(dtype=wp.int32),
 ):
     """Free-DOF residual r = grad E - p grad V, grad E and b = grad V; stats[b] = (max|r|, sum r^2, max load)."""
     b, v = wp.tid()
+    if active[b] == 0:  # a system left out of this evaluation: nothing is written for it
+        return
     f = free[v]
     g = gradients[0, b, v] + gradients[1, b, v] + gradients[2, b, v]
     gv = volume_gradient[b, v]

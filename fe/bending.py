@@ -108,9 +108,12 @@ def bending_kernel(
     energy: wp.array2d(dtype=wp.float64),
     gradient: wp.array2d(dtype=wp.vec3d),
     hessian: wp.array2d(dtype=mat1818d),
+    active: wp.array(dtype=wp.int32),
 ):
     """Energy, gradient (scattered to the 6 stencil nodes) and 18x18 Hessian per (batch, triangle)."""
     b, t = wp.tid()
+    if active[b] == 0:  # a system left out of this evaluation: nothing is written for it
+        return
     nodes = stencils[t]
     present = has_edge[t]
     k = bending_stiffness[b] * rest_area[t]

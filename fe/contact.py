@@ -89,6 +89,7 @@ def core_contact_kernel(
     gradient: wp.array2d(dtype=wp.vec3d),
     hessian: wp.array2d(dtype=wp.mat33d),
     gap: wp.array2d(dtype=wp.float64),
+    active: wp.array(dtype=wp.int32),
 ):
     """Frictionless one-sided contact of skin vertex v (mid-surface, `offset` m outside) with the core mesh.
 
@@ -99,6 +100,8 @@ def core_contact_kernel(
     mesh edge or vertex) by central differences of its gradient.
     """
     b, v = wp.tid()
+    if active[b] == 0:  # a system left out of this evaluation: nothing is written for it
+        return
     p = x[b, v]
     zero = wp.float64(0.0)
     energy[b, v] = zero
@@ -159,10 +162,13 @@ def indenter_contact_kernel(
     hessian: wp.array2d(dtype=wp.mat33d),
     gap: wp.array2d(dtype=wp.float64),
     normal: wp.array2d(dtype=wp.vec3d),
+    active: wp.array(dtype=wp.int32),
 ):
     """Penalty normal contact + lagged smoothed Coulomb friction of skin vertex v with the indenter of batch b
     (shape kind[b] with dims[b] of `fe.indenter_sdf`)."""
     b, v = wp.tid()
+    if active[b] == 0:  # a system left out of this evaluation: nothing is written for it
+        return
     p = x[b, v]
     R = rotation[b]
     t = translation[b]

@@ -72,12 +72,15 @@ def membrane_kernel(
     energy: wp.array2d(dtype=wp.float64),
     gradient: wp.array2d(dtype=wp.vec3d),
     hessian: wp.array2d(dtype=mat99d),
+    active: wp.array(dtype=wp.int32),
 ):
     """Energy, gradient (atomically scattered to nodes) and 9x9 Hessian per (batch, triangle).
 
     `gent_beta` (per batch) is 1/J_m; 0 gives Neo-Hookean. Beyond the Gent limit the energy is +inf or nan.
     """
     b, t = wp.tid()
+    if active[b] == 0:  # a system left out of this evaluation: nothing is written for it
+        return
     tri = triangles[t]
     Dinv = dm_inv[t]
     F = deformation_gradient(x, b, tri, Dinv)

@@ -114,6 +114,7 @@ class ShellSystem:
         self._dm_inv_host, self._present, self.rest_angle = dm_inv, present, rest_angle
         self.vertex_area = lumped_areas(mesh.vertices, mesh.triangles)
         self._tri = _cpu_array(mesh.triangles.astype(np.int32), wp.vec3i)
+        self._active = _cpu_array([1], wp.int32)  # the kernels' batch of one system, always evaluated
         self._dm_inv = _cpu_array(dm_inv, wp.mat22d)
         self._rest_area = _cpu_array(rest_area, wp.float64)
         self._stencils = _cpu_array(stencils, vec6i)
@@ -227,7 +228,7 @@ class ShellSystem:
             membrane.membrane_kernel,
             (1, nt),
             [xw, self._tri, self._dm_inv, self._rest_area, self._mu_t, self._gent, flag]
-            + [buf["membrane_energy"], buf["elastic_gradient"], buf["membrane_hessian"]],
+            + [buf["membrane_energy"], buf["elastic_gradient"], buf["membrane_hessian"], self._active],
             device=CPU_DEVICE,
         )
         if self._frozen_stress is not None:
@@ -243,14 +244,14 @@ class ShellSystem:
                 bending.bending_kernel,
                 (1, nh),
                 [xw, self._stencils, self._has_edge, self._rest_angle, self._bend_area, self._coupling, self._kb, flag]
-                + [buf["bending_energy"], buf["elastic_gradient"], buf["bending_hessian"]],
+                + [buf["bending_energy"], buf["elastic_gradient"], buf["bending_hessian"], self._active],
                 device=CPU_DEVICE,
             )
         wp.launch(
             volume.volume_kernel,
             (1, nt),
             [xw, self._tri, wp.vec3d(*self.volume_origin), flag]
-            + [buf["volume"], buf["volume_gradient"], buf["volume_hessian"]],
+            + [buf["volume"], buf["volume_gradient"], buf["volume_hessian"], self._active],
             device=CPU_DEVICE,
         )
         self._launch_contact(want_hessian)
@@ -286,7 +287,7 @@ class ShellSystem:
                 (1, nv),
                 [buf["x"], self._core_mesh.id, self._core_vertices, self._core_triangles, self._vertex_area]
                 + [wp.float64(self.core.offset), kappa, buf["core_energy"], buf["core_gradient"]]
-                + [buf["core_hessian"], buf["core_gap"]],
+                + [buf["core_hessian"], buf["core_gap"], self._active],
                 device=CPU_DEVICE,
             )
         ind = self.indenter
@@ -305,7 +306,7 @@ class ShellSystem:
             + [_cpu_array([ind.offset], wp.float64), kappa, self._friction, buf["lagged_force"]]
             + [buf["lagged_normal"], wp.float64(self.contact_settings.slip_length), 1 if want_hessian else 0]
             + [buf["indenter_energy"], buf["indenter_gradient"], buf["indenter_hessian"], buf["indenter_gap"]]
-            + [buf["indenter_normal"]],
+            + [buf["indenter_normal"], self._active],
             device=CPU_DEVICE,
         )
 

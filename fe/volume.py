@@ -33,9 +33,12 @@ def volume_kernel(
     volume: wp.array2d(dtype=wp.float64),
     gradient: wp.array2d(dtype=wp.vec3d),
     hessian: wp.array2d(dtype=mat99d),
+    active: wp.array(dtype=wp.int32),
 ):
     """Per (batch, triangle): signed tetra volume to `origin`, its node gradients and 9x9 Hessian."""
     b, t = wp.tid()
+    if active[b] == 0:  # a system left out of this evaluation: nothing is written for it
+        return
     tri = triangles[t]
     x0 = x[b, tri[0]] - origin
     x1 = x[b, tri[1]] - origin
