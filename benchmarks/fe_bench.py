@@ -39,11 +39,12 @@ from rich.progress import Progress, TimeElapsedColumn
 from rich.table import Table
 
 from assets.biotac import make_biotac
-from assets.indenters import INDENTERS, get_indenter
+from assets.indenters import INDENTERS
 from fe.batched import InflatedSkin
-from fe.batched_runner import PoseTrajectory, run_trajectories
+from fe.batched_runner import run_trajectories
 from fe.batched_stepper import BatchedStepper
 from fe.sensor import BioTacModel
+from fe.trajectory_sets import random_paths, round_robin, to_trajectories
 
 
 def run(mesh_mm: float, indenter: str, point_mm: list[float], depth_mm: float, step_mm: float) -> dict:
@@ -103,36 +104,13 @@ def plan_batch(args: argparse.Namespace) -> tuple[InflatedSkin, dict[str, np.nda
     if not model.inflate().converged:
         raise RuntimeError("inflation did not converge")
     names = list(INDENTERS) if args.indenters == "all" else args.indenters.split(",")
-    rng = np.random.default_rng(args.seed)
-    ventral = model.reference[model.geometry.skin.ventral]
-    rows: dict[str, list] = {"names": [], "touch": [], "direction": [], "rotation": []}
-    while len(rows["names"]) < _count(args):
-        name = names[len(rows["names"]) % len(names)]
-        point = ventral[rng.integers(len(ventral))]
-        try:
-            path = model.plan_trajectory(
-                get_indenter(name), point, rng.uniform(0, 20), rng.uniform(0, 360), args.depth_mm * 1e-3, 1e-3
-            )
-        except ValueError:
-            continue
-        for key, value in zip(rows, (name, path.touch_point, path.direction, path.rotation), strict=True):
-            rows[key].append(value)
-    paths = {k: np.asarray(v) for k, v in rows.items()}
+    paths = random_paths(model, _count(args), names, args.seed, args.depth_mm * 1e-3)
     skin = InflatedSkin.from_model(model)
     if folder is not None:
         folder.mkdir(parents=True, exist_ok=True)
         skin.save(folder / "skin.npz")
         np.savez(folder / "paths.npz", **paths)
     return skin, paths, model
-
-
-def _round_robin(names: np.ndarray) -> np.ndarray:
-    """An order of the trajectories that cycles through the indenters (the k-th of each, then the k+1-th),
-    so that the run's queue keeps the indenter mix from start to end."""
-    rank = np.zeros(len(names), dtype=int)
-    for name in np.unique(names):
-        rank[names == name] = np.arange(np.count_nonzero(names == name))
-    return np.lexsort((names, rank))
 
 
 def _count(args: argparse.Namespace) -> int:
@@ -144,14 +122,9 @@ def run_batch_benchmark(args: argparse.Namespace) -> None:
     """Run the trajectories (first pose 0.1 mm before touch, then to --depth-mm in --step-mm) through --batch
     continuously batched slots and print throughput, beside the lock-step baseline and the CPU stepper."""
     skin, paths, model = plan_batch(args)
-    paths = {k: v[_round_robin(paths["names"])] for k, v in paths.items()}
+    paths = {k: v[round_robin(paths["names"])] for k, v in paths.items()}
     travels = np.arange(-1, int(round(args.depth_mm / args.step_mm)) + 1) * args.step_mm * 1e-3
-    trajectories = [
-        PoseTrajectory(str(name), np.repeat(rotation[None], len(travels), 0), touch + travels[:, None] * direction)
-        for name, rotation, touch, direction in zip(
-            paths["names"], paths["rotation"], paths["touch"], paths["direction"], strict=True
-        )
-    ]
+    trajectories = to_trajectories(paths, travels)
     console = Console(width=200)
     start = time.perf_counter()
     first = trajectories[0]

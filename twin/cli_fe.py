@@ -14,8 +14,10 @@ from twin.cli_common import guarded as _guarded
 from twin.cli_common import out_console as _out
 from twin.cli_common import parse_floats as _floats
 from twin.cli_common import progress_bar as _progress
+from twin.cli_fe_batch import batch
 
 fe_app = typer.Typer(help="Finite-element skin model: physics checks and indentations.", no_args_is_help=True)
+fe_app.command("batch")(batch)
 
 
 @fe_app.command()

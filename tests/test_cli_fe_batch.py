@@ -1,0 +1,48 @@
+"""`twin fe batch`: the results file's contract, a round trip through --poses, and bad input."""
+
+import json
+from pathlib import Path
+
+import numpy as np
+from typer.testing import CliRunner
+
+from twin.cli import app
+
+runner = CliRunner()
+COARSE = ["--mesh-mm", "2", "--device", "cpu"]
+
+
+def test_batch_writes_per_pose_results_that_rerun_identically(tmp_path: Path) -> None:
+    first = tmp_path / "random.npz"
+    args = ["fe", "batch", "--out", str(first), "--trajectories", "3", "--indenters", "sphere_medium,cube"]
+    result = runner.invoke(app, [*args, "--depth-mm", "0.4", "--slots", "2", "--json", *COARSE])
+    assert result.exit_code == 0, result.output
+    summary = json.loads(result.stdout.strip().splitlines()[-1])
+    assert summary["trajectories"] == 3 and summary["complete"] and summary["not_converged"] == 0
+    data = np.load(first)
+    assert list(data["names"]) == ["cube", "sphere_medium", "sphere_medium"]  # indenters cycled, round robin
+    assert data["force"].shape == (3, 6, 3) and data["rotations"].shape == (3, 6, 3, 3)
+    assert np.all(data["poses_done"] == 6) and data["converged"].all()
+    loaded = data["contact_area"] > 0.0
+    assert loaded.sum() == summary["loaded_increments"]
+    magnitude = np.linalg.norm(data["force"], axis=2)
+    assert np.all(np.diff(magnitude, axis=1) >= -1e-9)  # pressing deeper never pushes back less
+    assert np.all(magnitude[:, -1] > 0.05)
+    np.testing.assert_allclose(np.diff(data["depth"], axis=1), 1e-4, atol=1e-9)
+
+    again = tmp_path / "again.npz"
+    rerun = ["fe", "batch", "--out", str(again), "--poses", str(first), "--slots", "3", *COARSE]
+    result = runner.invoke(app, rerun)
+    assert result.exit_code == 0, result.output
+    np.testing.assert_allclose(np.load(again)["force"], data["force"], rtol=1e-9, atol=1e-12)
+
+
+def test_batch_rejects_bad_input_with_a_message(tmp_path: Path) -> None:
+    bad = tmp_path / "bad.npz"
+    np.savez(bad, names=np.array(["cube"]), rotations=np.zeros((1, 2, 3)), translations=np.zeros((1, 2, 3)))
+    result = runner.invoke(app, ["fe", "batch", "--out", str(tmp_path / "x.npz"), "--poses", str(bad), *COARSE])
+    assert result.exit_code == 2 and "rotations must be (M,K,3,3)" in result.output
+    result = runner.invoke(app, ["fe", "batch", "--out", str(tmp_path / "x.npz"), "--indenters", "spoon"])
+    assert result.exit_code == 2 and "unknown indenters" in result.output
+    result = runner.invoke(app, ["fe", "batch", "--out", str(tmp_path / "x.npz"), "--poses", str(tmp_path / "no.npz")])
+    assert result.exit_code == 2 and "no poses file" in result.output

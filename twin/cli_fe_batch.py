@@ -1,0 +1,159 @@
+"""`twin fe batch`: many indentation trajectories through the batched FE solver on a warp device (CPU or GPU).
+
+The trajectories are random straight presses at ventral points (`fe.trajectory_sets.random_paths`) or read
+from a poses file; they run continuously batched on `--slots` systems (`fe.batched_runner`). The results
+file (.npz) holds per trajectory and pose: force (N, sensor frame), depth (m), fluid pressure (Pa),
+contact area (m^2), Newton iterations and convergence, NaN / False after a trajectory stopped (last pose,
+`--force-limit`, a failed increment, or `--time-limit`), with the poses that were asked for (rotations,
+translations: the arrays of a poses file, so a results file can be run again with --poses).
+"""
+
+import json
+import time
+from pathlib import Path
+from typing import Annotated
+
+import numpy as np
+import typer
+from rich.table import Table
+
+from twin.cli_common import err_console as _err
+from twin.cli_common import guarded as _guarded
+from twin.cli_common import out_console as _out
+from twin.cli_common import progress_bar as _progress
+
+POSES_FILE_KEYS = ("names", "rotations", "translations")
+"""Arrays of a --poses file: indenter names (M,), rotations (M,K,3,3) body -> sensor frame, tip positions
+(M,K,3) m in the sensor frame."""
+
+
+def batch(
+    out: Annotated[Path, typer.Option(help="Results file (.npz).")],
+    trajectories: Annotated[int, typer.Option(help="Random trajectories to run (without --poses).")] = 16,
+    indenters: Annotated[str, typer.Option(help="Comma-separated indenter names, or 'all' (cycled).")] = "all",
+    seed: Annotated[int, typer.Option(help="Seed of the random trajectories.")] = 0,
+    depth_mm: Annotated[float, typer.Option(help="Depth past first contact of the random ones (mm).")] = 3.0,
+    step_mm: Annotated[float, typer.Option(help="Increment of the random ones (mm).")] = 0.1,
+    poses: Annotated[
+        Path | None, typer.Option(help="Poses file (.npz with names, rotations, translations in m) to run instead.")
+    ] = None,
+    mesh_mm: Annotated[float, typer.Option(help="Maximum skin edge length (mm).")] = 0.5,
+    device: Annotated[str, typer.Option(help="Warp device: cpu, cuda, cuda:0, ...")] = "cpu",
+    slots: Annotated[int, typer.Option(help="Trajectories solved together.")] = 256,
+    force_limit: Annotated[float, typer.Option(help="A trajectory stops past this force (N).")] = 25.0,
+    time_limit: Annotated[
+        float, typer.Option(help="Stop after this many seconds (unfinished ones keep theirs).")
+    ] = 1e9,
+    as_json: Annotated[bool, typer.Option("--json", help="Print the summary as JSON.")] = False,
+) -> None:
+    """Run many indentation trajectories batched on a warp device and write their forces and contact."""
+    from assets.biotac import make_biotac
+    from assets.indenters import INDENTERS
+    from fe.batched import InflatedSkin
+    from fe.batched_runner import PoseTrajectory, run_trajectories
+    from fe.sensor import BioTacModel
+    from fe.trajectory_sets import random_paths, round_robin, to_trajectories
+
+    if slots < 1 or trajectories < 1 or depth_mm < 0 or step_mm <= 0 or force_limit <= 0:
+        raise typer.BadParameter("--slots and --trajectories must be >= 1, --depth-mm >= 0, the rest > 0")
+    names = list(INDENTERS) if indenters == "all" else indenters.split(",")
+    unknown = [n for n in names if n not in INDENTERS]
+    if unknown:
+        raise typer.BadParameter(f"unknown indenters {unknown}; see `twin fe indenters`")
+    asked = _guarded(lambda: _read_poses(poses)) if poses is not None else None
+    geometry = _guarded(lambda: make_biotac(max_edge=mesh_mm * 1e-3))
+    model = BioTacModel(geometry)
+    _err.print(f"skin mesh: {len(geometry.skin.vertices)} vertices; inflating ...")
+    if not model.inflate().converged:
+        _err.print("[red]error:[/red] the inflation did not converge")
+        raise typer.Exit(code=1)
+    if asked is None:
+        paths = random_paths(model, trajectories, names, seed, depth_mm * 1e-3)
+        paths = {k: v[round_robin(paths["names"])] for k, v in paths.items()}
+        travels = np.arange(-1, int(round(depth_mm / step_mm)) + 1) * step_mm * 1e-3
+        runs = to_trajectories(paths, travels)
+    else:
+        runs = [PoseTrajectory(str(n), r, t) for n, r, t in zip(*(asked[k] for k in POSES_FILE_KEYS), strict=True)]
+    start = time.perf_counter()
+    with _progress() as progress:
+        task = progress.add_task(f"trajectories on {device}", total=len(runs))
+        run = _guarded(
+            lambda: run_trajectories(
+                InflatedSkin.from_model(model),
+                runs,
+                device,
+                slots,
+                force_limit,
+                lambda _index, _increments: progress.advance(task),
+                time_limit,
+            )
+        )
+    summary = _write(out, runs, run.results, time.perf_counter() - start, run.complete)
+    summary |= {"device": device, "slots": run.slots, "mesh_mm": mesh_mm, "cut_backs": run.counters["cut_backs"]}
+    if as_json:
+        print(json.dumps(summary))
+        return
+    table = Table("quantity", "value")
+    for key, value in summary.items():
+        table.add_row(key, f"{value:.4g}" if isinstance(value, float) else str(value))
+    _out.print(table)
+
+
+def _read_poses(path: Path) -> dict[str, np.ndarray]:
+    """The arrays of a poses file, checked (`POSES_FILE_KEYS`)."""
+    if not path.exists():
+        raise ValueError(f"no poses file {path}")
+    with np.load(path) as data:
+        missing = [k for k in POSES_FILE_KEYS if k not in data.files]
+        if missing:
+            raise ValueError(f"{path} lacks {missing}; a poses file holds {list(POSES_FILE_KEYS)}")
+        arrays = {k: np.asarray(data[k]) for k in POSES_FILE_KEYS}
+    m = len(arrays["names"])
+    rotations, translations = arrays["rotations"], arrays["translations"]
+    if m == 0 or rotations.shape[:1] != (m,) or translations.shape[:1] != (m,):
+        raise ValueError(f"{path}: names, rotations and translations need the same number (>= 1) of trajectories")
+    if rotations.ndim != 4 or rotations.shape[2:] != (3, 3) or translations.shape != rotations.shape[:2] + (3,):
+        raise ValueError(
+            f"{path}: rotations must be (M,K,3,3) and translations (M,K,3), got {rotations.shape} and "
+            f"{translations.shape}"
+        )
+    return arrays
+
+
+def _write(out: Path, runs: list, results: list, wall: float, complete: bool) -> dict:
+    """Write the per-pose results of every trajectory to `out` (.npz, atomically); returns the summary."""
+    m, k = len(runs), max(len(t.translations) for t in runs)
+    arrays = {
+        "names": np.array([t.indenter for t in runs]),
+        "rotations": np.full((m, k, 3, 3), np.nan),
+        "translations": np.full((m, k, 3), np.nan),
+        "force": np.full((m, k, 3), np.nan),
+        "depth": np.full((m, k), np.nan),
+        "pressure": np.full((m, k), np.nan),
+        "contact_area": np.full((m, k), np.nan),
+        "newton_iterations": np.zeros((m, k), dtype=int),
+        "converged": np.zeros((m, k), dtype=bool),
+        "poses_done": np.array([len(r) for r in results]),
+    }
+    for i, (trajectory, increments) in enumerate(zip(runs, results, strict=True)):
+        arrays["rotations"][i, : len(trajectory.rotations)] = trajectory.rotations
+        arrays["translations"][i, : len(trajectory.translations)] = trajectory.translations
+        for j, r in enumerate(increments):
+            arrays["force"][i, j] = r.force
+            for key, value in (("depth", r.depth), ("pressure", r.pressure), ("contact_area", r.contact_area)):
+                arrays[key][i, j] = value
+            arrays["newton_iterations"][i, j], arrays["converged"][i, j] = r.newton_iterations, r.converged
+    out.parent.mkdir(parents=True, exist_ok=True)
+    partial = out.with_name(out.name + ".partial.npz")
+    np.savez(partial, **arrays)
+    partial.replace(out)
+    loaded = [r for t in results for r in t if r.message != "no contact"]
+    return {
+        "trajectories": m,
+        "complete": complete,
+        "loaded_increments": len(loaded),
+        "not_converged": sum(not r.converged for r in loaded),
+        "wall_s": wall,
+        "increments_per_s": len(loaded) / max(wall, 1e-12),
+        "out": str(out),
+    }
