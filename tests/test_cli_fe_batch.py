@@ -42,6 +42,8 @@ def test_batch_rejects_bad_input_with_a_message(tmp_path: Path) -> None:
     np.savez(bad, names=np.array(["cube"]), rotations=np.zeros((1, 2, 3)), translations=np.zeros((1, 2, 3)))
     result = runner.invoke(app, ["fe", "batch", "--out", str(tmp_path / "x.npz"), "--poses", str(bad), *COARSE])
     assert result.exit_code == 2 and "rotations must be (M,K,3,3)" in result.output
+    result = runner.invoke(app, ["fe", "batch", "--out", str(tmp_path / "x.npz"), "--device", "cuda:99"])
+    assert result.exit_code == 2 and "'cuda:99' is not available" in result.output
     result = runner.invoke(app, ["fe", "batch", "--out", str(tmp_path / "x.npz"), "--indenters", "spoon"])
     assert result.exit_code == 2 and "unknown indenters" in result.output
     result = runner.invoke(app, ["fe", "batch", "--out", str(tmp_path / "x.npz"), "--poses", str(tmp_path / "no.npz")])

@@ -60,6 +60,7 @@ def batch(
     unknown = [n for n in names if n not in INDENTERS]
     if unknown:
         raise typer.BadParameter(f"unknown indenters {unknown}; see `twin fe indenters`")
+    _guarded(lambda: _check_device(device))
     asked = _guarded(lambda: _read_poses(poses)) if poses is not None else None
     geometry = _guarded(lambda: make_biotac(max_edge=mesh_mm * 1e-3))
     model = BioTacModel(geometry)
@@ -97,6 +98,16 @@ def batch(
     for key, value in summary.items():
         table.add_row(key, f"{value:.4g}" if isinstance(value, float) else str(value))
     _out.print(table)
+
+
+def _check_device(device: str) -> None:
+    """A ValueError naming the device when warp cannot use it here."""
+    import warp as wp
+
+    try:
+        wp.get_device(device)
+    except (RuntimeError, ValueError) as exc:
+        raise ValueError(f"warp device {device!r} is not available here: {exc}") from exc
 
 
 def _read_poses(path: Path) -> dict[str, np.ndarray]:
