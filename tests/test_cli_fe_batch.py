@@ -4,8 +4,10 @@ import json
 from pathlib import Path
 
 import numpy as np
+import pytest
 from typer.testing import CliRunner
 
+from twin import cli_fe_batch
 from twin.cli import app
 
 runner = CliRunner()
@@ -35,6 +37,24 @@ def test_batch_writes_per_pose_results_that_rerun_identically(tmp_path: Path) ->
     result = runner.invoke(app, rerun)
     assert result.exit_code == 0, result.output
     np.testing.assert_allclose(np.load(again)["force"], data["force"], rtol=1e-9, atol=1e-12)
+
+
+def test_batch_writes_what_has_ended_while_it_runs(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    """With the flush period at 0 s the file is rewritten as each trajectory ends, before the final write."""
+    written: list[int] = []
+    write = cli_fe_batch._write
+
+    def counting(out: Path, runs: list, results: list, wall: float, complete: bool) -> dict:
+        written.append(sum(bool(r) for r in results))
+        return write(out, runs, results, wall, complete)
+
+    monkeypatch.setattr(cli_fe_batch, "FLUSH_S", 0.0)
+    monkeypatch.setattr(cli_fe_batch, "_write", counting)
+    out = tmp_path / "r.npz"
+    args = ["fe", "batch", "--out", str(out), "--trajectories", "2", "--indenters", "cube", "--depth-mm", "0.1"]
+    result = runner.invoke(app, [*args, "--slots", "1", *COARSE])
+    assert result.exit_code == 0, result.output
+    assert written == [1, 2, 2] and np.all(np.load(out)["poses_done"] == 3)
 
 
 def test_batch_rejects_bad_input_with_a_message(tmp_path: Path) -> None:

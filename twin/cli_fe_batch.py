@@ -5,11 +5,14 @@ from a poses file; they run continuously batched on `--slots` systems (`fe.batch
 file (.npz) holds per trajectory and pose: force (N, sensor frame), depth (m), fluid pressure (Pa),
 contact area (m^2), Newton iterations and convergence, NaN / False after a trajectory stopped (last pose,
 `--force-limit`, a failed increment, or `--time-limit`), with the poses that were asked for (rotations,
-translations: the arrays of a poses file, so a results file can be run again with --poses).
+translations: the arrays of a poses file, so a results file can be run again with --poses). During a
+long run the file is rewritten every minute with the trajectories ended so far (`poses_done` 0 for the
+others), so a crash loses at most a minute of work.
 """
 
 import json
 import time
+from collections.abc import Callable
 from pathlib import Path
 from typing import Annotated
 
@@ -22,6 +25,8 @@ from twin.cli_common import guarded as _guarded
 from twin.cli_common import out_console as _out
 from twin.cli_common import progress_bar as _progress
 
+FLUSH_S = 60.0
+"""Seconds between the writes of the trajectories ended so far during a run."""
 POSES_FILE_KEYS = ("names", "rotations", "translations")
 """Arrays of a --poses file: indenter names (M,), rotations (M,K,3,3) body -> sensor frame, tip positions
 (M,K,3) m in the sensor frame."""
@@ -78,6 +83,7 @@ def batch(
     start = time.perf_counter()
     with _progress() as progress:
         task = progress.add_task(f"trajectories on {device}", total=len(runs))
+        writer = _PeriodicWriter(out, runs, start, lambda: progress.advance(task))
         run = _guarded(
             lambda: run_trajectories(
                 InflatedSkin.from_model(model),
@@ -85,7 +91,7 @@ def batch(
                 device,
                 slots,
                 force_limit,
-                lambda _index, _increments: progress.advance(task),
+                writer.ended,
                 time_limit,
             )
         )
@@ -98,6 +104,23 @@ def batch(
     for key, value in summary.items():
         table.add_row(key, f"{value:.4g}" if isinstance(value, float) else str(value))
     _out.print(table)
+
+
+class _PeriodicWriter:
+    """Collects the trajectories as they end (calling `advance` for each, e.g. a progress bar) and rewrites the
+    results file with them every `FLUSH_S` s."""
+
+    def __init__(self, out: Path, runs: list, start: float, advance: Callable[[], None]) -> None:
+        self.out, self.runs, self.start, self.last, self.advance = out, runs, start, start, advance
+        self.results: list[list] = [[] for _ in runs]
+
+    def ended(self, index: int, increments: list) -> None:
+        self.advance()
+        self.results[index] = increments
+        now = time.perf_counter()
+        if now - self.last > FLUSH_S:
+            _write(self.out, self.runs, self.results, now - self.start, False)
+            self.last = now
 
 
 def _check_device(device: str) -> None:
