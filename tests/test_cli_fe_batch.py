@@ -9,6 +9,7 @@ from typer.testing import CliRunner
 
 from twin import cli_fe_batch
 from twin.cli import app
+from twin.fe_batch_results import BatchResults
 
 runner = CliRunner()
 COARSE = ["--mesh-mm", "2", "--device", "cpu"]
@@ -20,13 +21,12 @@ def test_batch_writes_per_pose_results_that_rerun_identically(tmp_path: Path) ->
     result = runner.invoke(app, [*args, "--depth-mm", "0.4", "--slots", "2", "--json", *COARSE])
     assert result.exit_code == 0, result.output
     summary = json.loads(result.stdout.strip().splitlines()[-1])
-    assert summary["trajectories"] == 3 and summary["complete"] and summary["not_converged"] == 0
+    assert summary["trajectories"] == 3 and summary["ended"] == 3 and summary["not_converged"] == 0
     data = np.load(first)
     assert list(data["names"]) == ["cube", "sphere_medium", "sphere_medium"]  # indenters cycled, round robin
     assert data["force"].shape == (3, 6, 3) and data["rotations"].shape == (3, 6, 3, 3)
     assert np.all(data["poses_done"] == 6) and data["converged"].all()
-    loaded = data["contact_area"] > 0.0
-    assert loaded.sum() == summary["loaded_increments"]
+    assert data["loaded"].sum() == summary["loaded_increments"] and np.all(data["contact_area"][data["loaded"]] > 0)
     magnitude = np.linalg.norm(data["force"], axis=2)
     assert np.all(np.diff(magnitude, axis=1) >= -1e-9)  # pressing deeper never pushes back less
     assert np.all(magnitude[:, -1] > 0.05)
@@ -41,20 +41,39 @@ def test_batch_writes_per_pose_results_that_rerun_identically(tmp_path: Path) ->
 
 def test_batch_writes_what_has_ended_while_it_runs(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
     """With the flush period at 0 s the file is rewritten as each trajectory ends, before the final write."""
-    written: list[int] = []
-    write = cli_fe_batch._write
+    ended: list[int] = []
+    save = BatchResults.save
 
-    def counting(out: Path, runs: list, results: list, wall: float, complete: bool) -> dict:
-        written.append(sum(bool(r) for r in results))
-        return write(out, runs, results, wall, complete)
+    def counting(self: BatchResults) -> None:
+        ended.append(int(self.arrays["ended"].sum()))
+        save(self)
 
     monkeypatch.setattr(cli_fe_batch, "FLUSH_S", 0.0)
-    monkeypatch.setattr(cli_fe_batch, "_write", counting)
+    monkeypatch.setattr(BatchResults, "save", counting)
     out = tmp_path / "r.npz"
     args = ["fe", "batch", "--out", str(out), "--trajectories", "2", "--indenters", "cube", "--depth-mm", "0.1"]
     result = runner.invoke(app, [*args, "--slots", "1", *COARSE])
     assert result.exit_code == 0, result.output
-    assert written == [1, 2, 2] and np.all(np.load(out)["poses_done"] == 3)
+    assert ended == [1, 2, 2] and np.all(np.load(out)["poses_done"] == 3)
+
+
+def test_resume_runs_only_what_had_not_ended(tmp_path: Path) -> None:
+    out = tmp_path / "r.npz"
+    args = ["fe", "batch", "--out", str(out), "--trajectories", "3", "--indenters", "cube,sphere_small"]
+    args += ["--depth-mm", "0.2", "--slots", "3", "--json", *COARSE]
+    assert runner.invoke(app, args).exit_code == 0
+    full = dict(np.load(out))
+    crashed = dict(full, ended=np.array([True, False, True]), poses_done=np.array([4, 0, 4]))
+    crashed["force"] = full["force"].copy()
+    crashed["force"][1] = np.nan
+    np.savez(out, **crashed)
+    result = runner.invoke(app, [*args, "--resume"])
+    assert result.exit_code == 0, result.output
+    summary = json.loads(result.stdout.strip().splitlines()[-1])
+    assert summary["run_now"] == 1 and summary["ended"] == 3
+    np.testing.assert_allclose(np.load(out)["force"], full["force"], rtol=1e-9, atol=1e-12)
+    result = runner.invoke(app, [*args, "--resume", "--seed", "1"])
+    assert result.exit_code == 2 and "holds other trajectories" in result.output
 
 
 def test_batch_rejects_bad_input_with_a_message(tmp_path: Path) -> None:

@@ -2,12 +2,10 @@
 
 The trajectories are random straight presses at ventral points (`fe.trajectory_sets.random_paths`) or read
 from a poses file; they run continuously batched on `--slots` systems (`fe.batched_runner`). The results
-file (.npz) holds per trajectory and pose: force (N, sensor frame), depth (m), fluid pressure (Pa),
-contact area (m^2), Newton iterations and convergence, NaN / False after a trajectory stopped (last pose,
-`--force-limit`, a failed increment, or `--time-limit`), with the poses that were asked for (rotations,
-translations: the arrays of a poses file, so a results file can be run again with --poses). During a
-long run the file is rewritten every minute with the trajectories ended so far (`poses_done` 0 for the
-others), so a crash loses at most a minute of work.
+file (`twin.fe_batch_results`) holds per trajectory and pose the force, depth, pressure, contact area,
+Newton iterations and convergence, with the poses asked for (so a results file runs again with --poses).
+During a run it is rewritten every minute with the trajectories ended so far, so a crash loses at most a
+minute of work, and `--resume` keeps the trajectories that ended in an earlier file of the same options.
 """
 
 import json
@@ -24,6 +22,7 @@ from twin.cli_common import err_console as _err
 from twin.cli_common import guarded as _guarded
 from twin.cli_common import out_console as _out
 from twin.cli_common import progress_bar as _progress
+from twin.fe_batch_results import BatchResults
 
 FLUSH_S = 60.0
 """Seconds between the writes of the trajectories ended so far during a run."""
@@ -49,6 +48,9 @@ def batch(
     time_limit: Annotated[
         float, typer.Option(help="Stop after this many seconds (unfinished ones keep theirs).")
     ] = 1e9,
+    resume: Annotated[
+        bool, typer.Option(help="Keep the trajectories that ended in an earlier --out of the same options.")
+    ] = False,
     as_json: Annotated[bool, typer.Option("--json", help="Print the summary as JSON.")] = False,
 ) -> None:
     """Run many indentation trajectories batched on a warp device and write their forces and contact."""
@@ -80,23 +82,36 @@ def batch(
         runs = to_trajectories(paths, travels)
     else:
         runs = [PoseTrajectory(str(n), r, t) for n, r, t in zip(*(asked[k] for k in POSES_FILE_KEYS), strict=True)]
+    results = BatchResults(out, runs)
+    todo = _guarded(results.resume) if resume and out.exists() else np.ones(len(runs), dtype=bool)
+    indices = np.flatnonzero(todo)
     start = time.perf_counter()
     with _progress() as progress:
-        task = progress.add_task(f"trajectories on {device}", total=len(runs))
-        writer = _PeriodicWriter(out, runs, start, lambda: progress.advance(task))
-        run = _guarded(
-            lambda: run_trajectories(
-                InflatedSkin.from_model(model),
-                runs,
-                device,
-                slots,
-                force_limit,
-                writer.ended,
-                time_limit,
+        task = progress.add_task(f"trajectories on {device}", total=len(runs), completed=len(runs) - len(indices))
+        writer = _PeriodicWriter(results, indices, lambda: progress.advance(task))
+        run = None
+        if len(indices):
+            run = _guarded(
+                lambda: run_trajectories(
+                    InflatedSkin.from_model(model),
+                    [runs[i] for i in indices],
+                    device,
+                    slots,
+                    force_limit,
+                    writer.ended,
+                    time_limit,
+                )
             )
-        )
-    summary = _write(out, runs, run.results, time.perf_counter() - start, run.complete)
-    summary |= {"device": device, "slots": run.slots, "mesh_mm": mesh_mm, "cut_backs": run.counters["cut_backs"]}
+    for j, i in enumerate(indices):
+        if run is not None and not results.arrays["ended"][i]:  # stopped by --time-limit
+            results.put(i, run.results[j], False)
+    results.save()
+    wall = time.perf_counter() - start
+    summary = results.summary() | {"wall_s": wall, "run_now": len(indices), "device": device, "mesh_mm": mesh_mm}
+    if run is not None:
+        loaded = sum(r.message != "no contact" for t in run.results for r in t)
+        summary |= {"increments_per_s": loaded / max(wall, 1e-12), "slots": run.slots}
+        summary["cut_backs"] = run.counters["cut_backs"]
     if as_json:
         print(json.dumps(summary))
         return
@@ -107,20 +122,19 @@ def batch(
 
 
 class _PeriodicWriter:
-    """Collects the trajectories as they end (calling `advance` for each, e.g. a progress bar) and rewrites the
-    results file with them every `FLUSH_S` s."""
+    """Files the trajectories of a run (of `indices` into the results) as they end, calling `advance` for
+    each (a progress bar), and saves the results every `FLUSH_S` s."""
 
-    def __init__(self, out: Path, runs: list, start: float, advance: Callable[[], None]) -> None:
-        self.out, self.runs, self.start, self.last, self.advance = out, runs, start, start, advance
-        self.results: list[list] = [[] for _ in runs]
+    def __init__(self, results: BatchResults, indices: np.ndarray, advance: Callable[[], None]) -> None:
+        self.results, self.indices, self.advance = results, indices, advance
+        self.last = time.perf_counter()
 
     def ended(self, index: int, increments: list) -> None:
         self.advance()
-        self.results[index] = increments
-        now = time.perf_counter()
-        if now - self.last > FLUSH_S:
-            _write(self.out, self.runs, self.results, now - self.start, False)
-            self.last = now
+        self.results.put(int(self.indices[index]), increments, True)
+        if time.perf_counter() - self.last > FLUSH_S:
+            self.results.save()
+            self.last = time.perf_counter()
 
 
 def _check_device(device: str) -> None:
@@ -152,42 +166,3 @@ def _read_poses(path: Path) -> dict[str, np.ndarray]:
             f"{translations.shape}"
         )
     return arrays
-
-
-def _write(out: Path, runs: list, results: list, wall: float, complete: bool) -> dict:
-    """Write the per-pose results of every trajectory to `out` (.npz, atomically); returns the summary."""
-    m, k = len(runs), max(len(t.translations) for t in runs)
-    arrays = {
-        "names": np.array([t.indenter for t in runs]),
-        "rotations": np.full((m, k, 3, 3), np.nan),
-        "translations": np.full((m, k, 3), np.nan),
-        "force": np.full((m, k, 3), np.nan),
-        "depth": np.full((m, k), np.nan),
-        "pressure": np.full((m, k), np.nan),
-        "contact_area": np.full((m, k), np.nan),
-        "newton_iterations": np.zeros((m, k), dtype=int),
-        "converged": np.zeros((m, k), dtype=bool),
-        "poses_done": np.array([len(r) for r in results]),
-    }
-    for i, (trajectory, increments) in enumerate(zip(runs, results, strict=True)):
-        arrays["rotations"][i, : len(trajectory.rotations)] = trajectory.rotations
-        arrays["translations"][i, : len(trajectory.translations)] = trajectory.translations
-        for j, r in enumerate(increments):
-            arrays["force"][i, j] = r.force
-            for key, value in (("depth", r.depth), ("pressure", r.pressure), ("contact_area", r.contact_area)):
-                arrays[key][i, j] = value
-            arrays["newton_iterations"][i, j], arrays["converged"][i, j] = r.newton_iterations, r.converged
-    out.parent.mkdir(parents=True, exist_ok=True)
-    partial = out.with_name(out.name + ".partial.npz")
-    np.savez(partial, **arrays)
-    partial.replace(out)
-    loaded = [r for t in results for r in t if r.message != "no contact"]
-    return {
-        "trajectories": m,
-        "complete": complete,
-        "loaded_increments": len(loaded),
-        "not_converged": sum(not r.converged for r in loaded),
-        "wall_s": wall,
-        "increments_per_s": len(loaded) / max(wall, 1e-12),
-        "out": str(out),
-    }
