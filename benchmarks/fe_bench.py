@@ -44,7 +44,7 @@ from fe.batched import InflatedSkin
 from fe.batched_runner import run_trajectories
 from fe.batched_stepper import BatchedStepper
 from fe.sensor import BioTacModel
-from fe.trajectory_sets import random_paths, round_robin, to_trajectories
+from fe.trajectory_sets import press_travels, random_paths, round_robin, to_trajectories
 
 
 def run(mesh_mm: float, indenter: str, point_mm: list[float], depth_mm: float, step_mm: float) -> dict:
@@ -123,7 +123,7 @@ def run_batch_benchmark(args: argparse.Namespace) -> None:
     continuously batched slots and print throughput, beside the lock-step baseline and the CPU stepper."""
     skin, paths, model = plan_batch(args)
     paths = {k: v[round_robin(paths["names"])] for k, v in paths.items()}
-    travels = np.arange(-1, int(round(args.depth_mm / args.step_mm)) + 1) * args.step_mm * 1e-3
+    travels = press_travels(args.depth_mm * 1e-3, args.step_mm * 1e-3)
     trajectories = to_trajectories(paths, travels)
     console = Console(width=200)
     start = time.perf_counter()
@@ -211,14 +211,7 @@ def _continuous(skin: InflatedSkin, trajectories: list, args: argparse.Namespace
             progress.advance(task)
 
         run = run_trajectories(
-            skin,
-            trajectories,
-            args.device,
-            args.batch,
-            args.force_limit,
-            finished,
-            limit_s,
-            forcing,
+            skin, trajectories, args.device, args.batch, args.force_limit, finished, limit_s, forcing
         )
     mode = f"continuous, {forcing}"
     row = _summary(mode, args.batch, run.results, run.wall_s, run.counters, run.complete, len(ended))
@@ -235,8 +228,7 @@ def _lockstep(skin: InflatedSkin, trajectories: list, args: argparse.Namespace) 
     """The baseline, the previous scheme: one `BatchedStepper.step` per pose for all systems, strict CG
     tolerances, for --lockstep-s seconds."""
 
-    indenters = [t.indenter for t in trajectories]
-    stepper = BatchedStepper(skin, indenters, args.device, forcing="strict")
+    stepper = BatchedStepper(skin, [t.indenter for t in trajectories], args.device, forcing="strict")
     results: list[list] = [[] for _ in trajectories]
     running = np.ones(len(trajectories), dtype=bool)
     start = time.perf_counter()

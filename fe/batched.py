@@ -227,8 +227,8 @@ class NewtonBatch:
 class BatchedShell:
     """`batch` copies of an `InflatedSkin` on a warp `device`; indenter i of the batch is `indenters[i]`,
     given as (kind, dims) of `fe.indenter_sdf` (any mix: the contact kernels read each system's own).
-    `forcing`: one of `FORCING`, how tightly the CG solves
-    each Newton step (the converged states do not depend on it, only the work)."""
+    `forcing`: one of `FORCING`, how tightly the CG solves each Newton step (the converged states do not
+    depend on it, only the work)."""
 
     def __init__(
         self,

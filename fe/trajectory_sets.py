@@ -51,6 +51,12 @@ def random_paths(
     return {key: np.asarray(value) for key, value in rows.items()}
 
 
+def press_travels(depth: float, step: float) -> np.ndarray:
+    """Tip travels (m past first touch) of a press: one approach pose a step before touch, then `step` m
+    increments to `depth` m."""
+    return np.arange(-1, int(round(depth / step)) + 1) * step
+
+
 def to_trajectories(paths: dict[str, np.ndarray], travels: np.ndarray) -> list[PoseTrajectory]:
     """One `PoseTrajectory` per path: the path's rotation at every pose, tips at touch + travel * direction
     for each of `travels` (m)."""

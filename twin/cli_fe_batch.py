@@ -22,13 +22,10 @@ from twin.cli_common import err_console as _err
 from twin.cli_common import guarded as _guarded
 from twin.cli_common import out_console as _out
 from twin.cli_common import progress_bar as _progress
-from twin.fe_batch_results import BatchResults
+from twin.fe_batch_results import POSES_FILE_KEYS, BatchResults, read_poses
 
 FLUSH_S = 60.0
 """Seconds between the writes of the trajectories ended so far during a run."""
-POSES_FILE_KEYS = ("names", "rotations", "translations")
-"""Arrays of a --poses file: indenter names (M,), rotations (M,K,3,3) body -> sensor frame, tip positions
-(M,K,3) m in the sensor frame."""
 
 
 def batch(
@@ -59,7 +56,7 @@ def batch(
     from fe.batched import InflatedSkin
     from fe.batched_runner import PoseTrajectory, run_trajectories
     from fe.sensor import BioTacModel
-    from fe.trajectory_sets import random_paths, round_robin, to_trajectories
+    from fe.trajectory_sets import press_travels, random_paths, round_robin, to_trajectories
 
     if slots < 1 or trajectories < 1 or depth_mm < 0 or step_mm <= 0 or force_limit <= 0:
         raise typer.BadParameter("--slots and --trajectories must be >= 1, --depth-mm >= 0, the rest > 0")
@@ -68,7 +65,7 @@ def batch(
     if unknown:
         raise typer.BadParameter(f"unknown indenters {unknown}; see `twin fe indenters`")
     _guarded(lambda: _check_device(device))
-    asked = _guarded(lambda: _read_poses(poses)) if poses is not None else None
+    asked = _guarded(lambda: read_poses(poses)) if poses is not None else None
     geometry = _guarded(lambda: make_biotac(max_edge=mesh_mm * 1e-3))
     model = BioTacModel(geometry)
     _err.print(f"skin mesh: {len(geometry.skin.vertices)} vertices; inflating ...")
@@ -78,8 +75,7 @@ def batch(
     if asked is None:
         paths = random_paths(model, trajectories, names, seed, depth_mm * 1e-3)
         paths = {k: v[round_robin(paths["names"])] for k, v in paths.items()}
-        travels = np.arange(-1, int(round(depth_mm / step_mm)) + 1) * step_mm * 1e-3
-        runs = to_trajectories(paths, travels)
+        runs = to_trajectories(paths, press_travels(depth_mm * 1e-3, step_mm * 1e-3))
     else:
         runs = [PoseTrajectory(str(n), r, t) for n, r, t in zip(*(asked[k] for k in POSES_FILE_KEYS), strict=True)]
     results = BatchResults(out, runs)
@@ -145,24 +141,3 @@ def _check_device(device: str) -> None:
         wp.get_device(device)
     except (RuntimeError, ValueError) as exc:
         raise ValueError(f"warp device {device!r} is not available here: {exc}") from exc
-
-
-def _read_poses(path: Path) -> dict[str, np.ndarray]:
-    """The arrays of a poses file, checked (`POSES_FILE_KEYS`)."""
-    if not path.exists():
-        raise ValueError(f"no poses file {path}")
-    with np.load(path) as data:
-        missing = [k for k in POSES_FILE_KEYS if k not in data.files]
-        if missing:
-            raise ValueError(f"{path} lacks {missing}; a poses file holds {list(POSES_FILE_KEYS)}")
-        arrays = {k: np.asarray(data[k]) for k in POSES_FILE_KEYS}
-    m = len(arrays["names"])
-    rotations, translations = arrays["rotations"], arrays["translations"]
-    if m == 0 or rotations.shape[:1] != (m,) or translations.shape[:1] != (m,):
-        raise ValueError(f"{path}: names, rotations and translations need the same number (>= 1) of trajectories")
-    if rotations.ndim != 4 or rotations.shape[2:] != (3, 3) or translations.shape != rotations.shape[:2] + (3,):
-        raise ValueError(
-            f"{path}: rotations must be (M,K,3,3) and translations (M,K,3), got {rotations.shape} and "
-            f"{translations.shape}"
-        )
-    return arrays

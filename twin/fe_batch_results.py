@@ -17,6 +17,9 @@ import numpy as np
 from fe.batched_runner import PoseTrajectory
 from fe.indentation import IncrementResult
 
+POSES_FILE_KEYS = ("names", "rotations", "translations")
+"""Arrays of a poses file (`twin fe batch --poses`; a results file is one too): indenter names (M,),
+rotations (M,K,3,3) body -> sensor frame, tip positions (M,K,3) m in the sensor frame."""
 _PER_POSE = {"force": (3,), "depth": (), "pressure": (), "contact_area": ()}
 
 
@@ -84,3 +87,24 @@ class BatchResults:
             "not_converged": int((a["loaded"] & ~a["converged"]).sum()),
             "out": str(self.out),
         }
+
+
+def read_poses(path: Path) -> dict[str, np.ndarray]:
+    """The arrays of a poses file, checked (`POSES_FILE_KEYS`); a ValueError says what is wrong."""
+    if not path.exists():
+        raise ValueError(f"no poses file {path}")
+    with np.load(path) as data:
+        missing = [k for k in POSES_FILE_KEYS if k not in data.files]
+        if missing:
+            raise ValueError(f"{path} lacks {missing}; a poses file holds {list(POSES_FILE_KEYS)}")
+        arrays = {k: np.asarray(data[k]) for k in POSES_FILE_KEYS}
+    m = len(arrays["names"])
+    rotations, translations = arrays["rotations"], arrays["translations"]
+    if m == 0 or rotations.shape[:1] != (m,) or translations.shape[:1] != (m,):
+        raise ValueError(f"{path}: names, rotations and translations need the same number (>= 1) of trajectories")
+    if rotations.ndim != 4 or rotations.shape[2:] != (3, 3) or translations.shape != rotations.shape[:2] + (3,):
+        raise ValueError(
+            f"{path}: rotations must be (M,K,3,3) and translations (M,K,3), got {rotations.shape} and "
+            f"{translations.shape}"
+        )
+    return arrays
