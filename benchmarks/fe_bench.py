@@ -88,6 +88,7 @@ def add_batch_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--forces", default=None, help="write the batched forces (poses, B, 3) N to this .npz")
     parser.add_argument("--force-limit", type=float, default=25.0, help="N; a trajectory stops above it")
     parser.add_argument("--time-limit", type=float, default=1e9, help="stop the continuous run after this many s")
+    parser.add_argument("--max-cuts", type=int, default=3, help="halvings of a failed step before it ends a trajectory")
 
 
 def plan_batch(args: argparse.Namespace) -> tuple[InflatedSkin, dict[str, np.ndarray], BioTacModel | None]:
@@ -211,7 +212,7 @@ def _continuous(skin: InflatedSkin, trajectories: list, args: argparse.Namespace
             progress.advance(task)
 
         run = run_trajectories(
-            skin, trajectories, args.device, args.batch, args.force_limit, finished, limit_s, forcing
+            skin, trajectories, args.device, args.batch, args.force_limit, finished, limit_s, forcing, args.max_cuts
         )
     mode = f"continuous, {forcing}"
     row = _summary(mode, args.batch, run.results, run.wall_s, run.counters, run.complete, len(ended))

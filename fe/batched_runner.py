@@ -86,6 +86,8 @@ def run_trajectories(
         raise ValueError("no trajectories to run")
     if slots < 1:
         raise ValueError(f"slots must be at least 1, got {slots}")
+    if max_cuts < 0:
+        raise ValueError(f"max_cuts must be at least 0, got {max_cuts}")
     slots = min(slots, len(trajectories))
     start = time.perf_counter()
     stepper = BatchedStepper(skin, [t.indenter for t in trajectories[:slots]], device, forcing)

@@ -87,3 +87,5 @@ def test_batch_rejects_bad_input_with_a_message(tmp_path: Path) -> None:
     assert result.exit_code == 2 and "unknown indenters" in result.output
     result = runner.invoke(app, ["fe", "batch", "--out", str(tmp_path / "x.npz"), "--poses", str(tmp_path / "no.npz")])
     assert result.exit_code == 2 and "no poses file" in result.output
+    result = runner.invoke(app, ["fe", "batch", "--out", str(tmp_path / "x.npz"), "--max-cuts", "-1"])
+    assert result.exit_code == 2 and "--max-cuts" in result.output

@@ -230,6 +230,8 @@ def test_runner_checks_its_input_and_stops_at_its_time_limit(frictionless_biotac
     trajectory = PoseTrajectory("sphere_medium", np.eye(3)[None], np.array([[0.0, 0.0, 1.0]]))
     with pytest.raises(ValueError, match="slots"):
         run_trajectories(skin, [trajectory], "cpu", slots=0)
+    with pytest.raises(ValueError, match="max_cuts"):
+        run_trajectories(skin, [trajectory], "cpu", max_cuts=-1)
     stopped = run_trajectories(skin, [trajectory], "cpu", time_limit_s=0.0)
     assert not stopped.complete and stopped.results == [[]]
     free = run_trajectories(skin, [trajectory], "cpu")  # 1 m away from the skin: no contact, no Newton work

@@ -45,6 +45,9 @@ def batch(
     time_limit: Annotated[
         float, typer.Option(help="Stop after this many seconds (unfinished ones keep theirs).")
     ] = 1e9,
+    max_cuts: Annotated[
+        int, typer.Option(min=0, help="Halvings of a failed step before it ends the trajectory.")
+    ] = 3,
     resume: Annotated[
         bool, typer.Option(help="Keep the trajectories that ended in an earlier --out of the same options.")
     ] = False,
@@ -96,6 +99,7 @@ def batch(
                     force_limit,
                     writer.ended,
                     time_limit,
+                    max_cuts=max_cuts,
                 )
             )
     for j, i in enumerate(indices):
