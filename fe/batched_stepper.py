@@ -216,7 +216,8 @@ class BatchedStepper:
     def _predict(self, rows: np.ndarray, travel: np.ndarray) -> np.ndarray:
         """Warm starts (k,V,3) m of systems `rows` moving their tips by `travel` (k,3) m: the last increment's
         displacement extrapolated by the share of its tip travel that the new move repeats, then vertices
-        deeper in the indenter than at the last equilibrium pushed out."""
+        deeper in the indenter than at the last equilibrium pushed out; fixed DOFs stay where they are (the
+        solve moves only the free ones, so a moved fixed DOF would stay moved)."""
         last = self._travel[rows]
         moved = np.einsum("bi,bi->b", last, last)
         has_motion = self._has_motion[rows] & (moved > 0.0)
@@ -226,7 +227,8 @@ class BatchedStepper:
         put_rows(self.shell.x_trial, rows, x)
         gap, normal = self.shell.proximity(self.shell.x_trial, rows)
         depth = np.minimum(self._gap[rows] + share[:, None] * self._gap_change[rows], 0.0)
-        return x + np.maximum(depth - gap, 0.0)[:, :, None] * normal
+        x += np.maximum(depth - gap, 0.0)[:, :, None] * normal
+        return np.where(self.shell.fixed, self.x[rows], x)
 
     def _force_balance(self, i: int, pressure: float) -> tuple[np.ndarray, float]:
         """System i's indenter force (3,) N and relative force-balance error of the last evaluation."""

@@ -267,3 +267,26 @@ def test_a_failed_first_increment_is_not_cut_back_onto_itself(frictionless_biota
     cut = run_trajectories(capped, [trajectory], "cpu", slots=1, max_cuts=3)
     assert not cut.results[0][-1].converged and len(cut.results[0]) == 1
     assert cut.counters["evaluations"] == plain.counters["evaluations"]
+
+
+@pytest.mark.parametrize(("fixture", "force_rtol", "displacement_atol", "area_rtol"), TOLERANCES)
+def test_an_indenter_on_the_clamped_rim_moves_no_fixed_vertex(
+    fixture: str, force_rtol: float, displacement_atol: float, area_rtol: float, request: pytest.FixtureRequest
+) -> None:
+    """A cylinder pressed across the proximal rim, where the skin is clamped (x = -15 mm): the batched path
+    keeps the fixed vertices in place, so the indenter meets them as the CPU stepper does (the warm start
+    once pushed them out of the indenter, and the solve, which moves only free DOFs, left them there)."""
+    model: BioTacModel = request.getfixturevalue(fixture)
+    name, point = "cylinder_short_small", np.array([-12.5e-3, 0.0, -8e-3])
+    path = model.plan_trajectory(get_indenter(name), point, 0.0, 0.0, 1e-3, 1e-3)
+    translations = path.touch_point + STEPS[:, None] * path.direction
+    stepper = model.stepper(name)
+    cpu = [stepper.step(path.rotation, t) for t in translations]
+    trajectory = PoseTrajectory(name, np.repeat(path.rotation[None], len(STEPS), 0), translations)
+    skin = InflatedSkin.from_model(model)
+    batched = run_trajectories(skin, [trajectory], "cpu", slots=1).results[0]
+    fixed = np.asarray(skin.fixed).reshape(len(skin.vertices), -1).all(axis=1)
+    depth = get_indenter(name).sdf((skin.reference[fixed] - translations[-1]) @ path.rotation)
+    assert depth.min() < 0.5 * model.params.thickness  # the indenter reaches into the clamped vertices' skin
+    assert not np.any(batched[-1].displacement[fixed])
+    _assert_agree(cpu, batched, force_rtol, displacement_atol, area_rtol)
