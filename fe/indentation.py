@@ -231,7 +231,8 @@ class IndentationStepper:
     def _predict(self, indenter: IndenterState) -> np.ndarray:
         """Warm start (V,3) m for the new pose: the last solved increment's displacement extrapolated by the
         share of its tip travel that the new move repeats, then every vertex that would sit deeper in the
-        indenter than it did at the last equilibrium pushed out along the SDF normal to that depth."""
+        indenter than it did at the last equilibrium pushed out along the SDF normal to that depth; fixed DOFs
+        stay where they are."""
         x = self.x.copy()
         travel = indenter.translation - indenter.translation_start
         share = 0.0
@@ -241,7 +242,7 @@ class IndentationStepper:
         gap, normal = self.system.indenter_proximity(x, indenter)
         depth = np.minimum(self._gap + share * self._gap_change, 0.0)
         x += np.maximum(depth - gap, 0.0)[:, None] * normal
-        return x
+        return np.where(self.system.fixed_dofs, self.x, x)
 
     def _solve(self, indenter: IndenterState) -> NewtonResult:
         """One Newton solve at the new pose from the predicted state, the friction normal forces and
