@@ -11,11 +11,12 @@ percentile and largest difference and every increment above --report (default 1e
 
 import argparse
 import json
+from pathlib import Path
 
 import numpy as np
-from fe_bench import plan_batch, serial_agreement
+from fe_bench import queued_paths, serial_agreement
 
-from fe.trajectory_sets import press_travels, round_robin
+from fe.trajectory_sets import press_travels
 
 
 def main() -> None:
@@ -37,10 +38,10 @@ def main() -> None:
     rows = np.arange(start, min(stop, len(batched["names"])))
     if not len(rows):
         parser.error(f"--rows {args.rows} selects none of the {len(batched['names'])} trajectories")
-    args.trajectories = args.batch = len(batched["names"])
-    args.seed, args.indenters = 0, "all"
-    _, paths, model = plan_batch(args)
-    paths = {k: v[round_robin(paths["names"])] for k, v in paths.items()}
+    if not all((Path(args.problem) / name).exists() for name in ("skin.npz", "paths.npz")):
+        parser.error(f"--problem {args.problem} holds no cached skin and trajectories (skin.npz, paths.npz)")
+    args.trajectories = args.batch = len(batched["names"])  # the run's count picks the same cached paths
+    _, paths, model = queued_paths(args)
     if not np.array_equal(paths["names"], batched["names"]):
         parser.error("the trajectories rebuilt from --problem are not those of the run (other folder or count)")
     travels = press_travels(args.depth_mm * 1e-3, args.step_mm * 1e-3)

@@ -119,11 +119,16 @@ def _count(args: argparse.Namespace) -> int:
     return args.trajectories or args.batch
 
 
+def queued_paths(args: argparse.Namespace) -> tuple[InflatedSkin, dict[str, np.ndarray], BioTacModel | None]:
+    """`plan_batch`'s skin, paths (in the benchmark's queue order: cycling through the indenters) and model."""
+    skin, paths, model = plan_batch(args)
+    return skin, {k: v[round_robin(paths["names"])] for k, v in paths.items()}, model
+
+
 def run_batch_benchmark(args: argparse.Namespace) -> None:
     """Run the trajectories (first pose 0.1 mm before touch, then to --depth-mm in --step-mm) through --batch
     continuously batched slots and print throughput, beside the lock-step baseline and the CPU stepper."""
-    skin, paths, model = plan_batch(args)
-    paths = {k: v[round_robin(paths["names"])] for k, v in paths.items()}
+    skin, paths, model = queued_paths(args)
     travels = press_travels(args.depth_mm * 1e-3, args.step_mm * 1e-3)
     trajectories = to_trajectories(paths, travels)
     console = Console(width=200)
@@ -148,10 +153,10 @@ def run_batch_benchmark(args: argparse.Namespace) -> None:
         row["minutes_for_700_measured"] = row["wall_s"] / 60 if measured else float("nan")
         row |= {"device": str(wp.get_device(args.device)), "mesh_mm": args.mesh_mm, "nodes": len(skin.vertices)}
         row["compile_s"] = compile_s
+    forces = forces_of(run.results, paths["names"])
     if args.serial:
-        batched = forces_of(run.results, paths["names"])
         count = min(args.serial, len(run.results))
-        rows[-1].update(serial_agreement(args, paths, travels, batched, np.arange(count), model))
+        rows[-1].update(serial_agreement(args, paths, travels, forces, np.arange(count), model))
     table = Table("quantity", *(row["mode"] for row in rows))
     for key in rows[-1]:
         cells = [row.get(key, "") for row in rows]
@@ -166,7 +171,7 @@ def run_batch_benchmark(args: argparse.Namespace) -> None:
         trace = {"round_end_s": run.round_end_s.round(4).tolist(), "round_systems": run.round_systems.tolist()}
         Path(args.json).write_text(json.dumps({"rows": rows, "trace": trace}, indent=1))
     if args.forces:
-        np.savez(args.forces, **forces_of(run.results, paths["names"]))
+        np.savez(args.forces, **forces)
 
 
 def _summary(mode: str, slots: int, results: list, wall: float, counters: dict, complete: bool, finished: int) -> dict:

@@ -20,6 +20,7 @@ from fe.batched import InflatedSkin
 from fe.batched_runner import PoseTrajectory, run_trajectories
 from fe.batched_stepper import BatchedStepper
 from fe.device_solver import CG_CONVERGED, CG_NEGATIVE_CURVATURE, BatchedBlockMatrix, BatchedCG, BlockPattern
+from fe.indentation import Trajectory
 from fe.params import SkinParameters
 from fe.sensor import BioTacModel
 
@@ -75,11 +76,20 @@ def _paths(model: BioTacModel) -> list:
 
 
 def _cpu(model: BioTacModel, paths: list) -> list[list]:
-    out = []
-    for (name, *_), path in zip(PATHS, paths, strict=True):
-        stepper = model.stepper(name)
-        out.append([stepper.step(path.rotation, path.touch_point + s * path.direction) for s in STEPS])
-    return out
+    return [_cpu_steps(model, name, path) for (name, *_), path in zip(PATHS, paths, strict=True)]
+
+
+def _cpu_steps(model: BioTacModel, name: str, path: Trajectory) -> list:
+    """The CPU stepper's increments along a planned path, at the travels STEPS past first touch."""
+    stepper = model.stepper(name)
+    return [stepper.step(path.rotation, path.touch_point + s * path.direction) for s in STEPS]
+
+
+def _pose_trajectory(name: str, path: Trajectory) -> PoseTrajectory:
+    """A planned path's poses at the travels STEPS past first touch, for `run_trajectories`."""
+    return PoseTrajectory(
+        name, np.repeat(path.rotation[None], len(STEPS), 0), path.touch_point + STEPS[:, None] * path.direction
+    )
 
 
 def _batched(model: BioTacModel, paths: list, tmp_path: Path) -> list[list]:
@@ -150,10 +160,7 @@ def test_continuous_batching_matches_the_cpu_stepper(
     cpu = _cpu(model, paths)
     frictional = fixture == "frictional_biotac"
     limit, slots = (0.9 * max(np.linalg.norm(t[-2].force) for t in cpu), 2) if frictional else (np.inf, 1)
-    trajectories = [
-        PoseTrajectory(name, np.repeat(p.rotation[None], len(STEPS), 0), p.touch_point + STEPS[:, None] * p.direction)
-        for (name, *_), p in zip(PATHS, paths, strict=True)
-    ]
+    trajectories = [_pose_trajectory(name, p) for (name, *_), p in zip(PATHS, paths, strict=True)]
     ended: list[int] = []
     run = run_trajectories(
         InflatedSkin.from_model(model),
@@ -191,9 +198,7 @@ def test_failed_steps_are_cut_back(frictionless_biotac: BioTacModel) -> None:
     skin = InflatedSkin.from_model(model)
     capped = dataclasses.replace(skin, newton=dataclasses.replace(skin.newton, max_iterations=CAPPED_NEWTON))
     name, path = PATHS[1][0], paths[1]  # the tilted sphere: its last step needs more than the cap
-    trajectory = PoseTrajectory(
-        name, np.repeat(path.rotation[None], len(STEPS), 0), path.touch_point + STEPS[:, None] * path.direction
-    )
+    trajectory = _pose_trajectory(name, path)
     plain = run_trajectories(capped, [trajectory], "cpu", slots=1, max_cuts=0).results[0]
     assert not plain[-1].converged  # the cap bites without cut-backs
     cut = run_trajectories(capped, [trajectory], "cpu", slots=1, max_cuts=3)
@@ -206,10 +211,7 @@ def test_strict_forcing_reaches_the_same_equilibria(frictionless_biotac: BioTacM
     model = frictionless_biotac
     paths = _paths(model)
     skin = InflatedSkin.from_model(model)
-    trajectories = [
-        PoseTrajectory(name, np.repeat(p.rotation[None], len(STEPS), 0), p.touch_point + STEPS[:, None] * p.direction)
-        for (name, *_), p in zip(PATHS, paths, strict=True)
-    ]
+    trajectories = [_pose_trajectory(name, p) for (name, *_), p in zip(PATHS, paths, strict=True)]
     adaptive = run_trajectories(skin, trajectories, "cpu", slots=3)
     strict = run_trajectories(skin, trajectories, "cpu", slots=3, forcing="strict")
     for a, b in zip(adaptive.results, strict.results, strict=True):
@@ -279,14 +281,12 @@ def test_an_indenter_on_the_clamped_rim_moves_no_fixed_vertex(
     model: BioTacModel = request.getfixturevalue(fixture)
     name, point = "cylinder_short_small", np.array([-12.5e-3, 0.0, -8e-3])
     path = model.plan_trajectory(get_indenter(name), point, 0.0, 0.0, 1e-3, 1e-3)
-    translations = path.touch_point + STEPS[:, None] * path.direction
-    stepper = model.stepper(name)
-    cpu = [stepper.step(path.rotation, t) for t in translations]
-    trajectory = PoseTrajectory(name, np.repeat(path.rotation[None], len(STEPS), 0), translations)
+    cpu = _cpu_steps(model, name, path)
+    trajectory = _pose_trajectory(name, path)
     skin = InflatedSkin.from_model(model)
     batched = run_trajectories(skin, [trajectory], "cpu", slots=1).results[0]
     fixed = np.asarray(skin.fixed).reshape(len(skin.vertices), -1).all(axis=1)
-    depth = get_indenter(name).sdf((skin.reference[fixed] - translations[-1]) @ path.rotation)
+    depth = get_indenter(name).sdf((skin.reference[fixed] - trajectory.translations[-1]) @ path.rotation)
     assert depth.min() < 0.5 * model.params.thickness  # the indenter reaches into the clamped vertices' skin
     assert not np.any(batched[-1].displacement[fixed])
     _assert_agree(cpu, batched, force_rtol, displacement_atol, area_rtol)
