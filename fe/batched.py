@@ -31,31 +31,17 @@ import numpy as np
 import warp as wp
 
 from fe import batched_kernels as bk
-from fe import bending, contact, membrane, volume
+from fe import bending, contact, membrane, viscoelastic, volume
 from fe.device_solver import CG_NEGATIVE_CURVATURE, BatchedBlockMatrix, BatchedCG, BlockPattern, batched_dot
+from fe.linsolve import BatchedDirectSolver
 from fe.newton import NewtonSettings
 from fe.params import ContactSettings, SkinParameters
 from fe.shell import lumped_areas
+from fe.trapped_air import TrappedAir
 from fe.wptypes import mat99d, mat1818d, vec6i
 
 if TYPE_CHECKING:
     from fe.sensor import BioTacModel
-
-SUPPORTED_PARAMETERS = frozenset(
-    {
-        "thickness",
-        "mu_nh",
-        "friction",
-        "fluid_temperature",
-        "thermal_expansion",
-        "reference_temperature",
-        "bending",
-        "inflation_volume_scale",
-        "gent_inverse_jm",
-    }
-)
-"""SkinParameters fields the batched solver honours (inflation-only ones act through the given reference
-state); any other field must keep its default value."""
 
 _ENERGY_RESOLUTION = 1e-12
 FORCING = ("adaptive", "strict")
@@ -72,8 +58,9 @@ class InflatedSkin:
     """Everything a batched solve needs from an inflated BioTac model (SI units, biotac frame).
 
     vertices (V,3), triangles (T,3), fixed (V,) or (V,3): the rest mid-surface mesh; core_*: the rigid core
-    and the skin's clearance from it (m); volume_origin (3,) m; reference (V,3) m, pressure (Pa) and
-    target_volume (m^3): the inflated state every trajectory starts from.
+    (no triangles: none) and the skin's clearance from it (m); volume_origin (3,) m; reference (V,3) m,
+    pressure (Pa) and target_volume (m^3): the state every trajectory starts from (inflated, or the rest
+    mesh itself for a model about to be inflated).
     """
 
     vertices: np.ndarray
@@ -89,41 +76,54 @@ class InflatedSkin:
     reference: np.ndarray
     pressure: float
     target_volume: float
+    air_boyle: float = 0.0
+    """Boyle constant (J) of the trapped air at the inflated state (`fe.trapped_air`; 0: none)."""
+    indenter_offset: float | None = None
+    """Distance (m) the indenter keeps from the mid-surface (None: half the skin thickness)."""
 
-    def __post_init__(self) -> None:
-        unsupported = [
-            f.name
-            for f in fields(SkinParameters)
-            if f.name not in SUPPORTED_PARAMETERS and getattr(self.params, f.name) != f.default
-        ]
-        if unsupported:
-            raise NotImplementedError(f"the batched FE solver does not model {unsupported}; use fe.sensor.BioTacModel")
+    @classmethod
+    def at_rest(
+        cls,
+        vertices: np.ndarray,
+        triangles: np.ndarray,
+        fixed: np.ndarray,
+        params: SkinParameters,
+        contact: ContactSettings = ContactSettings(),
+        newton: NewtonSettings = NewtonSettings(),
+        core: tuple[np.ndarray, np.ndarray, float] | None = None,
+        volume_origin: np.ndarray | None = None,
+        indenter_offset: float | None = None,
+    ) -> InflatedSkin:
+        """A skin whose starting state is its unloaded rest mesh (pressure 0, volume whatever it encloses):
+        the model to inflate (`fe.batched_stepper.BatchedStepper.hold_volume`). `core`: vertices, triangles
+        and clearance (m) of a rigid core, None for none."""
+        core_v, core_t, core_offset = core if core is not None else (np.zeros((0, 3)), np.zeros((0, 3), int), 0.0)
+        return cls(
+            vertices=np.asarray(vertices, dtype=np.float64),
+            triangles=np.asarray(triangles),
+            fixed=np.asarray(fixed),
+            core_vertices=np.asarray(core_v, dtype=np.float64),
+            core_triangles=np.asarray(core_t),
+            core_offset=float(core_offset),
+            volume_origin=np.zeros(3) if volume_origin is None else np.asarray(volume_origin, dtype=np.float64),
+            params=params,
+            contact=contact,
+            newton=newton,
+            reference=np.asarray(vertices, dtype=np.float64),
+            pressure=0.0,
+            target_volume=float("nan"),
+            indenter_offset=indenter_offset,
+        )
 
     @classmethod
     def from_model(cls, model: BioTacModel) -> InflatedSkin:
         """The inflated state of a `fe.sensor.BioTacModel` (inflate() it first)."""
-        if model.reference is None:
-            raise RuntimeError("inflate() the model before batching it")
-        system, core = model.system, model.system.core
-        return cls(
-            vertices=system.mesh.vertices,
-            triangles=system.mesh.triangles,
-            fixed=system.mesh.fixed,
-            core_vertices=core.vertices,
-            core_triangles=core.triangles,
-            core_offset=core.offset,
-            volume_origin=np.asarray(system.volume_origin, dtype=np.float64),
-            params=model.params,
-            contact=system.contact_settings,
-            newton=model.newton,
-            reference=model.reference.copy(),
-            pressure=float(model.pressure),
-            target_volume=float(model.target_volume),
-        )
+        return model.inflated_skin()
 
     def save(self, path: Path) -> None:
         """Write to an .npz file (arrays, plus the settings as JSON)."""
         arrays = {f.name: np.asarray(getattr(self, f.name)) for f in fields(self) if f.name not in _SETTINGS}
+        arrays["indenter_offset"] = np.zeros(0) if self.indenter_offset is None else np.asarray(self.indenter_offset)
         settings = {name: asdict(getattr(self, name)) for name in _SETTINGS}
         np.savez(path, settings=json.dumps(settings), **arrays)
 
@@ -133,8 +133,9 @@ class InflatedSkin:
         with np.load(path) as data:
             settings = json.loads(str(data["settings"]))
             values = {name: data[name] for name in data.files if name != "settings"}
-        for name in ("core_offset", "pressure", "target_volume"):
-            values[name] = float(values[name])
+        for name in ("core_offset", "pressure", "target_volume", "air_boyle", "indenter_offset"):
+            if name in values:
+                values[name] = None if values[name].shape == (0,) else float(values[name])
         built = {name: _SETTINGS[name](**settings[name]) for name in _SETTINGS}
         return cls(**values, **built)
 
@@ -165,12 +166,13 @@ class BatchLinearization:
     load: np.ndarray
 
 
-AT_X, ENERGY_SEARCH, RESIDUAL_SEARCH = 0, 1, 2
+AT_X, ENERGY_SEARCH, RESIDUAL_SEARCH, CHORD = 0, 1, 2, 3
 """Newton phases of a system: evaluated at its positions (ready for a convergence check and a new
-direction), or backtracking along its direction on the energy merit function or on the residual norm."""
+direction), backtracking along its direction on the energy merit function or on the residual norm, or
+trying a chord step (the last factorisation reused; kept when it cuts the residual enough)."""
 
 
-_FLAGS = ("running", "converged", "failed", "refreshed")
+_FLAGS = ("running", "converged", "failed", "refreshed", "factorized", "chord_failed", "has_hessian")
 _COUNTS = ("iterations", "passes", "phase", "backtracks", "attempt")
 """Boolean and integer fields of `NewtonBatch` (the others but `message` are float64)."""
 
@@ -187,6 +189,9 @@ class NewtonBatch:
     ENERGY_SEARCH, RESIDUAL_SEARCH), the trial `step` along (dq, dp), backtracks so far, the damping
     `attempt` (0: exact Newton matrix), the pressure step dp (Pa), the merit function's pressure new_p
     (Pa), penalty rho, value phi0 (J) and slope (J) at the start, and the residual 2-norm there (N).
+    Chord steps: whether the linear solver holds a factorisation from this solve (`factorized`), whether
+    the last chord from the current positions failed, and whether the shell's Hessian buffers hold the
+    system's Hessians at its positions (`has_hessian`).
     """
 
     pressure: np.ndarray
@@ -212,6 +217,9 @@ class NewtonBatch:
     phi0: np.ndarray
     slope: np.ndarray
     rnorm: np.ndarray
+    factorized: np.ndarray
+    chord_failed: np.ndarray
+    has_hessian: np.ndarray
 
     @classmethod
     def idle(cls, batch: int, target_volume: np.ndarray | float) -> NewtonBatch:
@@ -253,8 +261,16 @@ class BatchedShell:
         rest_angle, bend_area, coupling = bending.stencil_rest_state(skin.vertices, stencils, present)
         stencils = stencils if skin.params.bending else stencils[:0]
         self.vertex_area = lumped_areas(skin.vertices, tri)
+        self._dm_inv, self._rest_angle, self._present = dm_inv, rest_angle[: len(stencils)], present[: len(stencils)]
+        self._stencils = stencils
+        self.n_triangles, self.n_bending = len(tri), len(stencils)
+        self.relaxes = skin.params.relaxation_fraction > 0.0
+        """Whether the membrane's frozen (viscoelastic) stress term is evaluated."""
+        self.air = TrappedAir(np.full(B, skin.air_boyle))
+        """The cavity's trapped air, one bubble per system (`fe.trapped_air`)."""
         arr = lambda a, dtype: wp.array(a, dtype=dtype, device=device)  # noqa: E731
         per_batch = lambda value: arr(np.full(B, value, dtype=np.float64), wp.float64)  # noqa: E731
+        z = lambda shape, dtype: wp.zeros(shape, dtype=dtype, device=device)  # noqa: E731
         p, cs = skin.params, skin.contact
         self._static = {
             "triangles": arr(tri.astype(np.int32), wp.vec3i),
@@ -262,27 +278,29 @@ class BatchedShell:
             "rest_area": arr(rest_area, wp.float64),
             "stencils": arr(stencils.astype(np.int32), vec6i),
             "has_edge": arr(present[: len(stencils)], wp.vec3i),
-            "rest_angle": arr(rest_angle[: len(stencils)], wp.vec3d),
+            "rest_angle": arr(np.broadcast_to(rest_angle[: len(stencils)], (B, len(stencils), 3)), wp.vec3d),
             "bend_area": arr(bend_area[: len(stencils)], wp.float64),
             "coupling": arr(coupling[: len(stencils)], wp.mat33d),
             "vertex_area": arr(self.vertex_area, wp.float64),
-            "mu_t": per_batch(p.membrane_modulus),
+            "mu_t": per_batch(p.long_term_fraction * p.membrane_modulus),
             "gent_beta": per_batch(getattr(p, "gent_inverse_jm", 0.0)),
-            "bending_stiffness": per_batch(p.bending_stiffness),
+            "bending_stiffness": per_batch(p.long_term_fraction * p.bending_stiffness),
+            "frozen_stress": z((B, len(tri)), wp.mat22d),
             "friction": per_batch(p.friction),
-            "offset": per_batch(0.5 * p.thickness),
+            "offset": per_batch(0.5 * p.thickness if skin.indenter_offset is None else skin.indenter_offset),
             "kappa": wp.float64(cs.penalty_stiffness),
             "slip_eps": wp.float64(cs.slip_length),
             "origin": wp.vec3d(*skin.volume_origin),
         }
-        self._core_vertices = arr(skin.core_vertices, wp.vec3d)
-        self._core_triangles = arr(skin.core_triangles.astype(np.int32), wp.vec3i)
-        self._core_mesh = wp.Mesh(
-            points=arr(skin.core_vertices.astype(np.float32), wp.vec3),
-            indices=arr(skin.core_triangles.astype(np.int32).ravel(), wp.int32),
-        )
+        self._core_mesh = None
+        if len(skin.core_triangles):
+            self._core_vertices = arr(skin.core_vertices, wp.vec3d)
+            self._core_triangles = arr(skin.core_triangles.astype(np.int32), wp.vec3i)
+            self._core_mesh = wp.Mesh(
+                points=arr(skin.core_vertices.astype(np.float32), wp.vec3),
+                indices=arr(skin.core_triangles.astype(np.int32).ravel(), wp.int32),
+            )
         nt, nh = len(tri), len(stencils)
-        z = lambda shape, dtype: wp.zeros(shape, dtype=dtype, device=device)  # noqa: E731
         self.x = z((B, V), wp.vec3d)
         self.x_trial = z((B, V), wp.vec3d)
         self.x_start = z((B, V), wp.vec3d)
@@ -323,7 +341,9 @@ class BatchedShell:
         self._dims = arr(np.array([dims for _, dims in self.indenters], dtype=np.float64), wp.vec4d)
         connectivities = [tri, stencils, np.arange(V)[:, None]]
         self.matrix = BatchedBlockMatrix(BlockPattern.from_connectivities(connectivities, V), B, self.free, device)
-        self.cg = BatchedCG(self.matrix, 2 * B)
+        cuda = wp.get_device(device).is_cuda
+        self.linear = BatchedCG(self.matrix, 2 * B) if cuda else BatchedDirectSolver(self.matrix)
+        """Newton's linear algebra, chosen by the device: batched CG on a GPU, sparse direct per system on the CPU."""
         self._system_of = np.concatenate([np.arange(B), np.arange(B)]).astype(np.int32)
         self._system_of_b = wp.array(np.arange(B, dtype=np.int32), dtype=wp.int32, device=device)
         self._active = z(B, wp.int32)
@@ -341,6 +361,33 @@ class BatchedShell:
         """Indenter poses (B,3,3) body->sensor and tip positions (B,3) m, now and at the increment's start."""
         for name, value in zip(_POSE, (rotation, translation, rotation_start, translation_start), strict=True):
             self.pose[name].assign(np.asarray(value, dtype=np.float64))
+
+    def set_relaxation(
+        self, rows: np.ndarray, scale: np.ndarray, frozen_stress: np.ndarray | None, angle_shift: np.ndarray | None
+    ) -> None:
+        """Viscoelastic terms of the coming solves of systems `rows` (`fe.viscoelastic`): membrane and bending
+        moduli scaled by `scale` (k,) (1: elastic, 1 - g: fully relaxed), frozen membrane stresses (k,T,2,2)
+        N/m and bending rest angles shifted by (k,n_bending,3) rad (None: none)."""
+        p, rows = self.skin.params, np.asarray(rows)
+        static = self._static
+        mu, kb = static["mu_t"].numpy(), static["bending_stiffness"].numpy()
+        mu[rows], kb[rows] = scale * p.membrane_modulus, scale * p.bending_stiffness
+        static["mu_t"].assign(mu)
+        static["bending_stiffness"].assign(kb)
+        k = len(rows)
+        frozen = np.zeros((k, self.n_triangles, 2, 2)) if frozen_stress is None else frozen_stress
+        shift = np.zeros((k, self.n_bending, 3)) if angle_shift is None else angle_shift
+        put_rows(static["frozen_stress"], rows, frozen)
+        put_rows(static["rest_angle"], rows, self._rest_angle + shift)
+
+    def membrane_stress(self, x: np.ndarray) -> np.ndarray:
+        """Elastic (instantaneous) membrane stress resultants (T,2,2) N/m at positions x (V,3) m."""
+        p = self.skin.params
+        return membrane.membrane_stress(x, self.skin.triangles, self._dm_inv, p.membrane_modulus, p.gent_inverse_jm)
+
+    def bending_angle_change(self, x: np.ndarray) -> np.ndarray:
+        """Dihedral-angle changes from the rest state (n_bending, 3) rad at positions x (V,3) m."""
+        return bending.stencil_rest_state(x, self._stencils, self._present)[0] - self._rest_angle
 
     def set_indenter(self, system: int, kind: int, dims: tuple[float, float, float, float]) -> None:
         """Give one system another indenter (kind, dims of `fe.indenter_sdf`)."""
@@ -373,6 +420,13 @@ class BatchedShell:
             {**common, "energy": buf["membrane_energy"], "gradient": elastic, "hessian": buf["membrane_hessian"]},
             dev,
         )
+        if self.relaxes:
+            launch(
+                viscoelastic.frozen_stress_kernel,
+                (B, nt),
+                {**common, "energy": buf["membrane_energy"], "gradient": elastic, "hessian": buf["membrane_hessian"]},
+                dev,
+            )
         if nh:
             launch(
                 bending.bending_kernel,
@@ -387,18 +441,19 @@ class BatchedShell:
             {**common, "volume": buf["volume"], "gradient": buf["volume_gradient"], "hessian": buf["volume_hessian"]},
             dev,
         )
-        core = {
-            **common,
-            "core": self._core_mesh.id,
-            "core_vertices": self._core_vertices,
-            "core_triangles": self._core_triangles,
-            "offset": wp.float64(self.skin.core_offset),
-            "energy": buf["core_energy"],
-            "gradient": self.gradients[1],
-            "hessian": buf["core_hessian"],
-            "gap": buf["core_gap"],
-        }
-        launch(contact.core_contact_kernel, (B, V), core, dev)
+        if self._core_mesh is not None:
+            core = {
+                **common,
+                "core": self._core_mesh.id,
+                "core_vertices": self._core_vertices,
+                "core_triangles": self._core_triangles,
+                "offset": wp.float64(self.skin.core_offset),
+                "energy": buf["core_energy"],
+                "gradient": self.gradients[1],
+                "hessian": buf["core_hessian"],
+                "gap": buf["core_gap"],
+            }
+            launch(contact.core_contact_kernel, (B, V), core, dev)
         outputs = {
             "x_start": self.x_start,
             "lagged_force": self.lagged_force,
@@ -434,9 +489,9 @@ class BatchedShell:
         stats, totals = self._stats.numpy(), self._totals.numpy()
         self.counters["evaluations"] += 1
         self.counters["evaluate_s"] += time.perf_counter() - start
-        return BatchLinearization(
-            totals[:, 1].copy(), totals[:, 0].copy(), stats[:, 0].copy(), np.sqrt(stats[:, 1]), stats[:, 2].copy()
-        )
+        energy = totals[:, 1] + self.air.legendre_energy(pressure)
+        liquid = totals[:, 0] - self.air.volume(pressure)
+        return BatchLinearization(energy, liquid, stats[:, 0].copy(), np.sqrt(stats[:, 1]), stats[:, 2].copy())
 
     def proximity(self, x: wp.array, rows: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """Gap (k,V) m (negative inside the contact band) and unit SDF normals (k,V,3) of x to each indenter,
@@ -485,7 +540,8 @@ class BatchedShell:
         which = np.asarray(which, dtype=bool)
         state.pressure[which] = np.asarray(pressure, dtype=np.float64)[which]
         state.running |= which
-        for name in ("converged", "failed", "refreshed", "iterations", "passes", "last_eta", "phase", "step", "dp"):
+        names = ("converged", "failed", "refreshed", "iterations", "passes", "last_eta", "phase", "step", "dp")
+        for name in (*names, "factorized", "chord_failed", "has_hessian"):
             getattr(state, name)[which] = 0
         state.attempt[which] = 0
         state.last_residual[which] = np.nan
@@ -493,13 +549,21 @@ class BatchedShell:
             state.message[i] = ""
 
     def evaluate_round(self, state: NewtonBatch) -> BatchLinearization:
-        """One evaluation of every system where it stands (with Hessians): at its positions, or, in a line
-        search, at its trial point x + step dq with pressure p + step dp (in `self.x_trial`)."""
-        step = np.where(state.running & (state.phase != AT_X), state.step, 0.0)
-        self.counters["system_evaluations"] += int(state.running.sum())
+        """One evaluation of every system where it stands: at its positions, or, in a line search or a chord
+        step, at its trial point x + step dq with pressure p + step dp (in `self.x_trial`).
+
+        With a linear solver that factorises (the CPU), trial points are evaluated without Hessians, which
+        an accepted trial then gets in a round of its own if it needs a new matrix (few systems, the
+        Hessians dominate the cost); otherwise every evaluation carries them, so an accepted trial's serves
+        as the next Newton evaluation (many systems on a GPU, rounds dominate)."""
+        running = state.running
+        step = np.where(running & (state.phase != AT_X), state.step, 0.0)
+        self.counters["system_evaluations"] += int(running.sum())
         self._axpy(self.x, step, self.x_trial)
         pressure = state.pressure + np.where(step != 0.0, step * state.dp, 0.0)
-        return self.evaluate(self.x_trial, True, pressure, state.running)
+        hessians = not self.linear.holds_factorization or bool(np.any(running & (state.phase == AT_X)))
+        state.has_hessian[running] = hessians
+        return self.evaluate(self.x_trial, hessians, pressure, running)
 
     def settle(self, state: NewtonBatch, lin: BatchLinearization) -> np.ndarray:
         """Decide the line-search trials just evaluated (`fe.newton._line_search`'s acceptance rules, one
@@ -515,10 +579,18 @@ class BatchedShell:
         phi = lin.energy - state.new_p * cv + 0.5 * state.rho * cv * cv
         energy_ok = np.isfinite(phi) & (phi <= state.phi0 + 1e-4 * state.step * state.slope)
         residual_ok = lin.residual_2 < (1.0 - 1e-4 * state.step) * state.rnorm
-        accepted = searching & np.where(state.phase == ENERGY_SEARCH, energy_ok, residual_ok)
+        chord_ok = lin.residual_inf <= self.skin.newton.chord_contraction * state.rnorm
+        ok = np.select([state.phase == ENERGY_SEARCH, state.phase == CHORD], [energy_ok, chord_ok], residual_ok)
+        accepted = searching & ok
         self._axpy(self.x, np.where(accepted, state.step, 0.0), self.x)
         state.pressure[accepted] += state.step[accepted] * state.dp[accepted]
         state.phase[accepted], state.attempt[accepted] = AT_X, 0
+        state.chord_failed[accepted] = False
+        chord_rejected = searching & ~accepted & (state.phase == CHORD)
+        state.chord_failed |= chord_rejected
+        state.phase[chord_rejected], state.step[chord_rejected] = AT_X, 0.0  # evaluated at x again next round
+        state.has_hessian[chord_rejected] = False
+        searching &= ~chord_rejected
         rejected = searching & ~accepted
         state.backtracks[rejected] += 1
         state.step[:] = _backtrack(state, phi, rejected)
@@ -527,6 +599,16 @@ class BatchedShell:
         state.phase[to_residual], state.step[to_residual], state.backtracks[to_residual] = RESIDUAL_SEARCH, 1.0, 0
         self._retry(state, exhausted & ~to_residual)
         return at_x | accepted
+
+    def round(self, state: NewtonBatch) -> np.ndarray:
+        """One Newton round of every running system (`evaluate_round`, `settle`, `check`, `iterate`): returns
+        the systems that stopped in it, whose final evaluation the shell's buffers still hold."""
+        lin = self.evaluate_round(state)
+        at_x = self.settle(state, lin)
+        stopped = self.check(state, lin, self.skin.params.friction > 0.0, at_x)
+        if state.running.any():
+            self.iterate(state, lin, at_x)
+        return stopped
 
     def check(self, state: NewtonBatch, lin: BatchLinearization, friction: bool, at_x: np.ndarray) -> np.ndarray:
         """The stopping rules of `fe.newton.solve_equilibrium` for the running systems evaluated at their
@@ -567,10 +649,17 @@ class BatchedShell:
         damping in the next round (with everyone else's solve, not in an extra one of its own); one that
         runs out of dampings fails."""
         here = state.running & at_x
-        fresh = here & (state.attempt == 0)  # a retry with damping belongs to the Newton iteration it retries
         stepping = here & ~state.refreshed
+        c = lin.volume - state.target
+        near = lin.residual_inf <= self.skin.newton.refresh_factor * _tolerance(lin, self.skin.newton)
+        chord = stepping & near & state.factorized & ~state.chord_failed & (state.attempt == 0)
+        if chord.any():
+            stepping &= ~self._chord(state, lin, c, chord)
+        stale = stepping & ~state.has_hessian  # evaluated at x without Hessians: again, with them, next round
+        state.phase[stale], state.step[stale] = AT_X, 0.0
+        stepping &= ~stale
+        fresh = here & ~stale & (state.attempt == 0)  # a retry with damping belongs to the iteration it retries
         if stepping.any():
-            c = lin.volume - state.target
             eta = self._forcing(state, lin)
             damping = np.where(stepping, _DAMPING[np.minimum(state.attempt, len(_DAMPING) - 1)], 0.0)
             dp, ok = self._direction(lin, state.pressure, c, stepping, damping, eta)
@@ -579,8 +668,24 @@ class BatchedShell:
             self._start_search(state, lin, c, dp, curvature, stepping & ok)
             self._retry(state, stepping & ~ok)
             usable = stepping & ok
+            state.factorized[usable] = self.linear.holds_factorization
+            state.chord_failed[usable] = False
             state.last_residual[usable], state.last_eta[usable] = lin.residual_inf[usable], eta[usable]
         state.iterations[fresh] += 1
+
+    def _chord(self, state: NewtonBatch, lin: BatchLinearization, c: np.ndarray, which: np.ndarray) -> np.ndarray:
+        """Chord steps for the systems in `which`: the bordered Newton system solved with the factorisation
+        the linear solver holds from an earlier iterate (no assembly, no factorisation), tried at full length
+        in the next round (`settle` keeps it when the residual falls by `chord_contraction`). Returns the
+        systems that got one; the others are marked as having failed a chord here."""
+        B = self.batch
+        wp.launch(bk.newton_rhs, (B, self.n_vertices), [self.residual, self.bvec, self.rhs], device=self.device)
+        u, _, solved = self.linear.resolve(self.rhs, self._system_of, np.concatenate([which, which]))
+        dp, ok = self._bordered(u, solved, c, state.pressure, which)
+        state.chord_failed |= which & ~ok
+        state.dp[ok], state.rnorm[ok] = dp[ok], lin.residual_inf[ok]
+        state.phase[ok], state.step[ok] = CHORD, 1.0
+        return ok
 
     def _retry(self, state: NewtonBatch, which: np.ndarray) -> None:
         """The systems in `which` found no step: back at their positions with the next damping, or failed."""
@@ -639,8 +744,8 @@ class BatchedShell:
         damping: np.ndarray,
         eta: np.ndarray,
     ) -> tuple[np.ndarray, np.ndarray]:
-        """Assemble K = H_E - p H_V (+ damping), solve K u1 = -r, K u2 = b by CG; dq of the masked systems
-        (in self.dq; the other rows keep theirs) and dp (B,)."""
+        """Assemble K = H_E - p H_V (+ damping), solve K u1 = -r, K u2 = b (`self.linear`); dq of the masked
+        systems (in self.dq; the other rows keep theirs) and dp (B,)."""
         buf, B = self.buf, self.batch
         start = time.perf_counter()
         self.matrix.assemble(
@@ -656,15 +761,24 @@ class BatchedShell:
         )
         wp.launch(bk.newton_rhs, (B, self.n_vertices), [self.residual, self.bvec, self.rhs], device=self.device)
         active = np.concatenate([mask, mask])
-        u, iterations, state = self.cg.solve(
+        u, iterations, state = self.linear.solve(
             self.rhs, self._system_of, active, np.concatenate([eta, eta]), self.cg_max_iterations
         )
         self.counters["linear_solves"] += 1
         self.counters["linear_solve_s"] += time.perf_counter() - start
         self.counters["cg_iterations_max"] += float(iterations[active].max())
         self.counters["cg_iterations_mean"] += float(iterations[active].mean())
-        ok = mask & (state[:B] != CG_NEGATIVE_CURVATURE) & (state[B:] != CG_NEGATIVE_CURVATURE)
-        schur = batched_dot(self.bvec, u[B:], self._sums)
+        return self._bordered(u, state, c, pressure, mask)
+
+    def _bordered(
+        self, u: wp.array, solved: np.ndarray, c: np.ndarray, pressure: np.ndarray, mask: np.ndarray
+    ) -> tuple[np.ndarray, np.ndarray]:
+        """The bordered Newton step from the solutions u (2B, V) of K u1 = -r, K u2 = b (column states
+        `solved`): dp = -(c + b.u1) / (b.u2 + s) with the trapped air's compliance s (m^3/Pa), dq = u1 + dp u2
+        into self.dq for the masked systems whose solve worked; returns dp (B,) and that mask."""
+        B = self.batch
+        ok = mask & (solved[:B] != CG_NEGATIVE_CURVATURE) & (solved[B:] != CG_NEGATIVE_CURVATURE)
+        schur = batched_dot(self.bvec, u[B:], self._sums) + self.air.compliance(pressure)
         bu1 = batched_dot(self.bvec, u[:B], self._sums)
         ok &= np.isfinite(schur) & (schur != 0.0)
         dp = np.where(ok, -(c + bu1) / np.where(ok, schur, 1.0), 0.0)

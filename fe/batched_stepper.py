@@ -6,7 +6,7 @@ pose that does not touch the free skin costs no Newton work, leaving contact rel
 state, the warm start extrapolates the last increment and pushes vertices out of the indenter, the
 friction slip is measured from the previous pose, and a system whose step fails refuses further steps
 until `reset`. Poses: rotation (3,3) indenter body -> sensor frame, tip position (3,) m; results are
-`fe.indentation.IncrementResult`s (forces in N, sensor frame), `wall_s` being the whole batch step's time.
+`fe.results.IncrementResult`s (forces in N, sensor frame), `wall_s` being the whole batch step's time.
 
 The step is built from two calls that also serve continuous batching (`fe.batched_campaign`): `admit`
 starts new increments for some systems while others are mid-solve, and `advance` runs one Newton
@@ -24,9 +24,10 @@ import numpy as np
 import scipy.sparse as sp
 import warp as wp
 
-from assets.indenters import get_indenter
+from assets.indenters import Indenter, get_indenter
 from fe.batched import BatchedShell, InflatedSkin, NewtonBatch, get_rows, put_rows
-from fe.indentation import IncrementResult
+from fe.results import IncrementResult
+from fe.viscoelastic import SkinRelaxation
 
 
 def _check_poses(
@@ -54,13 +55,17 @@ class BatchedStepper:
     """
 
     def __init__(
-        self, skin: InflatedSkin, indenters: Sequence[str], device: str = "cpu", forcing: str = "adaptive"
+        self,
+        skin: InflatedSkin,
+        indenters: Sequence[str | Indenter],
+        device: str = "cpu",
+        forcing: str = "adaptive",
     ) -> None:
-        shapes = [get_indenter(name) for name in indenters]
+        shapes = [get_indenter(name) if isinstance(name, str) else name for name in indenters]
         self.skin, self.batch = skin, len(shapes)
         if self.batch == 0:
             raise ValueError("a batch needs at least one trajectory")
-        self.indenters = list(indenters)
+        self.indenters = [shape.name for shape in shapes]
         self.shell = BatchedShell(skin, [(s.kind, s.dims) for s in shapes], device, forcing=forcing)
         B, V, T = self.batch, len(skin.vertices), len(skin.triangles)
         rows = skin.triangles.ravel()
@@ -69,8 +74,11 @@ class BatchedStepper:
         reference = np.broadcast_to(skin.reference, (B, V, 3))
         self._reference_w = wp.array(reference, dtype=wp.vec3d, device=device)
         self.shell.x.assign(reference)
-        rest = self.shell.evaluate(self._reference_w, False, np.full(B, skin.pressure))
-        self._rest_volume, self._rest_residual = float(rest.volume[0]), float(rest.residual_inf[0])
+        p_rest = np.full(B, skin.pressure)
+        rest = self.shell.evaluate(self._reference_w, False, p_rest)
+        self.rest_volume = float(rest.volume[0] + self.shell.air.volume(p_rest)[0])
+        """Volume (m^3) the starting state encloses (liquid + air)."""
+        self._rest_residual = float(rest.residual_inf[0])
         self._rest_balance = self._force_balance(0, skin.pressure)[1]
         self.x = reference.copy()
         """(B,V,3) skin mid-surface positions (m) of the last accepted state."""
@@ -85,8 +93,18 @@ class BatchedStepper:
         self.in_contact = np.zeros(B, dtype=bool)
         self._motion, self._has_motion, self._travel = np.zeros((B, V, 3)), np.zeros(B, dtype=bool), np.zeros((B, 3))
         self._gap, self._gap_change = np.zeros((B, V)), np.zeros((B, V))
-        self.newton = NewtonBatch.idle(B, skin.target_volume)
-        """Newton state of the increments under way (`running` marks the systems mid-solve)."""
+        self.newton = NewtonBatch.idle(B, skin.target_volume - self.shell.air.volume(p_rest))
+        """Newton state of the increments under way (`running` marks the systems mid-solve); with trapped air
+        the held volume is the liquid's."""
+        self.relaxation = None
+        if self.shell.relaxes:
+            p = skin.params
+            fractions, times = np.full(B, p.relaxation_fraction), np.full(B, p.relaxation_time_s)
+            self.relaxation = SkinRelaxation(self.shell, fractions, times)
+            self.relaxation.reset(np.arange(B), self.x)
+        self.time_s = np.full(B, np.nan)
+        """Time (s) of each system's last step (NaN: none since its reset, or untimed)."""
+        self._dt = np.zeros(B)
         self._depth, self._admitted_at = np.zeros(B), np.zeros(B)
         self._increment_travel = np.zeros((B, 3))
 
@@ -101,6 +119,10 @@ class BatchedStepper:
         for i in np.flatnonzero(which):
             self.failure[i] = None
         self._release(which)
+        self.time_s[which] = np.nan
+        if self.relaxation is not None:
+            rows = np.flatnonzero(which)
+            self.relaxation.reset(rows, self.x[rows])
 
     def _release(self, which: np.ndarray) -> None:
         """Put the systems in `which` back to the inflated state, keeping their poses and depth origins."""
@@ -137,23 +159,32 @@ class BatchedStepper:
 
     # -- stepping ----------------------------------------------------------------------------------
     def step(
-        self, rotation: np.ndarray, translation: np.ndarray, active: np.ndarray | None = None
+        self,
+        rotation: np.ndarray,
+        translation: np.ndarray,
+        active: np.ndarray | None = None,
+        times: np.ndarray | None = None,
     ) -> list[IncrementResult | None]:
-        """Move each active system's indenter to its pose (B,3,3), (B,3) m and re-solve; None for inactive ones."""
+        """Move each active system's indenter to its pose (B,3,3), (B,3) m at its time (B,) s (see `admit`) and
+        re-solve; None for inactive ones."""
         start = time.perf_counter()
         active = np.ones(self.batch, dtype=bool) if active is None else np.asarray(active, dtype=bool)
         if np.any(self.newton.running):
             raise RuntimeError("systems are mid-increment (admitted but not finished); advance() them first")
-        done = self.admit(active, rotation, translation)
+        done = self.admit(active, rotation, translation, times)
         while self.newton.running.any():
             done |= self.advance()
         wall = time.perf_counter() - start
         return [dataclasses.replace(done[i], wall_s=wall) if i in done else None for i in range(self.batch)]
 
-    def admit(self, which: np.ndarray, rotation: np.ndarray, translation: np.ndarray) -> dict[int, IncrementResult]:
+    def admit(
+        self, which: np.ndarray, rotation: np.ndarray, translation: np.ndarray, times: np.ndarray | None = None
+    ) -> dict[int, IncrementResult]:
         """Move the indenters of the `which` systems (B,) bool to their poses (rows of (B,3,3), (B,3) m; other
-        rows ignored) and start their increments. Returns the results of those whose pose needs no solve
-        (no contact); the others are solved by `advance`, which the systems mid-increment need not wait for."""
+        rows ignored) at their `times` (B,) s (any clock, non-decreasing per system; None: no time passes,
+        only for a skin without viscoelastic relaxation) and start their increments. Returns the results of
+        those whose pose needs no solve (no contact, nothing creeping); the others are solved by `advance`,
+        which the systems mid-increment need not wait for."""
         start = time.perf_counter()
         which = np.asarray(which, dtype=bool).copy()
         failed = [i for i in np.flatnonzero(which) if self.failure[i] is not None]
@@ -162,6 +193,7 @@ class BatchedStepper:
         if np.any(which & self.newton.running):
             raise RuntimeError(f"systems {np.flatnonzero(which & self.newton.running)} are mid-increment")
         rotation, translation = _check_poses(rotation, translation, self.batch, which)
+        self._dt[which] = self._clock(which, times)[which]
         new_origin = which & ~self.has_origin
         self.origin[new_origin] = translation[new_origin]
         self.has_origin |= new_origin
@@ -180,10 +212,17 @@ class BatchedStepper:
         free_ref = np.zeros(self.batch, dtype=bool)
         free_now[rows] = shell.proximity(shell.x_trial, rows)[0].min(axis=1) >= 0.0
         free_ref[rows] = shell.proximity(self._reference_w, rows)[0].min(axis=1) >= 0.0
-        untouched = which & free_now & ~self.in_contact
-        released = which & free_now & self.in_contact & free_ref
+        relaxed = np.ones(self.batch, dtype=bool)
+        if self.relaxation is not None:
+            relaxed[rows] = self.relaxation.at_rest(rows)
+        untouched = which & free_now & ~self.in_contact & relaxed
+        # A skin without viscoelastic memory that the indenter leaves releases to the inflated equilibrium;
+        # one with memory creeps back instead, which the solve follows.
+        released = which & free_now & self.in_contact & free_ref & (self.relaxation is None)
         self._release(released)
         solving = which & ~untouched & ~released
+        if self.relaxation is not None and solving.any():
+            self.relaxation.prepare(np.flatnonzero(solving), self._dt[solving])
         if solving.any():
             travel = translation - self._start_translation
             self._increment_travel[solving] = travel[solving]
@@ -191,19 +230,55 @@ class BatchedStepper:
             self._start_solves(solving, travel)
         return {int(i): self._free_result(int(i), float(depth[i])) for i in np.flatnonzero(untouched | released)}
 
+    def _clock(self, which: np.ndarray, times: np.ndarray | None) -> np.ndarray:
+        """Time steps (B,) s since each `which` system's last step, validating and recording `times`."""
+        if times is None:
+            if self.relaxation is not None:
+                raise ValueError("a viscoelastic skin (relaxation_fraction > 0) needs the time of every step")
+            return np.zeros(self.batch)
+        times = np.broadcast_to(np.asarray(times, dtype=np.float64), (self.batch,))
+        if not np.all(np.isfinite(times[which])):
+            raise ValueError("step times must be finite")
+        last = np.where(np.isnan(self.time_s), times, self.time_s)
+        back = which & (times < last)
+        if back.any():
+            i = int(np.flatnonzero(back)[0])
+            raise ValueError(f"time {times[i]} s of system {i} goes back from its last step's {self.time_s[i]} s")
+        self.time_s[which] = times[which]
+        return np.where(which, times - last, 0.0)
+
     def advance(self) -> dict[int, IncrementResult]:
         """One round for every system mid-increment: one evaluation each (at its positions or its line-search
         trial), then a convergence check and a new Newton direction where it stands at its positions.
         Returns the results of the systems that finished (converged, or failed: such a system refuses
         further steps until `reset`)."""
-        shell, state = self.shell, self.newton
-        lin = shell.evaluate_round(state)
-        at_x = shell.settle(state, lin)
-        stopped = shell.check(state, lin, self.skin.params.friction > 0.0, at_x)
-        results = self._finish(np.flatnonzero(stopped)) if stopped.any() else {}
-        if state.running.any():
-            shell.iterate(state, lin, at_x)
-        return results
+        stopped = self.shell.round(self.newton)
+        return self._finish(np.flatnonzero(stopped)) if stopped.any() else {}
+
+    def hold_volume(self, target: np.ndarray, which: np.ndarray | None = None) -> tuple[np.ndarray, list[str]]:
+        """Re-solve the idle `which` systems (default all) at their current poses holding the enclosed
+        volumes `target` (B,) m^3 (liquid + air) from here on: inflation, by volume control. A system that
+        converges takes the new equilibrium as its state; one that does not keeps its old state and volume.
+        Returns whether each converged ((B,) bool, False for systems not solved) and Newton's messages."""
+        which = np.ones(self.batch, dtype=bool) if which is None else np.asarray(which, dtype=bool)
+        if np.any(which & self.newton.running):
+            raise RuntimeError("systems are mid-increment; advance() them first")
+        shell, state, rows = self.shell, self.newton, np.flatnonzero(which)
+        held = state.target.copy()
+        target = np.broadcast_to(np.asarray(target, dtype=np.float64), (self.batch,))
+        state.target[which] = (target - shell.air.volume(self.pressure))[which]
+        put_rows(shell.x_start, rows, self.x[rows])
+        put_rows(shell.x, rows, self.x[rows])
+        shell.lag_contact(shell.x, which)
+        shell.begin(state, which, self.pressure)
+        while state.running.any():
+            shell.round(state)
+        converged = which & state.converged
+        done = np.flatnonzero(converged)
+        if len(done):
+            self.x[done], self.pressure[done] = get_rows(shell.x, done), state.pressure[done]
+        state.target[which & ~converged] = held[which & ~converged]
+        return converged, list(state.message)
 
     def _start_solves(self, solving: np.ndarray, travel: np.ndarray) -> None:
         """Warm-start the `solving` systems from their last equilibria and begin their Newton solves."""
@@ -260,6 +335,8 @@ class BatchedStepper:
                 self._gap[i] = gap
                 self.x[i], self.pressure[i] = x, state.pressure[i]
                 self.in_contact[i] = in_contact.any()
+                if self.relaxation is not None:
+                    self.relaxation.advance(np.array([i]), self._dt[i : i + 1], x[None])
             else:
                 self.failure[i] = state.message[i]
             results[i] = self._increment_result(i, x, gap, force, balance, now)
@@ -281,7 +358,7 @@ class BatchedStepper:
             depth=float(self._depth[i]),
             force=force,
             pressure=float(state.pressure[i]),
-            volume=float(state.volume[i]),
+            volume=float(state.volume[i] + self.shell.air.volume(state.pressure[i : i + 1])[0]),
             contact_area=float(vertex_area[in_contact].sum()),
             contact_radius=float(radius),
             displacement=x - self.skin.reference,
@@ -298,7 +375,7 @@ class BatchedStepper:
             depth=float(depth),
             force=np.zeros(3),
             pressure=float(self.pressure[i]),
-            volume=self._rest_volume,
+            volume=self.rest_volume,
             contact_area=0.0,
             contact_radius=0.0,
             displacement=self.x[i] - self.skin.reference,

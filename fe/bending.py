@@ -100,7 +100,7 @@ def bending_kernel(
     x: wp.array2d(dtype=wp.vec3d),
     stencils: wp.array(dtype=vec6i),
     has_edge: wp.array(dtype=wp.vec3i),
-    rest_angle: wp.array(dtype=wp.vec3d),
+    rest_angle: wp.array2d(dtype=wp.vec3d),
     rest_area: wp.array(dtype=wp.float64),
     coupling: wp.array(dtype=wp.mat33d),
     bending_stiffness: wp.array(dtype=wp.float64),
@@ -123,7 +123,7 @@ def bending_kernel(
     for i in range(3):
         if present[i] != 0:
             xs = _hinge_coordinates(x, b, nodes, i)
-            dtheta[i] = _angle(xs) - rest_angle[t][i]
+            dtheta[i] = _angle(xs) - rest_angle[b, t][i]
             g = _angle_gradient(xs)
             s = _edge_slots(i)
             for j in range(12):

@@ -375,6 +375,9 @@ class BatchedCG:
     any column still runs after each replay.
     """
 
+    holds_factorization = False
+    """CG keeps no factorisation: no chord steps (`fe.linsolve.BatchedDirectSolver` does)."""
+
     def __init__(
         self, matrix: BatchedBlockMatrix, columns: int, check_every: int = 25, use_graph: bool | None = None
     ) -> None:

@@ -13,10 +13,15 @@ import functools
 import os
 import weakref
 from collections.abc import Callable
+from typing import TYPE_CHECKING
 
 import numpy as np
 import scipy.sparse as sp
 import scipy.sparse.linalg as spla
+import warp as wp
+
+if TYPE_CHECKING:
+    from fe.device_solver import BatchedBlockMatrix
 
 
 class SingularMatrixError(RuntimeError):
@@ -243,3 +248,73 @@ class SymmetricSolver:
         if not np.all(np.isfinite(out)):
             raise SingularMatrixError("non-finite solution")
         return out
+
+
+class BatchedDirectSolver:
+    """The batched CG's interface (`fe.device_solver.BatchedCG.solve`) answered by one sparse direct
+    factorisation per system: the CPU's linear algebra for the batched Newton.
+
+    Each system's 3x3-block matrix (fixed DOFs already eliminated with a unit diagonal) is converted to
+    scalar CSR on the host, factorised by its own `SymmetricSolver` (the symbolic analysis of the shared
+    pattern is done once per system slot) and solved for its right-hand sides to round-off; the
+    factorisation is kept, so `resolve` repeats a solve with it (a chord step) without a new matrix.
+    """
+
+    holds_factorization = True
+
+    def __init__(self, matrix: "BatchedBlockMatrix") -> None:
+        self.matrix = matrix
+        pattern, n = matrix.pattern, matrix.pattern.n_nodes
+        self._shape = (3 * n, 3 * n)
+        self._pattern = (pattern.columns.astype(np.int32), pattern.offsets.astype(np.int32))
+        self._solvers: dict[int, SymmetricSolver] = {}
+        self._factorized = np.zeros(matrix.batch, dtype=bool)
+        self.x = None
+        """(C, V) vec3d solutions of the last solve (a warp array on the matrix's device, owned here)."""
+
+    def _solver(self, system: int) -> SymmetricSolver:
+        if system not in self._solvers:
+            self._solvers[system] = SymmetricSolver()
+        return self._solvers[system]
+
+    def solve(
+        self, rhs: wp.array, system_of: np.ndarray, active: np.ndarray, tolerance: np.ndarray, max_iterations: int
+    ) -> tuple[wp.array, np.ndarray, np.ndarray]:
+        """Factorise the matrix of every system with an active column, then solve (`BatchedCG.solve`'s
+        arguments and results; `tolerance` and `max_iterations` are met by construction). A singular
+        system's columns come back CG_NEGATIVE_CURVATURE (no usable solution)."""
+        values = self.matrix.values.numpy()
+        systems = np.unique(np.asarray(system_of)[np.asarray(active, dtype=bool)])
+        for b in systems:
+            self._factorized[b] = False
+            blocks = sp.bsr_matrix((values[b], *self._pattern), shape=self._shape)
+            try:
+                self._solver(int(b)).factorize(blocks.tocsr())
+            except SingularMatrixError:
+                continue
+            self._factorized[b] = True
+        return self.resolve(rhs, system_of, active)
+
+    def resolve(
+        self, rhs: wp.array, system_of: np.ndarray, active: np.ndarray
+    ) -> tuple[wp.array, np.ndarray, np.ndarray]:
+        """Solve the active columns with the factorisations held (of each system's last `solve`)."""
+        from fe.device_solver import CG_CONVERGED, CG_NEGATIVE_CURVATURE
+
+        system_of, active = np.asarray(system_of), np.asarray(active, dtype=bool)
+        rhs_host = rhs.numpy().reshape(len(system_of), -1)
+        out = np.zeros_like(rhs_host)
+        state = np.full(len(system_of), CG_CONVERGED, dtype=np.int32)
+        for b in np.unique(system_of[active]):
+            columns = np.flatnonzero(active & (system_of == b))
+            if not self._factorized[b]:
+                state[columns] = CG_NEGATIVE_CURVATURE
+                continue
+            try:
+                out[columns] = self._solver(int(b)).solve(rhs_host[columns].T).T
+            except SingularMatrixError:
+                state[columns] = CG_NEGATIVE_CURVATURE
+        if self.x is None or self.x.shape != rhs.shape:
+            self.x = wp.zeros(rhs.shape, dtype=wp.vec3d, device=rhs.device)
+        self.x.assign(out.reshape(*rhs.shape, 3))
+        return self.x, np.zeros(len(system_of), dtype=np.int32), state

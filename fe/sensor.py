@@ -13,10 +13,11 @@ import trimesh
 
 from assets.biotac import BioTacGeometry, vertex_normals
 from assets.indenters import Indenter, get_indenter
+from fe.batched import InflatedSkin
+from fe.batched_stepper import BatchedStepper
 from fe.indentation import IncrementResult, IndentationStepper, Trajectory, drive
-from fe.newton import NewtonResult, NewtonSettings, solve_equilibrium
+from fe.newton import NewtonSettings
 from fe.params import ContactSettings, SkinParameters
-from fe.shell import RigidSurface, ShellMesh, ShellSystem
 from fe.trapped_air import TrappedAir
 
 SENSOR_THICKNESS = 15.1e-3
@@ -38,10 +39,10 @@ class InflationResult:
 
 
 class BioTacModel:
-    """Skin shell + fluid + rigid core of one BioTac, solved with warp kernels and Newton.
+    """Skin shell + fluid + rigid core of one BioTac, solved by the FE engine (`fe.batched_stepper`).
 
-    Use `inflate()` once, then `indent(...)` as often as needed; each trajectory starts from the
-    inflated reference state.
+    Use `inflate()` once (on warp's CPU device), then `stepper(...)` or `indent(...)` as often as needed on
+    any device; each trajectory starts from the inflated reference state.
     """
 
     def __init__(
@@ -54,20 +55,24 @@ class BioTacModel:
         self.geometry = geometry
         self.params = params
         self.newton = newton
-        skin = geometry.skin
-        core = RigidSurface(geometry.core.vertices, geometry.core.triangles, geometry.core_gap)
-        self.system = ShellSystem(
-            ShellMesh(skin.vertices, skin.triangles, skin.anchored),
+        skin, core = geometry.skin, geometry.core
+        self.rest_skin = InflatedSkin.at_rest(
+            skin.vertices,
+            skin.triangles,
+            skin.anchored,
             params,
             contact,
-            core,
-            volume_origin=geometry.core.vertices.mean(axis=0),
+            newton,
+            core=(core.vertices, core.triangles, geometry.core_gap),
+            volume_origin=core.vertices.mean(axis=0),
         )
-        self._q0 = self.system.free_coordinates(self.system.x)
-        self._volume0 = self.system.linearize(self._q0, 0.0, want_matrix=False).volume
+        """The unpressurised skin (its rest mesh as the starting state)."""
+        self._inflation = BatchedStepper(self.rest_skin, ["sphere_medium"])  # the indenter stays away
+        self._volume0 = self._inflation.rest_volume
         self.reference: np.ndarray | None = None
         self.pressure = 0.0
         self.target_volume = self._volume0
+        self._inflated: InflatedSkin | None = None
 
     # -- inflation ---------------------------------------------------------------------------
     def thickness(self, x: np.ndarray) -> float:
@@ -75,19 +80,20 @@ class BioTacModel:
         outer = x + 0.5 * self.params.thickness * vertex_normals(x, self.geometry.skin.triangles)
         return float(self.geometry.dorsal_top_z - outer[:, 2].min())
 
-    def _solve_volume(
-        self, q: np.ndarray, pressure: float, volume: float, start_volume: float, splits: int = 4
-    ) -> NewtonResult:
-        """Equilibrium at `volume` (m^3) from the state (q, pressure) held at `start_volume`; a jump that does
-        not converge is split in two, at most `splits` times deep."""
-        result = solve_equilibrium(self.system, q, pressure, volume, self.newton)
-        if result.converged or splits == 0:
-            return result
+    def _solve_volume(self, volume: float, start_volume: float, splits: int = 4) -> tuple[bool, str]:
+        """Equilibrium at `volume` (m^3) from the state held at `start_volume`; a jump that does not converge
+        is split in two, at most `splits` times deep. Returns (converged, Newton's message)."""
+        converged, message = self._inflation.hold_volume(np.array([volume]))
+        if converged[0] or splits == 0:
+            return bool(converged[0]), message[0]
         middle = 0.5 * (start_volume + volume)
-        half = self._solve_volume(q, pressure, middle, start_volume, splits - 1)
-        if not half.converged:
+        half = self._solve_volume(middle, start_volume, splits - 1)
+        if not half[0]:
             return half
-        return self._solve_volume(half.q, half.pressure, volume, middle, splits - 1)
+        return self._solve_volume(volume, middle, splits - 1)
+
+    def _inflated_thickness(self) -> float:
+        return self.thickness(self._inflation.x[0])
 
     def inflate(self, target_thickness: float | None = SENSOR_THICKNESS, volume_step: float = 0.02) -> InflationResult:
         """Inflate to `target_thickness` (m), or by the thermal rule when it is None; the added fluid volume is
@@ -97,36 +103,35 @@ class BioTacModel:
         then secant refinement to 1 um. The skin has its long-term (fully relaxed) moduli.
         """
         beta_v = self.params.thermal_expansion * self.geometry.cavity_volume_reference
-        q, pressure, v = self._q0.copy(), 0.0, self._volume0
-        self.system.set_relaxation(self.params.long_term_fraction)  # the long-term (relaxed) skin
+        self._inflation.reset()
+        v = self._volume0
         if target_thickness is None:
             if beta_v <= 0:
                 raise ValueError("thermal inflation needs a geometry with a positive cavity_volume_reference")
             dv_total = beta_v * (self.params.fluid_temperature - self.params.reference_temperature)
-            return self._fill(q, pressure, v, v + self.params.inflation_volume_scale * dv_total, volume_step)
-        if target_thickness <= self.thickness(self.system.x):
+            return self._fill(v, v + self.params.inflation_volume_scale * dv_total, volume_step)
+        if target_thickness <= self._inflated_thickness():
             raise ValueError(f"target thickness {target_thickness * 1e3:.2f} mm is below the unpressurised one")
-        lo_v, lo_t = v, self.thickness(self.system.x)
-        lo_state = (q, pressure)
+        lo_v, lo_t = v, self._inflated_thickness()
         for _ in range(200):
             hi_v = lo_v + volume_step * abs(self._volume0)
-            result = self._solve_volume(*lo_state, hi_v, lo_v)
-            if not result.converged:
-                return self._finish(*lo_state, lo_v, False, f"inflation stalled: {result.message}")
-            hi_t = self.thickness(self.system.positions(result.q))
+            converged, message = self._solve_volume(hi_v, lo_v)
+            if not converged:
+                return self._finish(lo_v, False, f"inflation stalled: {message}")
+            hi_t = self._inflated_thickness()
             if hi_t >= target_thickness:
                 break
-            lo_v, lo_t, lo_state = hi_v, hi_t, (result.q, result.pressure)
+            lo_v, lo_t = hi_v, hi_t
         else:
-            return self._finish(*lo_state, lo_v, False, "target thickness not reached")
-        state, state_v = (result.q, result.pressure), hi_v
+            return self._finish(lo_v, False, "target thickness not reached")
+        state_v = hi_v
         for _ in range(30):
             v = lo_v + (target_thickness - lo_t) * (hi_v - lo_v) / (hi_t - lo_t)
-            result = self._solve_volume(*state, v, state_v)
-            if not result.converged:
-                return self._finish(*state, state_v, False, f"inflation refinement failed: {result.message}")
-            state, state_v = (result.q, result.pressure), v
-            t_now = self.thickness(self.system.positions(result.q))
+            converged, message = self._solve_volume(v, state_v)
+            if not converged:
+                return self._finish(state_v, False, f"inflation refinement failed: {message}")
+            state_v = v
+            t_now = self._inflated_thickness()
             if abs(t_now - target_thickness) < 1e-6:
                 break
             if t_now < target_thickness:
@@ -134,30 +139,44 @@ class BioTacModel:
             else:
                 hi_v, hi_t = v, t_now
         if self.params.inflation_volume_scale == 1.0:
-            return self._finish(*state, v, True, "converged")
+            return self._finish(v, True, "converged")
         filled = self._volume0 + self.params.inflation_volume_scale * (v - self._volume0)
-        return self._fill(*state, v, filled, volume_step)
+        return self._fill(v, filled, volume_step)
 
-    def _fill(self, q: np.ndarray, pressure: float, v: float, volume: float, volume_step: float) -> InflationResult:
-        """Walk from the state (q, pressure) at volume v to `volume` (m^3) in steps of at most `volume_step` of
-        the initial enclosed volume, and take the end as the inflated state."""
+    def _fill(self, v: float, volume: float, volume_step: float) -> InflationResult:
+        """Walk from the state at volume v to `volume` (m^3) in steps of at most `volume_step` of the initial
+        enclosed volume, and take the end as the inflated state."""
         n_steps = max(1, int(np.ceil(abs(volume - v) / (volume_step * abs(self._volume0)))))
-        result = None
+        converged, message = True, "converged"
         for target in np.linspace(v, volume, n_steps + 1)[1:]:
-            result = self._solve_volume(q, pressure, target, v)
-            if not result.converged:
+            converged, message = self._solve_volume(target, v)
+            if not converged:
                 break
-            q, pressure, v = result.q, result.pressure, target
-        return self._finish(q, pressure, v, result.converged, result.message)
+            v = target
+        return self._finish(v, converged, message)
 
-    def _finish(self, q: np.ndarray, pressure: float, volume: float, converged: bool, message: str) -> InflationResult:
-        self.reference = self.system.positions(q)
-        self.pressure = pressure
+    def _finish(self, volume: float, converged: bool, message: str) -> InflationResult:
+        self.reference = self._inflation.x[0].copy()
+        self.pressure = float(self._inflation.pressure[0])
         self.target_volume = volume
+        self._inflated = None
         dv = volume - self._volume0
         beta_v = self.params.thermal_expansion * self.geometry.cavity_volume_reference
         t_eq = self.params.reference_temperature + dv / beta_v if beta_v > 0 else float("nan")
-        return InflationResult(dv, pressure, self.thickness(self.reference), t_eq, converged, message)
+        return InflationResult(dv, self.pressure, self.thickness(self.reference), t_eq, converged, message)
+
+    def inflated_skin(self) -> InflatedSkin:
+        """The inflated state as the engine's starting state (inflate() first)."""
+        reference = self._require_reference()
+        if self._inflated is None or self._inflated.reference is not reference:
+            self._inflated = replace(
+                self.rest_skin,
+                reference=reference,
+                pressure=self.pressure,
+                target_volume=self.target_volume,
+                air_boyle=self.air_boyle(),
+            )
+        return self._inflated
 
     # -- indentation -------------------------------------------------------------------------
     def outer_surface(self) -> trimesh.Trimesh:
@@ -224,40 +243,21 @@ class BioTacModel:
             lo, hi = (mid, hi) if min_gap(mid) > 0 else (lo, mid)
         return point + lo * direction
 
-    def stepper(self, indenter_name: str) -> IndentationStepper:
-        """A pose-driven stepper for the named indenter, starting from the inflated state (biotac frame, m).
-
-        Its depth origin is the first pose stepped after each reset.
-        """
-        return self._stepper(get_indenter(indenter_name), None)
-
-    def _stepper(self, indenter: Indenter, origin: np.ndarray | None) -> IndentationStepper:
-        """A stepper for `indenter` with depth origin `origin` (m; None: the first pose after each reset)."""
-        return IndentationStepper(
-            self.system,
-            self._require_reference(),
-            self.pressure,
-            self.target_volume,
-            indenter.kind,
-            indenter.dims,
-            0.5 * self.params.thickness,
-            self.newton,
-            origin,
-            self.trapped_air(),
-        )
+    def stepper(self, indenter_name: str, device: str = "cpu") -> IndentationStepper:
+        """A pose-driven stepper for the named indenter on a warp `device`, starting from the inflated state
+        (biotac frame, m). Its depth origin is the first pose stepped after each reset."""
+        return IndentationStepper(self.inflated_skin(), indenter_name, None, device)
 
     def fluid_volume(self) -> float:
         """Fluid (liquid + air) volume in the inflated cavity (m^3): the unpressurised cavity plus what
         inflation added."""
         return self.geometry.cavity_volume_reference + self.target_volume - self._volume0
 
-    def trapped_air(self) -> TrappedAir | None:
-        """The air bubble of `SkinParameters.air_volume_fraction` at the inflated state (None when off)."""
-        fraction = self.params.air_volume_fraction
-        if fraction == 0.0:
-            return None
+    def air_boyle(self) -> float:
+        """Boyle constant (J) of the air bubble of `SkinParameters.air_volume_fraction` at the inflated state
+        (0 when off; `fe.trapped_air`)."""
         self._require_reference()
-        return TrappedAir.at_reference(fraction, self.fluid_volume(), self.pressure)
+        return TrappedAir.boyle(self.params.air_volume_fraction, self.fluid_volume(), self.pressure)
 
     def indent(
         self,
@@ -268,14 +268,15 @@ class BioTacModel:
         angle_deg: float = 0.0,
         azimuth_deg: float = 0.0,
         speed: float | None = None,
+        device: str = "cpu",
     ) -> Iterator[IncrementResult]:
-        """Indent from first touch to `depth` (m) past it in `step` (m) increments; yields each increment.
-
-        `speed` (m/s) times the increments (t = depth / speed); a viscoelastic skin needs it."""
+        """Indent from first touch to `depth` (m) past it in `step` (m) increments on a warp `device`; yields
+        each increment. `speed` (m/s) times the increments (t = depth / speed); a viscoelastic skin needs it."""
         if speed is not None and not speed > 0.0:
             raise ValueError(f"speed={speed} m/s must be positive")
         indenter = get_indenter(indenter_name)
         trajectory = self.plan_trajectory(indenter, point, angle_deg, azimuth_deg, depth, step)
         if speed is not None:
             trajectory = replace(trajectory, times=trajectory.depths / speed)
-        yield from drive(self._stepper(indenter, trajectory.touch_point), trajectory)
+        stepper = IndentationStepper(self.inflated_skin(), indenter_name, trajectory.touch_point, device)
+        yield from drive(stepper, trajectory)

@@ -6,15 +6,13 @@ with the liquid volume as target and V(x) - V_air(p) as the constrained volume, 
 derivative (the bubble's compliance k / (p_atm + p)^2, m^3/Pa) enters the Schur complement. The
 energy reported to Newton carries the gas's Legendre term k ln(p_atm + p) - p V_air(p), so that the merit
 E - p (V - V_air - V_liquid) is the Lagrangian E - p (V - V_liquid) + k ln(p_atm + p), stationary in p
-exactly at Boyle's law. Pressures are gauge pressures in Pa, volumes m^3.
+exactly at Boyle's law. Pressures are gauge pressures in Pa, volumes m^3. `TrappedAir` holds one bubble per
+system of a batch (Boyle constant 0: no air) and answers with (B,) arrays.
 """
 
-from dataclasses import dataclass, replace
+from dataclasses import dataclass
 
 import numpy as np
-
-from fe.linsolve import SymmetricSolver
-from fe.newton import EquilibriumProblem, Linearization
 
 ATMOSPHERIC_PRESSURE = 101325.0
 """Absolute ambient pressure p_atm (Pa) to which the fluid's gauge pressure is added."""
@@ -22,59 +20,45 @@ ATMOSPHERIC_PRESSURE = 101325.0
 
 @dataclass(frozen=True)
 class TrappedAir:
-    """An isothermal gas bubble: Boyle constant k = (p_atm + p) V_air (J)."""
+    """Isothermal gas bubbles, one per system: Boyle constants k = (p_atm + p) V_air (J), shape (B,); a
+    system with k = 0 holds no air (all its answers are 0)."""
 
-    boyle_constant: float
+    boyle_constant: np.ndarray
     atmospheric_pressure: float = ATMOSPHERIC_PRESSURE
 
-    @classmethod
-    def at_reference(cls, volume_fraction: float, fluid_volume: float, pressure: float) -> "TrappedAir":
-        """The bubble that fills `volume_fraction` of `fluid_volume` (m^3) at gauge `pressure` (Pa)."""
+    @staticmethod
+    def boyle(volume_fraction: float, fluid_volume: float, pressure: float) -> float:
+        """Boyle constant (J) of the bubble filling `volume_fraction` of `fluid_volume` (m^3) at gauge
+        `pressure` (Pa); 0 for a fraction of 0 (no air)."""
+        if volume_fraction == 0.0:
+            return 0.0
         if not 0.0 < volume_fraction < 1.0 or fluid_volume <= 0.0:
             raise ValueError("trapped air needs a volume fraction in (0, 1) of a positive fluid volume")
         if pressure <= -ATMOSPHERIC_PRESSURE:
             raise ValueError(f"gauge pressure {pressure} Pa is below vacuum")
-        return cls(volume_fraction * fluid_volume * (ATMOSPHERIC_PRESSURE + pressure))
+        return volume_fraction * fluid_volume * (ATMOSPHERIC_PRESSURE + pressure)
 
-    def volume(self, pressure: float) -> float:
-        """Bubble volume (m^3) at gauge `pressure` (Pa)."""
+    @classmethod
+    def none(cls, batch: int) -> "TrappedAir":
+        """No air in any of `batch` systems."""
+        return cls(np.zeros(batch))
+
+    def volume(self, pressure: np.ndarray) -> np.ndarray:
+        """Bubble volumes (m^3) at gauge pressures (Pa)."""
         return self.boyle_constant / self._absolute(pressure)
 
-    def compliance(self, pressure: float) -> float:
-        """-dV_air/dp (m^3/Pa) at gauge `pressure` (Pa)."""
+    def compliance(self, pressure: np.ndarray) -> np.ndarray:
+        """-dV_air/dp (m^3/Pa) at gauge pressures (Pa)."""
         return self.boyle_constant / self._absolute(pressure) ** 2
 
-    def pressure(self, volume: float) -> float:
-        """Gauge pressure (Pa) at bubble `volume` (m^3)."""
-        return self.boyle_constant / volume - self.atmospheric_pressure
-
-    def legendre_energy(self, pressure: float) -> float:
+    def legendre_energy(self, pressure: np.ndarray) -> np.ndarray:
         """k ln(p_atm + p) - p V_air(p) (J): the gas's part of Newton's merit, see the module docstring."""
-        return self.boyle_constant * np.log(self._absolute(pressure)) - pressure * self.volume(pressure)
+        absolute = self._absolute(pressure)
+        with np.errstate(divide="ignore", invalid="ignore"):
+            log = np.where(self.boyle_constant > 0.0, self.boyle_constant * np.log(absolute), 0.0)
+        return log - np.asarray(pressure) * self.volume(pressure)
 
-    def _absolute(self, pressure: float) -> float:
-        absolute = self.atmospheric_pressure + pressure
+    def _absolute(self, pressure: np.ndarray) -> np.ndarray:
+        absolute = self.atmospheric_pressure + np.asarray(pressure, dtype=np.float64)
         # Below vacuum the gas law has no solution; inf keeps Newton's line search away from it.
-        return absolute if absolute > 0.0 else np.inf
-
-
-class TrappedAirProblem:
-    """Newton's view (`fe.newton.EquilibriumProblem`) of a model whose cavity also holds `air`: solve it with
-    the liquid volume (m^3) as the target volume."""
-
-    def __init__(self, problem: EquilibriumProblem, air: TrappedAir) -> None:
-        self.problem, self.air = problem, air
-
-    @property
-    def linear_solver(self) -> SymmetricSolver:
-        return self.problem.linear_solver
-
-    def linearize(self, q: np.ndarray, pressure: float, want_matrix: bool, projected: bool = False) -> Linearization:
-        """The wrapped linearisation with the bubble's volume taken off the enclosed volume."""
-        lin = self.problem.linearize(q, pressure, want_matrix, projected)
-        return replace(
-            lin,
-            energy=lin.energy + self.air.legendre_energy(pressure),
-            volume=lin.volume - self.air.volume(pressure),
-            volume_compliance=self.air.compliance(pressure),
-        )
+        return np.where(absolute > 0.0, absolute, np.inf)

@@ -29,7 +29,7 @@ from fe.membrane import deformation_gradient, edge_gradient
 from fe.wptypes import mat32d, mat99d
 
 if TYPE_CHECKING:
-    from fe.shell import ShellSystem
+    from fe.batched import BatchedShell
 
 
 @wp.kernel
@@ -38,19 +38,23 @@ def frozen_stress_kernel(
     triangles: wp.array(dtype=wp.vec3i),
     dm_inv: wp.array(dtype=wp.mat22d),
     rest_area: wp.array(dtype=wp.float64),
-    stress: wp.array(dtype=wp.mat22d),
+    frozen_stress: wp.array2d(dtype=wp.mat22d),
     want_hessian: int,
     energy: wp.array2d(dtype=wp.float64),
     gradient: wp.array2d(dtype=wp.vec3d),
     hessian: wp.array2d(dtype=mat99d),
+    active: wp.array(dtype=wp.int32),
 ):
-    """Adds (1/2) A0 a : (C - I) per (batch, triangle), a = `stress` (N/m, symmetric), to the membrane's
-    energy, node gradients (P = A0 F a) and 9x9 Hessian (dP = A0 dF a); run after `membrane_kernel`."""
+    """Adds (1/2) A0 a : (C - I) per (batch, triangle), a = `frozen_stress` (N/m, symmetric), to the
+    membrane's energy, node gradients (P = A0 F a) and 9x9 Hessian (dP = A0 dF a) of the active systems;
+    run after `membrane_kernel`."""
     b, t = wp.tid()
+    if active[b] == 0:
+        return
     tri = triangles[t]
     Dinv = dm_inv[t]
     F = deformation_gradient(x, b, tri, Dinv)
-    a = stress[t]
+    a = frozen_stress[b, t]
     area = rest_area[t]
     strain = wp.transpose(F) @ F - wp.identity(n=2, dtype=wp.float64)
     energy[b, t] = energy[b, t] + wp.float64(0.5) * area * wp.trace(a @ strain)
@@ -83,65 +87,69 @@ def step_factors(fractions: np.ndarray, times: np.ndarray, dt: float) -> tuple[n
     return np.exp(-x), fractions * gamma
 
 
-class BranchHistory:
-    """Internal stresses h_i (branch, *shape) of the Prony branches for one generalised stress, and the
-    elastic stress sigma_e at the last accepted state."""
-
-    def __init__(self, n_branches: int, elastic_stress: np.ndarray) -> None:
-        self.elastic_stress = elastic_stress.copy()
-        self.internal = np.zeros((n_branches, *elastic_stress.shape))
-
-    def frozen(self, decay: np.ndarray, weight: np.ndarray) -> np.ndarray:
-        """a = sum_i (decay_i h_i - weight_i sigma_e,old): the stress held constant through the coming step."""
-        return np.tensordot(decay, self.internal, axes=1) - weight.sum() * self.elastic_stress
-
-    def advance(self, decay: np.ndarray, weight: np.ndarray, elastic_stress: np.ndarray) -> None:
-        """Accept the step: h_i <- decay_i h_i + weight_i (sigma_e,new - sigma_e,old)."""
-        change = elastic_stress - self.elastic_stress
-        self.internal = decay.reshape(-1, *[1] * change.ndim) * self.internal
-        self.internal += weight.reshape(-1, *[1] * change.ndim) * change
-        self.elastic_stress = elastic_stress.copy()
-
-
 class SkinRelaxation:
-    """Prony-series state of one `ShellSystem` (fractions g_i, times tau_i in s) driven step by step.
+    """Prony-series state of the B systems of a `fe.batched.BatchedShell`, one branch each (fraction g and
+    time tau in s, (B,) arrays; g = 0: elastic), driven increment by increment for chosen systems (`rows`).
 
-    Call `prepare(dt)` before solving an increment that ends dt seconds after the last accepted state (it
-    installs the increment's scaled moduli, frozen membrane stress and shifted bending rest angles into the
-    system) and `advance(dt, x)` once it converged at positions x (V,3) m.
+    Call `prepare(rows, dt)` before solving increments that end dt (s) after the last accepted states (it
+    installs their scaled moduli, frozen membrane stresses and shifted bending rest angles into the shell)
+    and `advance(rows, dt, x)` once they converged at positions x (k,V,3) m.
     """
 
-    def __init__(self, system: "ShellSystem", fractions: np.ndarray, times: np.ndarray) -> None:
+    def __init__(self, shell: "BatchedShell", fractions: np.ndarray, times: np.ndarray) -> None:
         fractions, times = np.asarray(fractions, dtype=float), np.asarray(times, dtype=float)
-        if fractions.shape != times.shape or fractions.ndim != 1:
-            raise ValueError("one relaxation time per Prony fraction")
-        if np.any(fractions < 0) or fractions.sum() >= 1.0 or np.any(times <= 0):
-            raise ValueError("Prony fractions must be >= 0 with sum < 1, relaxation times > 0")
-        self.system, self.fractions, self.times = system, fractions, times
-        self.long_term = 1.0 - float(fractions.sum())
+        if fractions.shape != (shell.batch,) or times.shape != (shell.batch,):
+            raise ValueError("one Prony fraction and one relaxation time per system")
+        if np.any(fractions < 0) or np.any(fractions >= 1.0) or np.any(times <= 0):
+            raise ValueError("Prony fractions must be in [0, 1), relaxation times > 0")
+        self.shell, self.fractions, self.times = shell, fractions, times
+        self.long_term = 1.0 - fractions
+        n_tri, n_bend = shell.n_triangles, shell.n_bending
+        self.membrane = np.zeros((shell.batch, n_tri, 2, 2))
+        """Internal membrane stress h (B,T,2,2) N/m of each system's branch."""
+        self.membrane_elastic = np.zeros((shell.batch, n_tri, 2, 2))
+        """Elastic membrane stress (B,T,2,2) N/m at the last accepted state."""
+        self.bending = np.zeros((shell.batch, n_bend, 3))
+        """Internal bending 'stress' h (B,n_bending,3) in angle space (rad)."""
+        self.bending_elastic = np.zeros((shell.batch, n_bend, 3))
+        """Dihedral-angle changes (B,n_bending,3) rad at the last accepted state."""
 
-    def reset(self, x: np.ndarray) -> None:
-        """Fully relaxed at positions x (V,3) m (h_i = 0), the system set to its long-term moduli."""
-        n = len(self.fractions)
-        self.membrane = BranchHistory(n, self.system.membrane_stress(x))
-        self.bending = BranchHistory(n, self.system.bending_angle_change(x))
-        self.system.set_relaxation(self.long_term)
+    def _factors(self, rows: np.ndarray, dt: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        decay, weight = np.ones(len(rows)), np.zeros(len(rows))
+        for k, (i, step) in enumerate(zip(rows, dt, strict=True)):
+            d, w = step_factors(self.fractions[i : i + 1], self.times[i : i + 1], float(step))
+            decay[k], weight[k] = d[0], w[0]
+        return decay, weight
 
-    @property
-    def at_rest(self) -> bool:
-        """Whether no branch holds internal stress (the state `reset` leaves)."""
-        return not (self.membrane.internal.any() or self.bending.internal.any())
+    def reset(self, rows: np.ndarray, x: np.ndarray) -> None:
+        """Systems `rows` fully relaxed at positions x (k,V,3) m (h = 0), at their long-term moduli."""
+        self.membrane[rows], self.bending[rows] = 0.0, 0.0
+        for k, i in enumerate(rows):
+            self.membrane_elastic[i] = self.shell.membrane_stress(x[k])
+            self.bending_elastic[i] = self.shell.bending_angle_change(x[k])
+        self.shell.set_relaxation(rows, self.long_term[rows], None, None)
 
-    def prepare(self, dt: float) -> None:
-        """Install the algorithmic moduli of a step of dt (s) into the system."""
-        decay, weight = step_factors(self.fractions, self.times, dt)
-        scale = self.long_term + float(weight.sum())
-        self.system.set_relaxation(
-            scale, self.membrane.frozen(decay, weight), -self.bending.frozen(decay, weight) / scale
-        )
+    def at_rest(self, rows: np.ndarray) -> np.ndarray:
+        """(k,) whether no branch of systems `rows` holds internal stress (the state `reset` leaves)."""
+        held = np.abs(self.membrane[rows]).reshape(len(rows), -1).max(axis=1, initial=0.0) > 0.0
+        held |= np.abs(self.bending[rows]).reshape(len(rows), -1).max(axis=1, initial=0.0) > 0.0
+        return ~held
 
-    def advance(self, dt: float, x: np.ndarray) -> None:
-        """Accept a step of dt (s) that converged at positions x (V,3) m."""
-        decay, weight = step_factors(self.fractions, self.times, dt)
-        self.membrane.advance(decay, weight, self.system.membrane_stress(x))
-        self.bending.advance(decay, weight, self.system.bending_angle_change(x))
+    def prepare(self, rows: np.ndarray, dt: np.ndarray) -> None:
+        """Install the algorithmic moduli of steps of dt (k,) s into systems `rows`: scale c = g_inf + g gamma,
+        frozen membrane stress a = decay h - g gamma N_e,old, bending rest angles shifted by -a_bend / c."""
+        decay, weight = self._factors(rows, dt)
+        scale = self.long_term[rows] + weight
+        d4, w4 = decay[:, None, None, None], weight[:, None, None, None]
+        frozen = d4 * self.membrane[rows] - w4 * self.membrane_elastic[rows]
+        frozen_angle = d4[..., 0] * self.bending[rows] - w4[..., 0] * self.bending_elastic[rows]
+        self.shell.set_relaxation(rows, scale, frozen, -frozen_angle / scale[:, None, None])
+
+    def advance(self, rows: np.ndarray, dt: np.ndarray, x: np.ndarray) -> None:
+        """Accept steps of dt (k,) s of systems `rows` that converged at positions x (k,V,3) m."""
+        decay, weight = self._factors(rows, dt)
+        for k, i in enumerate(rows):
+            stress, angles = self.shell.membrane_stress(x[k]), self.shell.bending_angle_change(x[k])
+            self.membrane[i] = decay[k] * self.membrane[i] + weight[k] * (stress - self.membrane_elastic[i])
+            self.bending[i] = decay[k] * self.bending[i] + weight[k] * (angles - self.bending_elastic[i])
+            self.membrane_elastic[i], self.bending_elastic[i] = stress, angles
