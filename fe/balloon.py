@@ -12,9 +12,12 @@ from dataclasses import dataclass
 import numpy as np
 import trimesh
 
-from fe.newton import NewtonSettings, solve_equilibrium
+from assets.indenters import get_indenter
+from fe.batched import InflatedSkin
+from fe.batched_stepper import BatchedStepper
+from fe.newton import NewtonSettings
 from fe.params import SkinParameters
-from fe.shell import ShellMesh, ShellSystem
+from fe.shell import ShellMesh
 
 
 @dataclass(frozen=True)
@@ -68,18 +71,20 @@ def inflate_balloon(
     if any(r <= 0 for r in volume_ratios):
         raise ValueError("volume ratios must be positive")
     params = SkinParameters(thickness=thickness, mu_nh=mu, bending=bending, gent_inverse_jm=gent_inverse_jm)
-    system = ShellSystem(sphere_mesh(radius, subdivisions), params)
-    q = system.free_coordinates(system.x)
-    v0 = system.linearize(q, 0.0, want_matrix=False).volume
-    pressure, points = 0.0, []
+    mesh = sphere_mesh(radius, subdivisions)
+    rest = InflatedSkin.at_rest(mesh.vertices, mesh.triangles, mesh.fixed, params, newton=NewtonSettings())
+    engine = BatchedStepper(rest, [get_indenter("sphere_medium")])  # no indenter pose: it stays away
+    v0, current, points = engine.rest_volume, 1.0, []
     # Walk in small volume steps so that Newton always starts near the solution.
     for ratio in volume_ratios:
-        current = system.linearize(q, pressure, want_matrix=False).volume / v0
         n_steps = max(1, int(np.ceil(abs(ratio - current) / max_volume_step)))
-        result = None
+        converged = np.ones(1, dtype=bool)
         for target in np.linspace(current, ratio, n_steps + 1)[1:]:
-            result = solve_equilibrium(system, q, pressure, target * v0, NewtonSettings(force_tolerance=1e-10))
-            q, pressure = result.q, result.pressure
+            converged, _ = engine.hold_volume(np.array([target * v0]))
+            if not converged[0]:
+                break
+            current = target
+        pressure = float(engine.pressure[0])
         stretch = ratio ** (1.0 / 3.0)
         points.append(
             BalloonPoint(
@@ -87,7 +92,7 @@ def inflate_balloon(
                 stretch=stretch,
                 pressure_pa=pressure,
                 analytic_pressure_pa=float(analytic_balloon_pressure(stretch, radius, thickness, mu, gent_inverse_jm)),
-                converged=bool(result is None or result.converged),
+                converged=bool(converged[0]),
             )
         )
     return points

@@ -289,13 +289,13 @@ class BlockPattern:
         keys = [np.arange(n_nodes, dtype=np.int64) * (n_nodes + 1)]
         for nodes in connectivities:
             nodes = np.asarray(nodes, dtype=np.int64)
-            keys.append((nodes[:, :, None] * n_nodes + nodes[:, None, :]).reshape(len(nodes), -1).ravel())
+            keys.append((nodes[:, :, None] * n_nodes + nodes[:, None, :]).ravel())
         unique, inverse = np.unique(np.concatenate(keys), return_inverse=True)
         rows, cols = unique // n_nodes, unique % n_nodes
         block_of, start = [], n_nodes
         for nodes in connectivities:
             size = len(nodes) * nodes.shape[1] ** 2
-            block_of.append(inverse[start : start + size].reshape(len(nodes), -1).astype(np.int32))
+            block_of.append(inverse[start : start + size].reshape(len(nodes), nodes.shape[1] ** 2).astype(np.int32))
             start += size
         return cls(
             n_nodes=n_nodes,

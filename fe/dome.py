@@ -4,15 +4,16 @@ Close to the BioTac's own situation (a fluid-backed skin anchored along its edge
 for an independent axisymmetric solution (`fe.axisymmetric`). Lengths in metres, pressures in Pa.
 """
 
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import numpy as np
 
-from assets.indenters import get_indenter
-from fe.indentation import IncrementResult, Trajectory, indent
-from fe.newton import NewtonSettings, solve_equilibrium
+from assets.indenters import KIND_SPHERE, Indenter
+from fe.batched import InflatedSkin
+from fe.batched_stepper import BatchedStepper
+from fe.indentation import IncrementResult, IndentationStepper, Trajectory, drive
 from fe.params import ContactSettings, SkinParameters
-from fe.shell import ShellMesh, ShellSystem
+from fe.shell import ShellMesh
 
 
 def _zip_rings(lower: np.ndarray, upper: np.ndarray, lower_angles: np.ndarray, upper_angles: np.ndarray) -> list:
@@ -123,23 +124,21 @@ def run_dome(
         raise ValueError("volume_ratio must be positive")
     mesh = hemisphere_mesh(radius, max_edge or radius / 12)
     params = SkinParameters(thickness=thickness, mu_nh=mu, friction=0.0, bending=bending)
-    system = ShellSystem(mesh, params, contact)
-    q = system.free_coordinates(system.x)
-    v0 = system.linearize(q, 0.0, want_matrix=False).volume
-    pressure = 0.0
+    rest = InflatedSkin.at_rest(mesh.vertices, mesh.triangles, mesh.fixed, params, contact, indenter_offset=0.0)
+    sphere = Indenter("dome_sphere", KIND_SPHERE, (indenter_radius or radius, 0.0, 0.0, 0.0), "frictionless sphere")
+    engine = BatchedStepper(rest, [sphere])
+    v0 = engine.rest_volume
     for target in np.linspace(1.0, volume_ratio, max(2, int(np.ceil(abs(volume_ratio - 1) / 0.05)) + 1))[1:]:
-        result = solve_equilibrium(system, q, pressure, target * v0, NewtonSettings())
-        if not result.converged:
-            raise RuntimeError(f"dome inflation did not converge at V/V0={target:.3f}: {result.message}")
-        q, pressure = result.q, result.pressure
-    x_ref = system.positions(q)
+        converged, message = engine.hold_volume(np.array([target * v0]))
+        if not converged[0]:
+            raise RuntimeError(f"dome inflation did not converge at V/V0={target:.3f}: {message[0]}")
+    x_ref, pressure = engine.x[0].copy(), float(engine.pressure[0])
     apex = x_ref[0].copy()
     increments = []
     if indenter_radius is not None and depths is not None:
-        sphere = get_indenter("sphere_medium")
-        dims = (indenter_radius, 0.0, 0.0, 0.0)
         push = np.array([0.0, 0.0, -1.0])
         # Indenter frame: body along +z, presses along -z; pushing down needs no rotation.
         trajectory = Trajectory(apex, push, np.eye(3), np.asarray(depths, dtype=float))
-        increments = list(indent(system, x_ref, pressure, volume_ratio * v0, sphere.kind, dims, trajectory, 0.0))
+        inflated = replace(rest, reference=x_ref, pressure=pressure, target_volume=volume_ratio * v0)
+        increments = list(drive(IndentationStepper(inflated, sphere, apex), trajectory))
     return DomeResult(v0, volume_ratio * v0, pressure, float(apex[2]), increments)

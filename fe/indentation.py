@@ -11,6 +11,7 @@ from collections.abc import Iterator
 
 import numpy as np
 
+from assets.indenters import Indenter
 from fe.batched import InflatedSkin
 from fe.batched_stepper import BatchedStepper
 from fe.results import IncrementResult, Trajectory
@@ -30,9 +31,9 @@ class IndentationStepper:
     """
 
     def __init__(
-        self, skin: InflatedSkin, indenter: str, origin: np.ndarray | None = None, device: str = "cpu"
+        self, skin: InflatedSkin, indenter: str | Indenter, origin: np.ndarray | None = None, device: str = "cpu"
     ) -> None:
-        """`skin`: the inflated model; `indenter`: its name (`assets.indenters`); `origin` (3,) m: tip position
+        """`skin`: the inflated model; `indenter`: one of `assets.indenters` or its name; `origin` (3,) m: tip position
         of zero depth (None: the first pose stepped after each reset); `device`: a warp device."""
         self.engine = BatchedStepper(skin, [indenter], device)
         self._fixed_origin = None if origin is None else np.array(origin, dtype=np.float64)
