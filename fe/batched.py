@@ -1,21 +1,22 @@
-"""B copies of one inflated skin solved together on a warp device (CPU or CUDA): energies, Newton, CG.
+"""The FE engine: B skins solved together on any warp device (CPU or CUDA): energies, Newton, linear algebra.
 
-`BatchedShell` stacks B independent systems (same mesh and material, each with its own indenter pose,
-friction lagging and state) into warp arrays with a leading batch axis, evaluates every energy term of
-`fe.shell.ShellSystem` for all of them with one launch per kernel (the kernels of fe/membrane.py,
-fe/bending.py, fe/volume.py and fe/contact.py, which take the batch axis), assembles the B Newton
-matrices into one batched block-sparse matrix on the device and solves them with the batched CG of
-`fe.device_solver`. Newton's method is that of `fe.newton.solve_equilibrium`, per system: the same KKT
-system through its Schur complement (K u1 = -r, K u2 = b), the same stopping rules, merit function and
-backtracking, the same lagged-friction refreshes. Where the CPU path falls back to PSD-projected element
-Hessians (a step of non-positive curvature, or no acceptable length), this one damps the diagonal instead
-(K + s diag(K), s = 1e-2 ... 1e2), since CG needs a positive definite matrix.
+`InflatedSkin` is the model (mesh, core, parameters, settings) with its starting state; `BatchedShell` stacks
+B independent systems of it (each with its own indenter, pose, friction lagging, viscoelastic state and
+trapped air) into warp arrays with a leading batch axis and evaluates every energy term for all of them with
+one launch per kernel (the kernels of fe/membrane.py, fe/viscoelastic.py, fe/bending.py, fe/volume.py and
+fe/contact.py), then assembles the B Newton matrices into one batched block-sparse matrix on the device.
+The linear algebra follows the device: one sparse direct factorisation per system on the CPU
+(`fe.linsolve.BatchedDirectSolver`: PARDISO or SuperLU, with chord steps that reuse it near convergence),
+batched CG on a GPU (`fe.device_solver.BatchedCG`). Newton solves the KKT system of the held volume through
+its Schur complement (K u1 = -r, K u2 = b; trapped air adds its compliance), backtracks on an
+augmented-Lagrangian merit function (else on the residual norm), and refreshes the lagged friction forces
+near convergence. A step of non-positive curvature, or one with no acceptable length, is retried with
+diagonal damping (K + s diag(K), s = 1e-2 ... 1e2).
 
-Newton runs in rounds (`evaluate_round`, `settle`, `check`, `iterate`) in which every system does one
-evaluation, wherever it is: at its positions (then a convergence check and a new direction) or at the
-next trial point of its line search. So a system that backtracks costs the others nothing, an accepted
-trial's evaluation (with Hessians) serves as the next Newton evaluation, and systems can join and leave
-between rounds (`fe.batched_stepper.BatchedStepper.admit`).
+Newton runs in rounds (`round`: `evaluate_round`, `settle`, `check`, `iterate`) in which every system does
+one evaluation, wherever it is: at its positions (then a convergence check and a new direction) or at the
+next trial point of its line search or chord step. So a system that backtracks costs the others nothing
+and systems can join and leave between rounds (`fe.batched_stepper.BatchedStepper.admit`).
 Units: m, N, Pa, m^3; positions in the sensor (biotac) frame.
 """
 
@@ -44,6 +45,9 @@ if TYPE_CHECKING:
     from fe.sensor import BioTacModel
 
 _ENERGY_RESOLUTION = 1e-12
+LINEAR_SOLVERS = ("auto", "direct", "cg")
+"""Newton's linear algebra: "auto" follows the device (direct on the CPU, CG on a GPU); "direct" and "cg"
+force one (CG on the CPU runs the GPU's algebra where there is no GPU, e.g. in tests)."""
 FORCING = ("adaptive", "strict")
 """How tightly each Newton step's linear systems are solved (`BatchedShell._forcing`)."""
 _ETA_MAX = 0.1
@@ -236,7 +240,7 @@ class BatchedShell:
     """`batch` copies of an `InflatedSkin` on a warp `device`; indenter i of the batch is `indenters[i]`,
     given as (kind, dims) of `fe.indenter_sdf` (any mix: the contact kernels read each system's own).
     `forcing`: one of `FORCING`, how tightly the CG solves each Newton step (the converged states do not
-    depend on it, only the work)."""
+    depend on it, only the work); `linear`: one of `LINEAR_SOLVERS`."""
 
     def __init__(
         self,
@@ -245,9 +249,12 @@ class BatchedShell:
         device: str = "cpu",
         cg_max_iterations: int = 20000,
         forcing: str = "adaptive",
+        linear: str = "auto",
     ) -> None:
         if forcing not in FORCING:
             raise ValueError(f"forcing must be one of {FORCING}, got {forcing!r}")
+        if linear not in LINEAR_SOLVERS:
+            raise ValueError(f"linear must be one of {LINEAR_SOLVERS}, got {linear!r}")
         self.skin, self.device, self.batch = skin, device, len(indenters)
         self.cg_max_iterations, self.forcing = cg_max_iterations, forcing
         B, V = self.batch, len(skin.vertices)
@@ -341,8 +348,8 @@ class BatchedShell:
         self._dims = arr(np.array([dims for _, dims in self.indenters], dtype=np.float64), wp.vec4d)
         connectivities = [tri, stencils, np.arange(V)[:, None]]
         self.matrix = BatchedBlockMatrix(BlockPattern.from_connectivities(connectivities, V), B, self.free, device)
-        cuda = wp.get_device(device).is_cuda
-        self.linear = BatchedCG(self.matrix, 2 * B) if cuda else BatchedDirectSolver(self.matrix)
+        use_cg = linear == "cg" or (linear == "auto" and wp.get_device(device).is_cuda)
+        self.linear = BatchedCG(self.matrix, 2 * B) if use_cg else BatchedDirectSolver(self.matrix)
         """Newton's linear algebra, chosen by the device: batched CG on a GPU, sparse direct per system on the CPU."""
         self._system_of = np.concatenate([np.arange(B), np.arange(B)]).astype(np.int32)
         self._system_of_b = wp.array(np.arange(B, dtype=np.int32), dtype=wp.int32, device=device)
@@ -611,7 +618,7 @@ class BatchedShell:
         return stopped
 
     def check(self, state: NewtonBatch, lin: BatchLinearization, friction: bool, at_x: np.ndarray) -> np.ndarray:
-        """The stopping rules of `fe.newton.solve_equilibrium` for the running systems evaluated at their
+        """The stopping rules (`fe.newton.NewtonSettings`) for the running systems evaluated at their
         positions (`at_x`): refresh lagged friction near convergence (`friction`), then stop systems that
         converged, failed or reached the iteration limit. Returns the systems that stopped now ((B,) bool);
         their residual and volume are recorded in `state`."""

@@ -74,12 +74,14 @@ def run_trajectories(
     on_trajectory: Callable[[int, list[IncrementResult]], None] | None = None,
     time_limit_s: float = np.inf,
     forcing: str = "adaptive",
+    linear: str = "auto",
     max_cuts: int = 3,
 ) -> BatchedRun:
     """Solve every trajectory's poses in order on `slots` continuously batched systems on the warp `device`;
     `on_trajectory(index, increments)` is called as each trajectory ends (for progress and streaming). After
     `time_limit_s` the run stops where it is (`BatchedRun.complete` False; unfinished trajectories keep the
-    increments they finished). `forcing`: the CG tolerance rule of `fe.batched.BatchedShell`. A failed
+    increments they finished). `forcing`, `linear`: the CG tolerance rule and linear algebra of `fe.batched.BatchedShell`.
+    A failed
     increment is cut back: retried from the last accepted pose through the midpoint, and so on up to
     `max_cuts` halvings of one step, before it ends the trajectory (`BatchedRun.counters["cut_backs"]`)."""
     if not trajectories:
@@ -90,7 +92,7 @@ def run_trajectories(
         raise ValueError(f"max_cuts must be at least 0, got {max_cuts}")
     slots = min(slots, len(trajectories))
     start = time.perf_counter()
-    stepper = BatchedStepper(skin, [t.indenter for t in trajectories[:slots]], device, forcing)
+    stepper = BatchedStepper(skin, [t.indenter for t in trajectories[:slots]], device, forcing, linear)
     schedule = _Schedule(trajectories, force_limit, on_trajectory, stepper, max_cuts)
     round_end_s: list[float] = []
     round_systems: list[int] = []

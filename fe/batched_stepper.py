@@ -51,7 +51,8 @@ def _check_poses(
 class BatchedStepper:
     """B independent indentation trajectories of one inflated skin, stepped together on `device`.
 
-    `indenters`: one indenter name per system; `forcing`: the CG tolerance rule of `fe.batched.BatchedShell`.
+    `indenters`: one indenter name per system; `forcing` and `linear`: the CG tolerance rule and the linear
+    algebra of `fe.batched.BatchedShell`.
     """
 
     def __init__(
@@ -60,13 +61,14 @@ class BatchedStepper:
         indenters: Sequence[str | Indenter],
         device: str = "cpu",
         forcing: str = "adaptive",
+        linear: str = "auto",
     ) -> None:
         shapes = [get_indenter(name) if isinstance(name, str) else name for name in indenters]
         self.skin, self.batch = skin, len(shapes)
         if self.batch == 0:
             raise ValueError("a batch needs at least one trajectory")
         self.indenters = [shape.name for shape in shapes]
-        self.shell = BatchedShell(skin, [(s.kind, s.dims) for s in shapes], device, forcing=forcing)
+        self.shell = BatchedShell(skin, [(s.kind, s.dims) for s in shapes], device, forcing=forcing, linear=linear)
         B, V, T = self.batch, len(skin.vertices), len(skin.triangles)
         rows = skin.triangles.ravel()
         # (V, T) incidence / 3: lumped vertex areas of a deformed mesh in one product.

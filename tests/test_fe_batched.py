@@ -21,8 +21,8 @@ from fe.batched_runner import PoseTrajectory, run_trajectories
 from fe.batched_stepper import BatchedStepper
 from fe.device_solver import CG_CONVERGED, CG_NEGATIVE_CURVATURE, BatchedBlockMatrix, BatchedCG, BlockPattern
 from fe.indentation import Trajectory
-from fe.params import SkinParameters
 from fe.sensor import BioTacModel
+from fe.trapped_air import TrappedAir
 
 PATHS = [  # indenter, point (m), angle (deg), azimuth (deg)
     ("sphere_medium", np.array([-6e-3, 0.0, -9e-3]), 0.0, 0.0),
@@ -181,10 +181,23 @@ def test_continuous_batching_matches_the_cpu_stepper(
         assert any(len(t) < len(STEPS) for t in run.results)
 
 
-def test_batched_solver_rejects_effects_it_does_not_model(frictionless_biotac: BioTacModel) -> None:
-    skin = InflatedSkin.from_model(frictionless_biotac)
-    with pytest.raises(NotImplementedError, match="air_volume_fraction"):
-        InflatedSkin(**{**skin.__dict__, "params": SkinParameters(air_volume_fraction=0.1)})
+def test_trapped_air_in_a_batch_follows_boyle_and_bad_poses_are_refused(frictionless_biotac: BioTacModel) -> None:
+    """Two presses with a bubble of 10 % of the fluid, stepped together: the liquid is incompressible, so
+    the enclosed volume changes by exactly the bubble's Boyle's-law change, (p_atm + p) V_air = k."""
+    model = frictionless_biotac
+    skin = model.inflated_skin()
+    k = TrappedAir.boyle(0.1, model.fluid_volume(), model.pressure)
+    with_air = dataclasses.replace(skin, params=dataclasses.replace(skin.params, air_volume_fraction=0.1), air_boyle=k)
+    paths = _paths(model)[:2]
+    stepper = BatchedStepper(with_air, [name for name, *_ in PATHS[:2]], "cpu")
+    rotation = np.stack([p.rotation for p in paths])
+    for s in STEPS[1:]:
+        results = stepper.step(rotation, np.stack([p.touch_point + s * p.direction for p in paths]))
+    air = TrappedAir(np.array([k]))
+    for result in results:
+        assert result.converged and result.pressure > model.pressure
+        boyle_change = air.volume(np.array([result.pressure]))[0] - air.volume(np.array([model.pressure]))[0]
+        assert result.volume - stepper.rest_volume == pytest.approx(boyle_change, rel=1e-6, abs=1e-15)
     with pytest.raises(ValueError, match="orthonormal"):
         BatchedStepper(skin, ["sphere_medium"], "cpu").step(np.zeros((1, 3, 3)), np.zeros((1, 3)))
 
@@ -207,14 +220,17 @@ def test_failed_steps_are_cut_back(frictionless_biotac: BioTacModel) -> None:
 
 
 def test_strict_forcing_reaches_the_same_equilibria(frictionless_biotac: BioTacModel) -> None:
-    """The CG tolerance rule changes the work, not the converged states."""
+    """The CG tolerance rule changes the work, not the converged states; CG (the GPU's linear algebra, here
+    on the CPU device) reaches the equilibria of the direct factorisation."""
     model = frictionless_biotac
     paths = _paths(model)
     skin = InflatedSkin.from_model(model)
     trajectories = [_pose_trajectory(name, p) for (name, *_), p in zip(PATHS, paths, strict=True)]
-    adaptive = run_trajectories(skin, trajectories, "cpu", slots=3)
-    strict = run_trajectories(skin, trajectories, "cpu", slots=3, forcing="strict")
-    for a, b in zip(adaptive.results, strict.results, strict=True):
+    direct = run_trajectories(skin, trajectories, "cpu", slots=3)
+    adaptive = run_trajectories(skin, trajectories, "cpu", slots=3, linear="cg")
+    strict = run_trajectories(skin, trajectories, "cpu", slots=3, forcing="strict", linear="cg")
+    for d, a, b in zip(direct.results, adaptive.results, strict.results, strict=True):
+        _assert_agree(d, a, 1e-6, 1e-9, 1e-6)
         _assert_agree(a, b, 1e-6, 1e-9, 1e-6)
     assert strict.counters["cg_iterations_mean"] > adaptive.counters["cg_iterations_mean"]
     with pytest.raises(ValueError, match="forcing"):

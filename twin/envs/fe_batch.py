@@ -59,8 +59,8 @@ class IndentationBatch:
 
     Every slot starts at the inflated state with its indenter away; `reset(slots)` puts slots back
     there. `device`: None for the loop of CPU steppers, else the warp device of the batched FE (module
-    docstring). The loop's slots share the model's `ShellSystem`: each stepper sets the contact state it
-    needs before every solve, so stepping slots in turn gives the same answers as stepping them alone.
+    docstring). Each of the loop's slots is a one-system stepper of the FE engine, so stepping slots in
+    turn gives the same answers as stepping them alone.
     """
 
     def __init__(self, model: BioTacModel, indenters: list[str], device: str | None = None) -> None:
