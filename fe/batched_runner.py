@@ -80,9 +80,8 @@ def run_trajectories(
     """Solve every trajectory's poses in order on `slots` continuously batched systems on the warp `device`;
     `on_trajectory(index, increments)` is called as each trajectory ends (for progress and streaming). After
     `time_limit_s` the run stops where it is (`BatchedRun.complete` False; unfinished trajectories keep the
-    increments they finished). `forcing`, `linear`: the CG tolerance rule and linear algebra of `fe.batched.BatchedShell`.
-    A failed
-    increment is cut back: retried from the last accepted pose through the midpoint, and so on up to
+    increments they finished). `forcing`, `linear`: the CG tolerance rule and linear algebra of
+    `fe.batched.BatchedShell`. A failed increment is cut back: retried from the last accepted pose through the midpoint, and so on up to
     `max_cuts` halvings of one step, before it ends the trajectory (`BatchedRun.counters["cut_backs"]`)."""
     if not trajectories:
         raise ValueError("no trajectories to run")

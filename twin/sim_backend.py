@@ -181,7 +181,7 @@ class SimBackend:
         pose = self.tip_pose_biotac(arm)
         moved = self._last_tip is None or np.linalg.norm(pose[:3, 3] - self._last_tip) > self.settings.pose_tolerance
         relaxing = (
-            self._stepper.relaxation is not None
+            self._stepper.relaxes
             and bool(self.solve_log)
             and self.time_s - self.solve_log[-1][0] >= RELAXATION_SOLVE_INTERVAL_S - 1e-9
         )
