@@ -385,7 +385,8 @@ class BatchedShell:
         frozen = np.zeros((k, self.n_triangles, 2, 2)) if frozen_stress is None else frozen_stress
         shift = np.zeros((k, self.n_bending, 3)) if angle_shift is None else angle_shift
         put_rows(static["frozen_stress"], rows, frozen)
-        put_rows(static["rest_angle"], rows, self._rest_angle + shift)
+        if self.n_bending:
+            put_rows(static["rest_angle"], rows, self._rest_angle + shift)
 
     def membrane_stress(self, x: np.ndarray) -> np.ndarray:
         """Elastic (instantaneous) membrane stress resultants (T,2,2) N/m at positions x (V,3) m."""

@@ -258,8 +258,9 @@ class BatchedStepper:
         return self._finish(np.flatnonzero(stopped)) if stopped.any() else {}
 
     def hold_volume(self, target: np.ndarray, which: np.ndarray | None = None) -> tuple[np.ndarray, list[str]]:
-        """Re-solve the idle `which` systems (default all) at their current poses holding the enclosed
-        volumes `target` (B,) m^3 (liquid + air) from here on: inflation, by volume control. A system that
+        """Re-solve the idle `which` systems (default all) at their current poses holding the volumes `target`
+        (B,) m^3 from here on: inflation, by volume control. With trapped air the liquid is held at `target`
+        minus the bubble's volume at the current pressure (the bubble then follows Boyle's law). A system that
         converges takes the new equilibrium as its state; one that does not keeps its old state and volume.
         Returns whether each converged ((B,) bool, False for systems not solved) and Newton's messages."""
         which = np.ones(self.batch, dtype=bool) if which is None else np.asarray(which, dtype=bool)
