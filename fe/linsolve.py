@@ -13,15 +13,13 @@ import functools
 import os
 import weakref
 from collections.abc import Callable
-from typing import TYPE_CHECKING
 
 import numpy as np
 import scipy.sparse as sp
 import scipy.sparse.linalg as spla
 import warp as wp
 
-if TYPE_CHECKING:
-    from fe.device_solver import BatchedBlockMatrix
+from fe.device_solver import CG_CONVERGED, CG_NEGATIVE_CURVATURE, BatchedBlockMatrix
 
 
 class SingularMatrixError(RuntimeError):
@@ -254,19 +252,26 @@ class BatchedDirectSolver:
     """The batched CG's interface (`fe.device_solver.BatchedCG.solve`) answered by one sparse direct
     factorisation per system: the CPU's linear algebra for the batched Newton.
 
-    Each system's 3x3-block matrix (fixed DOFs already eliminated with a unit diagonal) is converted to
-    scalar CSR on the host, factorised by its own `SymmetricSolver` (the symbolic analysis of the shared
-    pattern is done once per system slot) and solved for its right-hand sides to round-off; the
-    factorisation is kept, so `resolve` repeats a solve with it (a chord step) without a new matrix.
+    Each system's 3x3-block matrix is gathered into scalar CSR over the free DOFs only (one precomputed
+    index from the block values into the CSR values), factorised by its own `SymmetricSolver` (the
+    symbolic analysis of the shared pattern is done once per system slot) and solved for its right-hand
+    sides to round-off (fixed DOFs get 0); the factorisation is kept, so `resolve` repeats a solve with it
+    (a chord step) without a new matrix.
     """
 
     holds_factorization = True
 
-    def __init__(self, matrix: "BatchedBlockMatrix") -> None:
+    def __init__(self, matrix: BatchedBlockMatrix) -> None:
         self.matrix = matrix
         pattern, n = matrix.pattern, matrix.pattern.n_nodes
-        self._shape = (3 * n, 3 * n)
-        self._pattern = (pattern.columns.astype(np.int32), pattern.offsets.astype(np.int32))
+        self._free = np.flatnonzero(matrix.free.numpy().reshape(-1) > 0.0)
+        # Number every block entry (1-based, so none is a structural zero), convert once, keep the free part.
+        numbers = np.arange(1, 9 * len(pattern.columns) + 1, dtype=np.float64).reshape(-1, 3, 3)
+        blocks = sp.bsr_matrix((numbers, pattern.columns, pattern.offsets), shape=(3 * n, 3 * n)).tocsr()
+        free = blocks[self._free][:, self._free].tocsr()
+        free.sort_indices()
+        self._gather = free.data.astype(np.int64) - 1
+        self._indices, self._indptr = free.indices.astype(np.int32), free.indptr.astype(np.int32)
         self._solvers: dict[int, SymmetricSolver] = {}
         self._factorized = np.zeros(matrix.batch, dtype=bool)
         self.x = None
@@ -283,13 +288,14 @@ class BatchedDirectSolver:
         """Factorise the matrix of every system with an active column, then solve (`BatchedCG.solve`'s
         arguments and results; `tolerance` and `max_iterations` are met by construction). A singular
         system's columns come back CG_NEGATIVE_CURVATURE (no usable solution)."""
-        values = self.matrix.values.numpy()
+        values = self.matrix.values.numpy().reshape(self.matrix.batch, -1)
         systems = np.unique(np.asarray(system_of)[np.asarray(active, dtype=bool)])
+        n = len(self._free)
         for b in systems:
             self._factorized[b] = False
-            blocks = sp.bsr_matrix((values[b], *self._pattern), shape=self._shape)
+            matrix = sp.csr_matrix((values[b][self._gather], self._indices, self._indptr), shape=(n, n))
             try:
-                self._solver(int(b)).factorize(blocks.tocsr())
+                self._solver(int(b)).factorize(matrix)
             except SingularMatrixError:
                 continue
             self._factorized[b] = True
@@ -299,8 +305,6 @@ class BatchedDirectSolver:
         self, rhs: wp.array, system_of: np.ndarray, active: np.ndarray
     ) -> tuple[wp.array, np.ndarray, np.ndarray]:
         """Solve the active columns with the factorisations held (of each system's last `solve`)."""
-        from fe.device_solver import CG_CONVERGED, CG_NEGATIVE_CURVATURE
-
         system_of, active = np.asarray(system_of), np.asarray(active, dtype=bool)
         rhs_host = rhs.numpy().reshape(len(system_of), -1)
         out = np.zeros_like(rhs_host)
@@ -311,7 +315,7 @@ class BatchedDirectSolver:
                 state[columns] = CG_NEGATIVE_CURVATURE
                 continue
             try:
-                out[columns] = self._solver(int(b)).solve(rhs_host[columns].T).T
+                out[np.ix_(columns, self._free)] = self._solver(int(b)).solve(rhs_host[columns][:, self._free].T).T
             except SingularMatrixError:
                 state[columns] = CG_NEGATIVE_CURVATURE
         if self.x is None or self.x.shape != rhs.shape:
