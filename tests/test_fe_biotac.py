@@ -2,11 +2,21 @@
 
 import numpy as np
 import pytest
+import warp as wp
 
+from assets.indenters import get_indenter
+from fe.indentation import IndentationStepper, drive
 from fe.params import SkinParameters
 from fe.sensor import SENSOR_THICKNESS, BioTacModel
 
 MIDLINE_POINT = np.array([-6e-3, 0.0, -9e-3])
+
+
+def _enclosed_volume(x: np.ndarray, triangles: np.ndarray, origin: np.ndarray) -> float:
+    """Signed volume (m^3) of the cones from `origin` to the skin triangles (numpy, independent of fe/); with the
+    anchored rim fixed, differences between two states do not depend on the origin."""
+    a, b, c = (x[triangles[:, k]] - origin for k in range(3))
+    return float(np.einsum("ij,ij->", a, np.cross(b, c)) / 6.0)
 
 
 def test_inflation_reaches_the_sensor_thickness(frictionless_biotac: BioTacModel) -> None:
@@ -23,8 +33,14 @@ def test_normal_midline_indentation_conserves_volume_balances_forces_and_is_symm
     assert all(inc.converged for inc in increments)
     last = increments[-1]
     target = frictionless_biotac.target_volume
+    reference = frictionless_biotac.reference
+    triangles = frictionless_biotac.geometry.skin.triangles
+    origin = frictionless_biotac.geometry.core.vertices.mean(axis=0)
+    v_ref = _enclosed_volume(reference, triangles, origin)
     for inc in increments:
         assert abs(inc.volume - target) <= 1e-6 * abs(target)
+        # The incompressible fluid's volume, measured here from the nodal positions alone.
+        assert abs(_enclosed_volume(reference + inc.displacement, triangles, origin) - v_ref) <= 1e-6 * abs(target)
         assert inc.equilibrium_error <= 1e-6
     force = last.force
     assert force[2] > 0.1, "pressing on the ventral pad pushes the skin toward +z"
@@ -36,19 +52,30 @@ def test_normal_midline_indentation_conserves_volume_balances_forces_and_is_symm
 
 def test_angled_indentation_tangential_force_bounded_by_friction(frictional_biotac: BioTacModel) -> None:
     model = frictional_biotac
-    increments = list(model.indent("sphere_medium", MIDLINE_POINT, depth=0.6e-3, step=0.2e-3, angle_deg=30.0))
-    assert all(inc.converged for inc in increments)
-    system = model.system
-    terms = system.evaluate(model.reference + increments[-1].displacement, want_hessian=False)
-    normal_force = system.lagged_force * (terms["indenter_gap"] < 0)
+    path = model.plan_trajectory(get_indenter("sphere_medium"), MIDLINE_POINT, 30.0, 0.0, 0.6e-3, 0.2e-3)
+    stepper = IndentationStepper(model.inflated_skin(), "sphere_medium", path.touch_point)
+    increments = list(drive(stepper, path))
+    assert len(increments) == len(path.depths) and all(inc.converged for inc in increments)
+    assert all(inc.equilibrium_error <= 1e-6 for inc in increments)
+    # Re-evaluate the final state's contact terms (pose, slip start and lagged normal forces as the last solve
+    # left them).
+    shell = stepper.engine.shell
+    shell.evaluate(wp.array(stepper.x[None], dtype=wp.vec3d), False, np.array([stepper.pressure]))
+    gap = shell.buf["indenter_gap"].numpy()[0]
+    n = shell.buf["indenter_normal"].numpy()[0]
+    f = -shell.gradients.numpy()[2, 0]  # indenter force on each skin vertex
+    lagged = shell.lagged_force.numpy()[0]
     # Per contact node: friction = total contact force minus its normal part; Coulomb: |f_t| <= mu f_n.
-    f = -terms["indenter_gradient"]
-    n = terms["indenter_normal"]
     f_n = np.einsum("ij,ij->i", f, n)
     f_t = np.linalg.norm(f - f_n[:, None] * n, axis=1)
-    contact = normal_force > 0
-    assert contact.any()
-    assert np.all(f_t[contact] <= model.params.friction * system.lagged_force[contact] * (1 + 1e-9) + 1e-12)
+    contact = (gap < 0) & (lagged > 0)
+    assert contact.any() and np.all(f[gap >= 0] == 0.0)
+    assert np.all(f_t[contact] <= model.params.friction * lagged[contact] * (1 + 1e-9) + 1e-12)
+    # Against the normal forces of the final state itself (the lagged ones trail them by the refresh tolerance).
+    assert f_t.sum() <= model.params.friction * f_n[gap < 0].sum() * 1.01
+    assert np.allclose(f.sum(axis=0), increments[-1].force, rtol=1e-9, atol=1e-12)  # the state reported
+    # Friction is engaged: some contact nodes slide, at the Coulomb limit.
+    assert np.max(f_t[contact] / (model.params.friction * lagged[contact])) > 0.99
     # The resultant is tilted away from the surface normal, but no more than friction allows.
     total = increments[-1].force
     assert np.linalg.norm(total[:2]) > 0.02 * np.linalg.norm(total)

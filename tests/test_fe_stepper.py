@@ -1,5 +1,6 @@
 """Pose-driven indentation stepper on a coarse inflated BioTac: path independence, release, symmetry, failure."""
 
+import dataclasses
 import time
 
 import numpy as np
@@ -7,7 +8,6 @@ import pytest
 
 from assets.indenters import get_indenter
 from fe.indentation import IndentationStepper
-from fe.newton import NewtonSettings
 from fe.sensor import BioTacModel
 
 MIDLINE_POINT = np.array([-6e-3, 0.0, -9e-3])
@@ -78,23 +78,17 @@ def test_spinning_a_sphere_about_its_axis_changes_nothing_without_friction(frict
 def test_non_converged_step_is_reported_and_blocks_until_reset(frictionless_biotac: BioTacModel) -> None:
     model = frictionless_biotac
     path = _normal_path(model, 0.3e-3, 0.3e-3)
-    indenter = get_indenter("sphere_medium")
-    stepper = IndentationStepper(
-        model.system,
-        model.reference,
-        model.pressure,
-        model.target_volume,
-        indenter.kind,
-        indenter.dims,
-        0.5 * model.params.thickness,
-        NewtonSettings(max_iterations=1),
-    )
+    skin = model.inflated_skin()
+    capped = dataclasses.replace(skin, newton=dataclasses.replace(skin.newton, max_iterations=1))
+    stepper = IndentationStepper(capped, "sphere_medium")
     failed = stepper.step(path.rotation, path.touch_point + 0.3e-3 * path.direction)
     assert not failed.converged and failed.message == "iteration limit"
     with pytest.raises(RuntimeError, match="reset"):
         stepper.step(path.rotation, path.touch_point)
     stepper.reset()
-    assert stepper.step(path.rotation, path.touch_point - 1e-3 * path.direction).converged
+    assert stepper.failure is None
+    free = stepper.step(path.rotation, path.touch_point - 1e-3 * path.direction)
+    assert free.converged and np.all(free.displacement == 0.0) and free.pressure == model.pressure
 
 
 def test_bad_poses_are_refused(frictionless_biotac: BioTacModel) -> None:
