@@ -19,7 +19,7 @@ from __future__ import annotations
 import time
 from collections import deque
 from collections.abc import Callable, Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import numpy as np
 from scipy.spatial.transform import Rotation, Slerp
@@ -31,11 +31,13 @@ from fe.indentation import IncrementResult
 
 @dataclass(frozen=True)
 class PoseTrajectory:
-    """One indenter's poses: rotations (K,3,3) body -> sensor frame and tip positions (K,3) m."""
+    """One indenter's poses: rotations (K,3,3) body -> sensor frame, tip positions (K,3) m, and the time of
+    each pose (K,) s (None: untimed, only for a skin without viscoelastic relaxation)."""
 
     indenter: str
     rotations: np.ndarray
     translations: np.ndarray
+    times: np.ndarray | None = None
 
     def __post_init__(self) -> None:
         rotations, translations = np.asarray(self.rotations), np.asarray(self.translations)
@@ -46,6 +48,18 @@ class PoseTrajectory:
             )
         if len(rotations) == 0:
             raise ValueError("a trajectory needs at least one pose")
+        if self.times is not None:
+            times = np.asarray(self.times, dtype=np.float64)
+            if times.shape != (len(rotations),) or not np.all(np.isfinite(times)) or np.any(np.diff(times) < 0):
+                raise ValueError("a trajectory's times are one finite, non-decreasing time (s) per pose")
+
+
+    def at_speed(self, speed: float) -> PoseTrajectory:
+        """The same poses timed by a tip moving at `speed` (m/s) along them: t = cumulative tip travel / speed."""
+        if not speed > 0.0:
+            raise ValueError(f"speed={speed} m/s must be positive")
+        travel = np.linalg.norm(np.diff(np.asarray(self.translations), axis=0), axis=1)
+        return replace(self, times=np.concatenate([[0.0], np.cumsum(travel)]) / speed)
 
 
 @dataclass
@@ -74,17 +88,22 @@ def run_trajectories(
     on_trajectory: Callable[[int, list[IncrementResult]], None] | None = None,
     time_limit_s: float = np.inf,
     forcing: str = "adaptive",
-    linear: str = "auto",
     max_cuts: int = 3,
+    linear: str = "auto",
 ) -> BatchedRun:
     """Solve every trajectory's poses in order on `slots` continuously batched systems on the warp `device`;
     `on_trajectory(index, increments)` is called as each trajectory ends (for progress and streaming). After
     `time_limit_s` the run stops where it is (`BatchedRun.complete` False; unfinished trajectories keep the
     increments they finished). `forcing`, `linear`: the CG tolerance rule and linear algebra of
-    `fe.batched.BatchedShell`. A failed increment is cut back: retried from the last accepted pose through the midpoint, and so on up to
-    `max_cuts` halvings of one step, before it ends the trajectory (`BatchedRun.counters["cut_backs"]`)."""
+    `fe.batched.BatchedShell`. A failed increment is cut back: retried from the last accepted pose through
+    the midpoint (in pose and time), and so on up to `max_cuts` halvings of one step, before it ends the
+    trajectory (`BatchedRun.counters["cut_backs"]`). Timed trajectories (all or none) are stepped at their
+    times, each from its own clock."""
     if not trajectories:
         raise ValueError("no trajectories to run")
+    timed = [t.times is not None for t in trajectories]
+    if any(timed) and not all(timed):
+        raise ValueError("either every trajectory is timed or none is")
     if slots < 1:
         raise ValueError(f"slots must be at least 1, got {slots}")
     if max_cuts < 0:
@@ -101,10 +120,10 @@ def run_trajectories(
             complete = False
             break
         while schedule.waiting.any():
-            rotation, translation = schedule.poses()
+            rotation, translation, times = schedule.poses()
             admitted = schedule.waiting.copy()
             schedule.waiting[:] = False
-            schedule.record(stepper.admit(admitted, rotation, translation))
+            schedule.record(stepper.admit(admitted, rotation, translation, times))
         if not stepper.newton.running.any():
             break
         round_systems.append(int(stepper.newton.running.sum()))
@@ -144,7 +163,8 @@ class _Schedule:
         self.pose = np.zeros(n, dtype=int)
         self.waiting = np.zeros(n, dtype=bool)
         """Slots whose next pose is to be admitted."""
-        self.detours: list[list[tuple[np.ndarray, np.ndarray]]] = [[] for _ in range(n)]
+        self.timed = trajectories[0].times is not None
+        self.detours: list[list[tuple[np.ndarray, np.ndarray, float]]] = [[] for _ in range(n)]
         """Per slot, the intermediate poses still to visit before its trajectory's next pose (cut-backs)."""
         self.cuts = np.zeros(n, dtype=int)
         """Per slot, how often the step to its trajectory's next pose has been halved."""
@@ -163,20 +183,23 @@ class _Schedule:
         self.detours[slot] = []
         self.waiting[slot] = self.current[slot] >= 0
 
-    def poses(self) -> tuple[np.ndarray, np.ndarray]:
-        """Rotations (S,3,3) and tip positions (S,3) m of the waiting slots' next poses (identity elsewhere)."""
+    def poses(self) -> tuple[np.ndarray, np.ndarray, np.ndarray | None]:
+        """Rotations (S,3,3), tip positions (S,3) m and times (S,) s (None: untimed) of the waiting slots'
+        next poses (identity, 0 elsewhere)."""
         n = self.stepper.batch
-        rotation, translation = np.tile(np.eye(3), (n, 1, 1)), np.zeros((n, 3))
+        rotation, translation, times = np.tile(np.eye(3), (n, 1, 1)), np.zeros((n, 3)), np.zeros(n)
         for slot in np.flatnonzero(self.waiting):
-            rotation[slot], translation[slot] = self._next_pose(slot)
-        return rotation, translation
+            rotation[slot], translation[slot], times[slot] = self._next_pose(slot)
+        return rotation, translation, times if self.timed else None
 
-    def _next_pose(self, slot: int) -> tuple[np.ndarray, np.ndarray]:
-        """The slot's next pose: its first intermediate pose, else its trajectory's next one."""
+    def _next_pose(self, slot: int) -> tuple[np.ndarray, np.ndarray, float]:
+        """The slot's next pose and its time (0 when untimed): its first intermediate pose, else its
+        trajectory's next one."""
         if self.detours[slot]:
             return self.detours[slot][0]
-        trajectory = self.trajectories[self.current[slot]]
-        return trajectory.rotations[self.pose[slot]], trajectory.translations[self.pose[slot]]
+        trajectory, k = self.trajectories[self.current[slot]], self.pose[slot]
+        time_s = 0.0 if trajectory.times is None else float(trajectory.times[k])
+        return trajectory.rotations[k], trajectory.translations[k], time_s
 
     def record(self, finished: dict[int, IncrementResult]) -> None:
         """File the slots' finished increments; queue their next poses, cut failed steps back, or end their
@@ -206,9 +229,11 @@ class _Schedule:
         """After a failed increment, step again from the last accepted pose in two halves (the pose that
         failed is reached through its midpoint)."""
         start_rotation, start_translation = self.stepper.retreat(slot)
-        end_rotation, end_translation = self._next_pose(slot)
+        start_time = 0.0 if np.isnan(self.stepper.time_s[slot]) else float(self.stepper.time_s[slot])
+        end_rotation, end_translation, end_time = self._next_pose(slot)
         mid = Slerp([0.0, 1.0], Rotation.from_matrix(np.stack([start_rotation, end_rotation])))(0.5).as_matrix()
-        self.detours[slot].insert(0, (mid, 0.5 * (start_translation + end_translation)))
+        midpoint = (mid, 0.5 * (start_translation + end_translation), 0.5 * (start_time + end_time))
+        self.detours[slot].insert(0, midpoint)
         self.cuts[slot] += 1
         self.cut_backs += 1
         self.waiting[slot] = True

@@ -106,6 +106,7 @@ class BatchedStepper:
             self.relaxation.reset(np.arange(B), self.x)
         self.time_s = np.full(B, np.nan)
         """Time (s) of each system's last step (NaN: none since its reset, or untimed)."""
+        self._time_start = np.full(B, np.nan)
         self._dt = np.zeros(B)
         self._depth, self._admitted_at = np.zeros(B), np.zeros(B)
         self._increment_travel = np.zeros((B, 3))
@@ -154,6 +155,7 @@ class BatchedStepper:
         if not self.can_retreat(system):
             raise RuntimeError(f"system {system} has no failed increment from an earlier pose to undo")
         self.failure[system] = None
+        self.time_s[system] = self._time_start[system]
         self.pose_rotation[system] = self._start_rotation[system]
         self.pose_translation[system] = self._start_translation[system]
         self.posed[system] = self._was_posed[system]
@@ -246,6 +248,7 @@ class BatchedStepper:
         if back.any():
             i = int(np.flatnonzero(back)[0])
             raise ValueError(f"time {times[i]} s of system {i} goes back from its last step's {self.time_s[i]} s")
+        self._time_start[which] = self.time_s[which]
         self.time_s[which] = times[which]
         return np.where(which, times - last, 0.0)
 

@@ -1,4 +1,4 @@
-"""`twin fe batch`: the results file's contract, a round trip through --poses, and bad input."""
+"""`twin fe batch`: the results file's contract, a round trip through --poses, a --model, and bad input."""
 
 import json
 from pathlib import Path
@@ -7,7 +7,9 @@ import numpy as np
 import pytest
 from typer.testing import CliRunner
 
+from fe.params import SkinParameters
 from twin import cli_fe_batch
+from twin.analysis.predict import TwinModel
 from twin.cli import app
 from twin.fe_batch_results import BatchResults
 
@@ -89,3 +91,27 @@ def test_batch_rejects_bad_input_with_a_message(tmp_path: Path) -> None:
     assert result.exit_code == 2 and "no poses file" in result.output
     result = runner.invoke(app, ["fe", "batch", "--out", str(tmp_path / "x.npz"), "--max-cuts", "-1"])
     assert result.exit_code == 2 and "--max-cuts" in result.output
+
+
+def test_batch_rejects_a_bad_model_with_one_line(tmp_path: Path) -> None:
+    args = ["fe", "batch", "--out", str(tmp_path / "x.npz"), "--model"]
+    bad = tmp_path / "bad.json"
+    bad.write_text(json.dumps({"skin": {"friction": -1.0}, "mesh_max_edge": 2e-3}))
+    for path, message in ((tmp_path / "no.json", "cannot read the model"), (bad, "friction=-1")):
+        result = runner.invoke(app, [*args, str(path)])
+        errors = [line for line in result.output.splitlines() if line.startswith("error:")]
+        assert result.exit_code == 2 and len(errors) == 1 and message in errors[0], result.output
+
+
+def test_batch_runs_a_model_with_relaxation_and_trapped_air(tmp_path: Path) -> None:
+    skin = SkinParameters(relaxation_fraction=0.3, air_volume_fraction=0.05)
+    model = tmp_path / "m.json"
+    model.write_text(json.dumps(TwinModel(skin, mesh_max_edge=2e-3).to_dict()))
+    out = tmp_path / "r.npz"
+    args = ["fe", "batch", "--out", str(out), "--model", str(model), "--device", "cpu", "--trajectories", "2"]
+    result = runner.invoke(app, [*args, "--indenters", "sphere_medium", "--depth-mm", "0.2", "--slots", "2", "--json"])
+    assert result.exit_code == 0, result.output
+    summary = json.loads(result.stdout.strip().splitlines()[-1])
+    assert summary["ended"] == 2 and summary["not_converged"] == 0
+    assert summary["mesh_mm"] == 2.0 and summary["model"] == str(model)
+    assert np.all(np.linalg.norm(np.load(out)["force"][:, -1], axis=1) > 0)

@@ -1,12 +1,22 @@
-"""Shared CLI helpers: number parsing, bad-input guarding, progress bars (stderr), consoles."""
+"""Shared CLI helpers: number parsing, bad-input guarding, progress bars (stderr), consoles, the fe model and
+warp device of the `twin fe` commands."""
+
+from __future__ import annotations
 
 from collections.abc import Callable
-from typing import TypeVar
+from dataclasses import replace
+from pathlib import Path
+from typing import TYPE_CHECKING, TypeVar
 
 import typer
 from rich.console import Console
 from rich.markup import escape
 from rich.progress import BarColumn, Progress, TextColumn, TimeElapsedColumn, TimeRemainingColumn
+
+if TYPE_CHECKING:
+    from fe.params import SkinParameters
+    from fe.sensor import BioTacModel, InflationResult
+    from twin.analysis.predict import TwinModel
 
 err_console = Console(stderr=True)
 out_console = Console()
@@ -29,7 +39,7 @@ def guarded(action: Callable[[], T]) -> T:
     try:
         return action()
     except ValueError as exc:
-        err_console.print(f"[red]error:[/red] {escape(str(exc))}")
+        err_console.print(f"[red]error:[/red] {escape(str(exc))}", soft_wrap=True)
         raise typer.Exit(code=2) from exc
 
 
@@ -44,3 +54,55 @@ def progress_bar() -> Progress:
         console=err_console,
         transient=True,
     )
+
+
+FE_MESH_MM = 0.5
+"""Maximum skin edge length (mm) of the `twin fe` indentations given neither --mesh-mm nor --model."""
+FE_MESH_HELP = (
+    f"Maximum skin edge length (mm); default the --model's mesh_max_edge, {FE_MESH_MM:g} without --model; "
+    "given with --model it overrides the model's."
+)
+FE_MODEL_HELP = (
+    "TwinModel JSON (TwinModel.to_dict(), as the analysis writes it): skin parameters with its effects applied, "
+    "mesh size and inflation rule; default the nominal model."
+)
+"""Help of the --mesh-mm and --model options of `twin fe indent` and `twin fe batch` (`inflated_twin_model`)."""
+
+
+def inflated_twin_model(
+    model_path: Path | None, mesh_mm: float | None
+) -> tuple[TwinModel, BioTacModel, InflationResult]:
+    """The `--model` TwinModel JSON (None: the nominal model) with its mesh size overridden by `mesh_mm` (mm;
+    None: the model's, `FE_MESH_MM` without a model), and its fe model: skin with the effects applied, inflated
+    by the model's rule (`twin.analysis.predict.inflated_fe_model`), with the InflationResult. Bad input
+    (unreadable or invalid model, bad mesh size): one-line message and exit code 2."""
+    from twin.analysis.predict import inflated_fe_model
+    from twin.cli_analysis import model_or_nominal
+    from twin.effects import apply_skin
+
+    def load() -> tuple[TwinModel, SkinParameters]:
+        try:
+            loaded = model_or_nominal(model_path, FE_MESH_MM * 1e-3)
+            return loaded, apply_skin(loaded.skin, loaded.effects)
+        except ValueError as exc:
+            raise ValueError(f"--model: {exc}") from exc
+
+    twin_model, skin = guarded(load)
+    if mesh_mm is not None:
+        twin_model = replace(twin_model, mesh_max_edge=mesh_mm * 1e-3)
+    err_console.print(
+        f"model: {escape(str(model_path or 'nominal'))}; skin mesh {twin_model.mesh_max_edge * 1e3:g} mm; "
+        f"inflating ({twin_model.inflation} rule) ..."
+    )
+    model, inflation = guarded(lambda: inflated_fe_model(skin, twin_model.mesh_max_edge, twin_model.inflation))
+    return twin_model, model, inflation
+
+
+def check_device(device: str) -> None:
+    """A ValueError naming the device when warp cannot use it here."""
+    import warp as wp
+
+    try:
+        wp.get_device(device)
+    except (RuntimeError, ValueError) as exc:
+        raise ValueError(f"warp device {device!r} is not available here: {exc}") from exc

@@ -2,6 +2,7 @@
 
 import json
 import sys
+from pathlib import Path
 from typing import Annotated
 
 import numpy as np
@@ -9,8 +10,11 @@ import typer
 from rich.progress import Progress
 from rich.table import Table
 
+from twin.cli_common import FE_MESH_HELP, FE_MODEL_HELP
+from twin.cli_common import check_device as _check_device
 from twin.cli_common import err_console as _err
 from twin.cli_common import guarded as _guarded
+from twin.cli_common import inflated_twin_model as _inflated_twin_model
 from twin.cli_common import out_console as _out
 from twin.cli_common import parse_floats as _floats
 from twin.cli_common import progress_bar as _progress
@@ -139,24 +143,26 @@ def indent(
     ] = 0.0,
     depth_mm: Annotated[float, typer.Option(help="Depth past first contact (mm).")] = 3.0,
     step_mm: Annotated[float, typer.Option(help="Increment (mm).")] = 0.1,
-    mesh_mm: Annotated[float, typer.Option(help="Maximum skin edge length (mm).")] = 0.5,
+    speed_mm_s: Annotated[
+        float, typer.Option(help="Indentation speed (mm/s) timing the increments; only a relaxing skin feels it.")
+    ] = 1.0,
+    mesh_mm: Annotated[float | None, typer.Option(help=FE_MESH_HELP)] = None,
+    model_json: Annotated[Path | None, typer.Option("--model", help=FE_MODEL_HELP)] = None,
+    device: Annotated[str, typer.Option(help="Warp device of the indentation: cpu, cuda, cuda:0, ...")] = "cpu",
     as_json: Annotated[bool, typer.Option("--json", help="Print JSON records.")] = False,
 ) -> None:
-    """Inflate the BioTac to 15.1 mm, then indent it at a point and print the force-depth table."""
-    from assets.biotac import make_biotac
+    """Inflate the BioTac (nominal or a --model), then indent it at a point and print the force-depth table."""
     from assets.indenters import get_indenter
-    from fe.sensor import BioTacModel
 
     point = np.array(_floats(point_mm, 3, "--point-mm")) * 1e-3
     _guarded(lambda: get_indenter(indenter))
-    if depth_mm < 0 or step_mm <= 0:
-        raise typer.BadParameter("--depth-mm must be >= 0 and --step-mm > 0")
-    geometry = _guarded(lambda: make_biotac(max_edge=mesh_mm * 1e-3))
-    model = BioTacModel(geometry)
-    _err.print(f"skin mesh: {len(geometry.skin.vertices)} vertices; inflating to 15.1 mm ...")
-    inflation = model.inflate()
+    if depth_mm < 0 or step_mm <= 0 or speed_mm_s <= 0:
+        raise typer.BadParameter("--depth-mm must be >= 0, --step-mm and --speed-mm-s > 0")
+    _guarded(lambda: _check_device(device))
+    _, model, inflation = _inflated_twin_model(model_json, mesh_mm)
     _err.print(
-        f"inflated: +{inflation.volume_change * 1e9:.1f} mm^3, p = {inflation.pressure / 1e3:.2f} kPa, "
+        f"inflated {len(model.geometry.skin.vertices)} skin vertices: "
+        f"+{inflation.volume_change * 1e9:.1f} mm^3, p = {inflation.pressure / 1e3:.2f} kPa, "
         f"thickness {inflation.thickness * 1e3:.3f} mm ({inflation.message})"
     )
     n_steps = int(round(depth_mm / step_mm)) + 1
@@ -164,7 +170,16 @@ def indent(
     with _progress() as progress:
         task = progress.add_task("indenting", total=n_steps)
         increments = _guarded(
-            lambda: model.indent(indenter, point, depth_mm * 1e-3, step_mm * 1e-3, angle_deg, azimuth_deg)
+            lambda: model.indent(
+                indenter,
+                point,
+                depth_mm * 1e-3,
+                step_mm * 1e-3,
+                angle_deg,
+                azimuth_deg,
+                speed=speed_mm_s * 1e-3,
+                device=device,
+            )
         )
         for inc in _guarded(lambda: list(_advance(increments, progress, task))):
             records.append(

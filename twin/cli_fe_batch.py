@@ -18,8 +18,12 @@ import numpy as np
 import typer
 from rich.table import Table
 
+from twin.cli_common import FE_MESH_HELP as MESH_HELP
+from twin.cli_common import FE_MODEL_HELP as MODEL_HELP
+from twin.cli_common import check_device as _check_device
 from twin.cli_common import err_console as _err
 from twin.cli_common import guarded as _guarded
+from twin.cli_common import inflated_twin_model as _inflated_twin_model
 from twin.cli_common import out_console as _out
 from twin.cli_common import progress_bar as _progress
 from twin.fe_batch_results import POSES_FILE_KEYS, BatchResults, read_poses
@@ -38,7 +42,8 @@ def batch(
     poses: Annotated[
         Path | None, typer.Option(help="Poses file (.npz with names, rotations, translations in m) to run instead.")
     ] = None,
-    mesh_mm: Annotated[float, typer.Option(help="Maximum skin edge length (mm).")] = 0.5,
+    mesh_mm: Annotated[float | None, typer.Option(help=MESH_HELP)] = None,
+    model_json: Annotated[Path | None, typer.Option("--model", help=MODEL_HELP)] = None,
     device: Annotated[str, typer.Option(help="Warp device: cpu, cuda, cuda:0, ...")] = "cpu",
     slots: Annotated[int, typer.Option(help="Trajectories solved together.")] = 256,
     force_limit: Annotated[float, typer.Option(help="A trajectory stops past this force (N).")] = 25.0,
@@ -48,20 +53,21 @@ def batch(
     max_cuts: Annotated[
         int, typer.Option(min=0, help="Halvings of a failed step before it ends the trajectory.")
     ] = 3,
+    speed_mm_s: Annotated[
+        float, typer.Option(help="Tip speed (mm/s) timing the poses; only a relaxing skin feels it.")
+    ] = 1.0,
     resume: Annotated[
         bool, typer.Option(help="Keep the trajectories that ended in an earlier --out of the same options.")
     ] = False,
     as_json: Annotated[bool, typer.Option("--json", help="Print the summary as JSON.")] = False,
 ) -> None:
     """Run many indentation trajectories batched on a warp device and write their forces and contact."""
-    from assets.biotac import make_biotac
     from assets.indenters import INDENTERS
     from fe.batched import InflatedSkin
     from fe.batched_runner import PoseTrajectory, run_trajectories
-    from fe.sensor import BioTacModel
     from fe.trajectory_sets import press_travels, random_paths, round_robin, to_trajectories
 
-    if slots < 1 or trajectories < 1 or depth_mm < 0 or step_mm <= 0 or force_limit <= 0:
+    if slots < 1 or trajectories < 1 or depth_mm < 0 or step_mm <= 0 or force_limit <= 0 or speed_mm_s <= 0:
         raise typer.BadParameter("--slots and --trajectories must be >= 1, --depth-mm >= 0, the rest > 0")
     names = list(INDENTERS) if indenters == "all" else indenters.split(",")
     unknown = [n for n in names if n not in INDENTERS]
@@ -69,11 +75,9 @@ def batch(
         raise typer.BadParameter(f"unknown indenters {unknown}; see `twin fe indenters`")
     _guarded(lambda: _check_device(device))
     asked = _guarded(lambda: read_poses(poses)) if poses is not None else None
-    geometry = _guarded(lambda: make_biotac(max_edge=mesh_mm * 1e-3))
-    model = BioTacModel(geometry)
-    _err.print(f"skin mesh: {len(geometry.skin.vertices)} vertices; inflating ...")
-    if not model.inflate().converged:
-        _err.print("[red]error:[/red] the inflation did not converge")
+    twin_model, model, inflation = _inflated_twin_model(model_json, mesh_mm)
+    if not inflation.converged:
+        _err.print(f"[red]error:[/red] the inflation did not converge ({inflation.message})")
         raise typer.Exit(code=1)
     if asked is None:
         paths = random_paths(model, trajectories, names, seed, depth_mm * 1e-3)
@@ -93,7 +97,7 @@ def batch(
             run = _guarded(
                 lambda: run_trajectories(
                     InflatedSkin.from_model(model),
-                    [runs[i] for i in indices],
+                    [runs[i].at_speed(speed_mm_s * 1e-3) for i in indices],
                     device,
                     slots,
                     force_limit,
@@ -107,7 +111,8 @@ def batch(
             results.put(i, run.results[j], False)
     results.save()
     wall = time.perf_counter() - start
-    summary = results.summary() | {"wall_s": wall, "run_now": len(indices), "device": device, "mesh_mm": mesh_mm}
+    summary = results.summary() | {"wall_s": wall, "run_now": len(indices), "device": device}
+    summary |= {"mesh_mm": round(twin_model.mesh_max_edge * 1e3, 9), "model": model_json and str(model_json)}
     if run is not None:
         loaded = sum(r.message != "no contact" for t in run.results for r in t)
         summary |= {"increments_per_s": loaded / max(wall, 1e-12), "slots": run.slots}
@@ -135,13 +140,3 @@ class _PeriodicWriter:
         if time.perf_counter() - self.last > FLUSH_S:
             self.results.save()
             self.last = time.perf_counter()
-
-
-def _check_device(device: str) -> None:
-    """A ValueError naming the device when warp cannot use it here."""
-    import warp as wp
-
-    try:
-        wp.get_device(device)
-    except (RuntimeError, ValueError) as exc:
-        raise ValueError(f"warp device {device!r} is not available here: {exc}") from exc

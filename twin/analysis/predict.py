@@ -79,6 +79,15 @@ class TwinModel:
         return hashlib.sha256(json.dumps(self.to_dict(), sort_keys=True).encode()).hexdigest()[:16]
 
 
+def inflated_fe_model(
+    skin: SkinParameters, mesh_max_edge: float, inflation: str = "thickness"
+) -> tuple[BioTacModel, InflationResult]:
+    """A BioTac fe model of `skin` meshed at `mesh_max_edge` (m) and inflated by the rule `inflation` (see
+    TwinModel), with its InflationResult (which says whether it converged)."""
+    model = BioTacModel(make_biotac(mesh_max_edge), skin)
+    return model, model.inflate(SENSOR_THICKNESS if inflation == "thickness" else None)
+
+
 @dataclass(frozen=True)
 class Prediction:
     """A model's view of one trajectory: per-increment fe results, full-rate signals and rows."""
@@ -107,8 +116,7 @@ class Predictor:
         """(fe model, its InflationResult) for these parameters, inflated by `inflation` (built once)."""
         key = (tuple(sorted(asdict(skin).items())), mesh_max_edge, inflation)
         if key not in self._models:
-            model = BioTacModel(make_biotac(mesh_max_edge), skin)
-            result = model.inflate(SENSOR_THICKNESS if inflation == "thickness" else None)
+            model, result = inflated_fe_model(skin, mesh_max_edge, inflation)
             if not result.converged:
                 raise RuntimeError(f"the model did not inflate for {skin}: {result.message}")
             if len(self._models) >= MODEL_CACHE_SIZE:
