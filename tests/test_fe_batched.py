@@ -31,7 +31,7 @@ PATHS = [  # indenter, point (m), angle (deg), azimuth (deg)
 ]
 STEPS = np.array([-0.2e-3, 0.0, 0.3e-3, 0.6e-3])
 """Tip travel (m) past first touch; the first pose is out of contact."""
-CAPPED_NEWTON = 5
+CAPPED_NEWTON = 6
 """A Newton iteration cap under which the full steps fail (the uncapped ones take more)."""
 
 
