@@ -339,6 +339,8 @@ class BatchedShell:
         self._stats = z((B, 3), wp.float64)
         self._sums = z(B, wp.float64)
         self._totals = z((B, 2), wp.float64)
+        self._pair = z((B, 2), wp.float64)
+        self._scratch: dict[str, wp.array] = {}
         self._candidate = z((B, V), wp.float64)
         self.pose = {name: z(B, wp.mat33d if "rotation" in name else wp.vec3d) for name in _POSE}
         far = np.tile([0.0, 0.0, 1.0], (B, 1))  # 1 m away: no contact until a pose is set
@@ -350,6 +352,7 @@ class BatchedShell:
         self.matrix = BatchedBlockMatrix(BlockPattern.from_connectivities(connectivities, V), B, self.free, device)
         use_cg = linear == "cg" or (linear == "auto" and wp.get_device(device).is_cuda)
         self.linear = BatchedCG(self.matrix, 2 * B) if use_cg else BatchedDirectSolver(self.matrix)
+        self.matrix.preconditioned = use_cg
         """Newton's linear algebra, chosen by the device: batched CG on a GPU, sparse direct per system on the CPU."""
         self._system_of = np.concatenate([np.arange(B), np.arange(B)]).astype(np.int32)
         self._system_of_b = wp.array(np.arange(B, dtype=np.int32), dtype=wp.int32, device=device)
@@ -474,9 +477,8 @@ class BatchedShell:
         }
         self._launch_indenters(contact.indenter_contact_kernel, {**common, **outputs})
         self._totals.zero_()  # per system: volume (m^3) and energy (J), summed on the device, fetched once
-        for name, column in _TOTALS.items():
-            if buf[name].shape[1]:
-                wp.launch(bk.row_sum, buf[name].shape, [buf[name], column, self._totals, self._active], device=dev)
+        longest = max(buf[name].shape[1] for name in _TOTALS)
+        launch(bk.totals, (B, longest), {**buf, "out": self._totals, "active": self._active}, dev)
         self._stats.zero_()
         launch(
             bk.free_residual,
@@ -484,7 +486,7 @@ class BatchedShell:
             {
                 "gradients": self.gradients,
                 "volume_gradient": buf["volume_gradient"],
-                "pressure": wp.array(np.asarray(pressure, dtype=np.float64), dtype=wp.float64, device=dev),
+                "pressure": self._per_system("pressure", pressure),
                 "free": self.matrix.free,
                 "residual": self.residual,
                 "gradient": self.gradient,
@@ -536,7 +538,7 @@ class BatchedShell:
             wp.launch(
                 bk.lag_apply,
                 (self.batch, self.n_vertices),
-                [wp.array(changed.astype(np.int32), dtype=wp.int32, device=self.device), self._candidate]
+                [self._flags(changed), self._candidate]
                 + [self.buf["indenter_normal"], self.lagged_force, self.lagged_normal],
                 device=self.device,
             )
@@ -717,7 +719,8 @@ class BatchedShell:
         rho = np.where((state.attempt > 0) & (c != 0.0), 3.0 * np.maximum(0.0, -curvature) / cc, 0.0)
         new_p = state.pressure + dp
         phi0 = lin.energy - new_p * c + 0.5 * rho * c * c
-        slope = batched_dot(self.gradient, self.dq, self._sums) - new_p * batched_dot(self.bvec, self.dq, self._sums)
+        grad_dq, bvec_dq = self._two_dots(self.dq, self.gradient, self.bvec)
+        slope = grad_dq - new_p * bvec_dq
         slope -= rho * c * c
         energy = -slope > _ENERGY_RESOLUTION * np.maximum(np.abs(phi0), np.abs(lin.energy))
         for name, value in (("dp", dp), ("new_p", new_p), ("rho", rho), ("phi0", phi0), ("slope", slope)):
@@ -786,17 +789,24 @@ class BatchedShell:
         into self.dq for the masked systems whose solve worked; returns dp (B,) and that mask."""
         B = self.batch
         ok = mask & (solved[:B] != CG_NEGATIVE_CURVATURE) & (solved[B:] != CG_NEGATIVE_CURVATURE)
-        schur = batched_dot(self.bvec, u[B:], self._sums) + self.air.compliance(pressure)
-        bu1 = batched_dot(self.bvec, u[:B], self._sums)
+        bu2, bu1 = self._two_dots(self.bvec, u[B:], u[:B])
+        schur = bu2 + self.air.compliance(pressure)
         ok &= np.isfinite(schur) & (schur != 0.0)
         dp = np.where(ok, -(c + bu1) / np.where(ok, schur, 1.0), 0.0)
         wp.launch(
             bk.combine,
             (B, self.n_vertices),
-            [u, wp.array(dp, dtype=wp.float64, device=self.device), self._flags(mask), self.dq],
+            [u, self._per_system("dp", dp), self._flags(mask), self.dq],
             device=self.device,
         )
         return dp, ok
+
+    def _two_dots(self, x: wp.array, a: wp.array, b: wp.array) -> tuple[np.ndarray, np.ndarray]:
+        """Per system x . a and x . b ((B,) each) of (B, V) vec3d arrays, in one launch."""
+        self._pair.zero_()
+        wp.launch(bk.two_dots, x.shape, [x, a, b, self._pair], device=self.device)
+        pair = self._pair.numpy()
+        return pair[:, 0].copy(), pair[:, 1].copy()
 
     def _curvature(self, mask: np.ndarray) -> np.ndarray:
         """dq . K dq per system (with the damping of the last assembly)."""
@@ -808,16 +818,26 @@ class BatchedShell:
         wp.launch(
             bk.axpy,
             (self.batch, self.n_vertices),
-            [x, wp.array(step, dtype=wp.float64, device=self.device), self.dq, out],
+            [x, self._per_system("step", step), self.dq, out],
             device=self.device,
         )
 
     def _flags(self, mask: np.ndarray) -> wp.array:
-        return wp.array(np.asarray(mask, dtype=np.int32), dtype=wp.int32, device=self.device)
+        """(B,) int32 flags of a boolean mask, in a device array reused between calls."""
+        return self._per_system("flags", mask, np.int32)
+
+    def _per_system(self, name: str, values: np.ndarray, dtype: type = np.float64) -> wp.array:
+        """(B,) per-system values in the device scratch array `name` (kept between calls; each launch
+        argument takes its own name)."""
+        scratch = self._scratch.get(name)
+        if scratch is None:
+            scratch = self._scratch[name] = wp.zeros(self.batch, dtype=wp.dtype_from_numpy(dtype), device=self.device)
+        scratch.assign(np.asarray(values, dtype=dtype))
+        return scratch
 
 
-_TOTALS = {"volume": 0, "membrane_energy": 1, "bending_energy": 1, "core_energy": 1, "indenter_energy": 1}
-"""Column of `BatchedShell._totals` (per system: volume, energy) that each per-element buffer sums into."""
+_TOTALS = ("volume", "membrane_energy", "bending_energy", "core_energy", "indenter_energy")
+"""The per-element buffers summed into `BatchedShell._totals` (per system: volume, energy)."""
 _POSE = ("rotation", "translation", "rotation_start", "translation_start")
 
 

@@ -4,15 +4,45 @@ friction lagging, all over a leading batch axis b (positions m, forces N, pressu
 import warp as wp
 
 
+@wp.func
+def _add_entry(a: wp.array2d(dtype=wp.float64), b: int, i: int, out: wp.array2d(dtype=wp.float64), column: int):
+    if i < a.shape[1]:
+        wp.atomic_add(out, b, column, a[b, i])
+
+
 @wp.kernel
-def row_sum(
-    a: wp.array2d(dtype=wp.float64), column: int, out: wp.array2d(dtype=wp.float64), active: wp.array(dtype=wp.int32)
+def totals(
+    volume: wp.array2d(dtype=wp.float64),
+    membrane_energy: wp.array2d(dtype=wp.float64),
+    bending_energy: wp.array2d(dtype=wp.float64),
+    core_energy: wp.array2d(dtype=wp.float64),
+    indenter_energy: wp.array2d(dtype=wp.float64),
+    out: wp.array2d(dtype=wp.float64),
+    active: wp.array(dtype=wp.int32),
 ):
-    """out[b, column] += sum_i a[b, i] for the active systems b."""
+    """out[b] += (enclosed volume, total energy) of the active systems b: one thread per element index i
+    adds entry i of every per-element array long enough to have one (launch over the longest)."""
     b, i = wp.tid()
     if active[b] == 0:
         return
-    wp.atomic_add(out, b, column, a[b, i])
+    _add_entry(volume, b, i, out, 0)
+    _add_entry(membrane_energy, b, i, out, 1)
+    _add_entry(bending_energy, b, i, out, 1)
+    _add_entry(core_energy, b, i, out, 1)
+    _add_entry(indenter_energy, b, i, out, 1)
+
+
+@wp.kernel
+def two_dots(
+    x: wp.array2d(dtype=wp.vec3d),
+    a: wp.array2d(dtype=wp.vec3d),
+    b: wp.array2d(dtype=wp.vec3d),
+    out: wp.array2d(dtype=wp.float64),
+):
+    """out[s] += (x[s] . a[s], x[s] . b[s]) per system s over its nodes."""
+    s, v = wp.tid()
+    wp.atomic_add(out, s, 0, wp.dot(x[s, v], a[s, v]))
+    wp.atomic_add(out, s, 1, wp.dot(x[s, v], b[s, v]))
 
 
 @wp.kernel

@@ -323,6 +323,8 @@ class BatchedBlockMatrix:
         self.values = wp.zeros((batch, len(pattern.columns)), dtype=wp.mat33d, device=device)
         self.preconditioner = wp.zeros((batch, pattern.n_nodes), dtype=wp.mat33d, device=device)
         self._ones = arr(np.ones(batch), wp.float64)
+        self.preconditioned = True
+        """Whether `assemble` refreshes the block-Jacobi preconditioner (CG needs it, a direct solver not)."""
 
     def assemble(
         self,
@@ -356,12 +358,13 @@ class BatchedBlockMatrix:
             [self.values, self.block_row, self.columns, self.free, shift_w, active_w],
             device=self.device,
         )
-        wp.launch(
-            _invert_diagonal,
-            (self.batch, self.pattern.n_nodes),
-            [self.values, self.diagonal, active_w, self.preconditioner],
-            device=self.device,
-        )
+        if self.preconditioned:
+            wp.launch(
+                _invert_diagonal,
+                (self.batch, self.pattern.n_nodes),
+                [self.values, self.diagonal, active_w, self.preconditioner],
+                device=self.device,
+            )
 
     def multiply(self, x: wp.array, y: wp.array, system_of: wp.array) -> None:
         """y[c] = A[system_of[c]] x[c] for (C, V) vec3d arrays."""
