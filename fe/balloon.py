@@ -74,7 +74,7 @@ def inflate_balloon(
     mesh = sphere_mesh(radius, subdivisions)
     rest = InflatedSkin.at_rest(mesh.vertices, mesh.triangles, mesh.fixed, params, newton=NewtonSettings())
     engine = BatchedStepper(rest, [get_indenter("sphere_medium")])  # no indenter pose: it stays away
-    v0, current, points = engine.rest_volume, 1.0, []
+    v0, current, points = engine.rest_volumes[0], 1.0, []
     # Walk in small volume steps so that Newton always starts near the solution.
     for ratio in volume_ratios:
         n_steps = max(1, int(np.ceil(abs(ratio - current) / max_volume_step)))

@@ -24,6 +24,7 @@ from __future__ import annotations
 
 import json
 import time
+from collections.abc import Sequence
 from dataclasses import asdict, dataclass, fields
 from pathlib import Path
 from typing import TYPE_CHECKING
@@ -145,6 +146,23 @@ class InflatedSkin:
 
 
 _SETTINGS = {"params": SkinParameters, "contact": ContactSettings, "newton": NewtonSettings}
+_SHARED = ("vertices", "triangles", "fixed", "core_vertices", "core_triangles", "core_offset", "volume_origin")
+"""InflatedSkin fields every system of one batch shares (with `contact` and `newton`); the others (parameters,
+starting state, trapped air, indenter offset) may differ per system."""
+
+
+def per_system(skin: InflatedSkin | Sequence[InflatedSkin], batch: int) -> list[InflatedSkin]:
+    """One skin per system of a batch of `batch`: `skin` for all, or a sequence of `batch` skins of one mesh,
+    core, contact and Newton settings (each with its own parameters and starting state)."""
+    skins = [skin] * batch if isinstance(skin, InflatedSkin) else list(skin)
+    if len(skins) != batch:
+        raise ValueError(f"{len(skins)} skins for {batch} systems")
+    first = skins[0]
+    for other in skins[1:]:
+        same = all(np.array_equal(getattr(first, name), getattr(other, name)) for name in _SHARED)
+        if not (same and other.contact == first.contact and other.newton == first.newton):
+            raise ValueError("the skins of one batch must share mesh, core, contact and Newton settings")
+    return skins
 
 
 def launch(kernel: wp.Kernel, dim: tuple, values: dict, device: str) -> None:
@@ -244,7 +262,7 @@ class BatchedShell:
 
     def __init__(
         self,
-        skin: InflatedSkin,
+        skin: InflatedSkin | Sequence[InflatedSkin],
         indenters: list[tuple[int, tuple[float, float, float, float]]],
         device: str = "cpu",
         cg_max_iterations: int = 20000,
@@ -255,7 +273,11 @@ class BatchedShell:
             raise ValueError(f"forcing must be one of {FORCING}, got {forcing!r}")
         if linear not in LINEAR_SOLVERS:
             raise ValueError(f"linear must be one of {LINEAR_SOLVERS}, got {linear!r}")
+        self.skins = per_system(skin, len(indenters))
+        """The model of each system (`per_system`): one mesh, parameters and starting state per system."""
+        skin = self.skins[0]
         self.skin, self.device, self.batch = skin, device, len(indenters)
+        params = [s.params for s in self.skins]
         self.cg_max_iterations, self.forcing = cg_max_iterations, forcing
         B, V = self.batch, len(skin.vertices)
         self.n_vertices = V
@@ -266,19 +288,20 @@ class BatchedShell:
         dm_inv, rest_area = membrane.reference_frames(skin.vertices, tri)
         stencils, present = bending.build_stencils(tri)
         rest_angle, bend_area, coupling = bending.stencil_rest_state(skin.vertices, stencils, present)
-        stencils = stencils if skin.params.bending else stencils[:0]
+        stencils = stencils if any(p.bending for p in params) else stencils[:0]
         self.vertex_area = lumped_areas(skin.vertices, tri)
         self._dm_inv, self._rest_angle, self._present = dm_inv, rest_angle[: len(stencils)], present[: len(stencils)]
         self._stencils = stencils
         self.n_triangles, self.n_bending = len(tri), len(stencils)
-        self.relaxes = skin.params.relaxation_fraction > 0.0
+        self.relaxes = any(p.relaxation_fraction > 0.0 for p in params)
         """Whether the membrane's frozen (viscoelastic) stress term is evaluated."""
-        self.air = TrappedAir(np.full(B, skin.air_boyle))
+        self.air = TrappedAir(np.array([s.air_boyle for s in self.skins], dtype=np.float64))
         """The cavity's trapped air, one bubble per system (`fe.trapped_air`)."""
         arr = lambda a, dtype: wp.array(a, dtype=dtype, device=device)  # noqa: E731
-        per_batch = lambda value: arr(np.full(B, value, dtype=np.float64), wp.float64)  # noqa: E731
+        per_batch = lambda values: arr(np.asarray(values, dtype=np.float64), wp.float64)  # noqa: E731
         z = lambda shape, dtype: wp.zeros(shape, dtype=dtype, device=device)  # noqa: E731
-        p, cs = skin.params, skin.contact
+        cs = skin.contact
+        offsets = [0.5 * s.params.thickness if s.indenter_offset is None else s.indenter_offset for s in self.skins]
         self._static = {
             "triangles": arr(tri.astype(np.int32), wp.vec3i),
             "dm_inv": arr(dm_inv, wp.mat22d),
@@ -289,12 +312,12 @@ class BatchedShell:
             "bend_area": arr(bend_area[: len(stencils)], wp.float64),
             "coupling": arr(coupling[: len(stencils)], wp.mat33d),
             "vertex_area": arr(self.vertex_area, wp.float64),
-            "mu_t": per_batch(p.long_term_fraction * p.membrane_modulus),
-            "gent_beta": per_batch(getattr(p, "gent_inverse_jm", 0.0)),
-            "bending_stiffness": per_batch(p.long_term_fraction * p.bending_stiffness),
+            "mu_t": per_batch([p.long_term_fraction * p.membrane_modulus for p in params]),
+            "gent_beta": per_batch([p.gent_inverse_jm for p in params]),
+            "bending_stiffness": per_batch([p.long_term_fraction * p.bending_stiffness for p in params]),
             "frozen_stress": z((B, len(tri)), wp.mat22d),
-            "friction": per_batch(p.friction),
-            "offset": per_batch(0.5 * p.thickness if skin.indenter_offset is None else skin.indenter_offset),
+            "friction": per_batch([p.friction for p in params]),
+            "offset": per_batch(offsets),
             "kappa": wp.float64(cs.penalty_stiffness),
             "slip_eps": wp.float64(cs.slip_length),
             "origin": wp.vec3d(*skin.volume_origin),
@@ -378,10 +401,11 @@ class BatchedShell:
         """Viscoelastic terms of the coming solves of systems `rows` (`fe.viscoelastic`): membrane and bending
         moduli scaled by `scale` (k,) (1: elastic, 1 - g: fully relaxed), frozen membrane stresses (k,T,2,2)
         N/m and bending rest angles shifted by (k,n_bending,3) rad (None: none)."""
-        p, rows = self.skin.params, np.asarray(rows)
-        static = self._static
+        rows = np.asarray(rows)
+        static, params = self._static, [self.skins[i].params for i in rows]
         mu, kb = static["mu_t"].numpy(), static["bending_stiffness"].numpy()
-        mu[rows], kb[rows] = scale * p.membrane_modulus, scale * p.bending_stiffness
+        mu[rows] = scale * np.array([p.membrane_modulus for p in params])
+        kb[rows] = scale * np.array([p.bending_stiffness for p in params])
         static["mu_t"].assign(mu)
         static["bending_stiffness"].assign(kb)
         k = len(rows)
@@ -391,9 +415,9 @@ class BatchedShell:
         if self.n_bending:
             put_rows(static["rest_angle"], rows, self._rest_angle + shift)
 
-    def membrane_stress(self, x: np.ndarray) -> np.ndarray:
-        """Elastic (instantaneous) membrane stress resultants (T,2,2) N/m at positions x (V,3) m."""
-        p = self.skin.params
+    def membrane_stress(self, x: np.ndarray, system: int) -> np.ndarray:
+        """Elastic (instantaneous) membrane stress resultants (T,2,2) N/m of `system` at positions x (V,3) m."""
+        p = self.skins[system].params
         return membrane.membrane_stress(x, self.skin.triangles, self._dm_inv, p.membrane_modulus, p.gent_inverse_jm)
 
     def bending_angle_change(self, x: np.ndarray) -> np.ndarray:
@@ -615,7 +639,7 @@ class BatchedShell:
         the systems that stopped in it, whose final evaluation the shell's buffers still hold."""
         lin = self.evaluate_round(state)
         at_x = self.settle(state, lin)
-        stopped = self.check(state, lin, self.skin.params.friction > 0.0, at_x)
+        stopped = self.check(state, lin, any(s.params.friction > 0.0 for s in self.skins), at_x)
         if state.running.any():
             self.iterate(state, lin, at_x)
         return stopped

@@ -49,42 +49,48 @@ def _check_poses(
 
 
 class BatchedStepper:
-    """B independent indentation trajectories of one inflated skin, stepped together on `device`.
+    """B independent indentation trajectories, stepped together on `device`.
 
-    `indenters`: one indenter name per system; `forcing` and `linear`: the CG tolerance rule and the linear
-    algebra of `fe.batched.BatchedShell`.
+    `skin`: the inflated model of every system, or one per system (`fe.batched.per_system`: one mesh, each
+    with its own parameters and starting state); `indenters`: one indenter (or name) per system; `forcing`
+    and `linear`: the CG tolerance rule and the linear algebra of `fe.batched.BatchedShell`.
     """
 
     def __init__(
         self,
-        skin: InflatedSkin,
+        skin: InflatedSkin | Sequence[InflatedSkin],
         indenters: Sequence[str | Indenter],
         device: str = "cpu",
         forcing: str = "adaptive",
         linear: str = "auto",
     ) -> None:
         shapes = [get_indenter(name) if isinstance(name, str) else name for name in indenters]
-        self.skin, self.batch = skin, len(shapes)
-        if self.batch == 0:
+        if not shapes:
             raise ValueError("a batch needs at least one trajectory")
+        self.batch = len(shapes)
         self.indenters = [shape.name for shape in shapes]
         self.shell = BatchedShell(skin, [(s.kind, s.dims) for s in shapes], device, forcing=forcing, linear=linear)
+        self.skins, self.skin = self.shell.skins, self.shell.skin
+        skin = self.skin
         B, V, T = self.batch, len(skin.vertices), len(skin.triangles)
         rows = skin.triangles.ravel()
         # (V, T) incidence / 3: lumped vertex areas of a deformed mesh in one product.
         self._lump = sp.csr_matrix((np.full(3 * T, 1.0 / 3.0), (rows, np.repeat(np.arange(T), 3))), shape=(V, T))
-        reference = np.broadcast_to(skin.reference, (B, V, 3))
-        self._reference_w = wp.array(reference, dtype=wp.vec3d, device=device)
-        self.shell.x.assign(reference)
-        p_rest = np.full(B, skin.pressure)
+        self.reference = np.stack([s.reference for s in self.skins]).astype(np.float64)
+        """(B,V,3) starting (inflated) positions (m) of each system."""
+        self.reference_pressure = np.array([s.pressure for s in self.skins], dtype=np.float64)
+        """(B,) starting pressure (Pa) of each system."""
+        self._reference_w = wp.array(self.reference, dtype=wp.vec3d, device=device)
+        self.shell.x.assign(self.reference)
+        p_rest = self.reference_pressure
         rest = self.shell.evaluate(self._reference_w, False, p_rest)
-        self.rest_volume = float(rest.volume[0] + self.shell.air.volume(p_rest)[0])
-        """Volume (m^3) the starting state encloses (liquid + air)."""
-        self._rest_residual = float(rest.residual_inf[0])
-        self._rest_balance = self._force_balance(0, skin.pressure)[1]
-        self.x = reference.copy()
+        self.rest_volumes = rest.volume + self.shell.air.volume(p_rest)
+        """(B,) volume (m^3) each starting state encloses (liquid + air)."""
+        self._rest_residual = rest.residual_inf.copy()
+        self._rest_balance = np.array([self._force_balance(i, p_rest[i])[1] for i in range(B)])
+        self.x = self.reference.copy()
         """(B,V,3) skin mid-surface positions (m) of the last accepted state."""
-        self.pressure = np.full(B, skin.pressure)
+        self.pressure = p_rest.copy()
         self.pose_rotation, self.pose_translation = np.tile(np.eye(3), (B, 1, 1)), np.zeros((B, 3))
         self._start_rotation, self._start_translation = self.pose_rotation.copy(), self.pose_translation.copy()
         self._was_posed = np.zeros(B, dtype=bool)
@@ -95,13 +101,14 @@ class BatchedStepper:
         self.in_contact = np.zeros(B, dtype=bool)
         self._motion, self._has_motion, self._travel = np.zeros((B, V, 3)), np.zeros(B, dtype=bool), np.zeros((B, 3))
         self._gap, self._gap_change = np.zeros((B, V)), np.zeros((B, V))
-        self.newton = NewtonBatch.idle(B, skin.target_volume - self.shell.air.volume(p_rest))
+        targets = np.array([s.target_volume for s in self.skins], dtype=np.float64)
+        self.newton = NewtonBatch.idle(B, targets - self.shell.air.volume(p_rest))
         """Newton state of the increments under way (`running` marks the systems mid-solve); with trapped air
         the held volume is the liquid's."""
         self.relaxation = None
         if self.shell.relaxes:
-            p = skin.params
-            fractions, times = np.full(B, p.relaxation_fraction), np.full(B, p.relaxation_time_s)
+            fractions = np.array([s.params.relaxation_fraction for s in self.skins])
+            times = np.array([s.params.relaxation_time_s for s in self.skins])
             self.relaxation = SkinRelaxation(self.shell, fractions, times)
             self.relaxation.reset(np.arange(B), self.x)
         self.time_s = np.full(B, np.nan)
@@ -129,8 +136,8 @@ class BatchedStepper:
 
     def _release(self, which: np.ndarray) -> None:
         """Put the systems in `which` back to the inflated state, keeping their poses and depth origins."""
-        self.x[which] = self.skin.reference
-        self.pressure[which] = self.skin.pressure
+        self.x[which] = self.reference[which]
+        self.pressure[which] = self.reference_pressure[which]
         self.in_contact[which] = False
         self._has_motion[which] = False
         self._travel[which] = 0.0
@@ -367,7 +374,7 @@ class BatchedStepper:
             volume=float(state.volume[i] + self.shell.air.volume(state.pressure[i : i + 1])[0]),
             contact_area=float(vertex_area[in_contact].sum()),
             contact_radius=float(radius),
-            displacement=x - self.skin.reference,
+            displacement=x - self.reference[i],
             newton_iterations=int(state.iterations[i]),
             residual=float(state.residual[i]),
             equilibrium_error=balance,
@@ -381,13 +388,13 @@ class BatchedStepper:
             depth=float(depth),
             force=np.zeros(3),
             pressure=float(self.pressure[i]),
-            volume=self.rest_volume,
+            volume=float(self.rest_volumes[i]),
             contact_area=0.0,
             contact_radius=0.0,
-            displacement=self.x[i] - self.skin.reference,
+            displacement=self.x[i] - self.reference[i],
             newton_iterations=0,
-            residual=self._rest_residual,
-            equilibrium_error=self._rest_balance,
+            residual=float(self._rest_residual[i]),
+            equilibrium_error=float(self._rest_balance[i]),
             converged=True,
             message="no contact",
             wall_s=0.0,

@@ -127,7 +127,7 @@ def run_dome(
     rest = InflatedSkin.at_rest(mesh.vertices, mesh.triangles, mesh.fixed, params, contact, indenter_offset=0.0)
     sphere = Indenter("dome_sphere", KIND_SPHERE, (indenter_radius or radius, 0.0, 0.0, 0.0), "frictionless sphere")
     engine = BatchedStepper(rest, [sphere])
-    v0 = engine.rest_volume
+    v0 = engine.rest_volumes[0]
     for target in np.linspace(1.0, volume_ratio, max(2, int(np.ceil(abs(volume_ratio - 1) / 0.05)) + 1))[1:]:
         converged, message = engine.hold_volume(np.array([target * v0]))
         if not converged[0]:

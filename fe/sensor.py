@@ -68,7 +68,7 @@ class BioTacModel:
         )
         """The unpressurised skin (its rest mesh as the starting state)."""
         self._inflation = BatchedStepper(self.rest_skin, ["sphere_medium"])  # the indenter stays away
-        self._volume0 = self._inflation.rest_volume
+        self._volume0 = float(self._inflation.rest_volumes[0])
         self.reference: np.ndarray | None = None
         self.pressure = 0.0
         self.target_volume = self._volume0

@@ -125,7 +125,7 @@ class SkinRelaxation:
         """Systems `rows` fully relaxed at positions x (k,V,3) m (h = 0), at their long-term moduli."""
         self.membrane[rows], self.bending[rows] = 0.0, 0.0
         for k, i in enumerate(rows):
-            self.membrane_elastic[i] = self.shell.membrane_stress(x[k])
+            self.membrane_elastic[i] = self.shell.membrane_stress(x[k], i)
             self.bending_elastic[i] = self.shell.bending_angle_change(x[k])
         self.shell.set_relaxation(rows, self.long_term[rows], None, None)
 
@@ -149,7 +149,7 @@ class SkinRelaxation:
         """Accept steps of dt (k,) s of systems `rows` that converged at positions x (k,V,3) m."""
         decay, weight = self._factors(rows, dt)
         for k, i in enumerate(rows):
-            stress, angles = self.shell.membrane_stress(x[k]), self.shell.bending_angle_change(x[k])
+            stress, angles = self.shell.membrane_stress(x[k], i), self.shell.bending_angle_change(x[k])
             self.membrane[i] = decay[k] * self.membrane[i] + weight[k] * (stress - self.membrane_elastic[i])
             self.bending[i] = decay[k] * self.bending[i] + weight[k] * (angles - self.bending_elastic[i])
             self.membrane_elastic[i], self.bending_elastic[i] = stress, angles

@@ -14,6 +14,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 import warp as wp
+from conftest import inflated_biotac
 
 from assets.indenters import get_indenter
 from fe.batched import InflatedSkin
@@ -197,7 +198,7 @@ def test_trapped_air_in_a_batch_follows_boyle_and_bad_poses_are_refused(friction
     for result in results:
         assert result.converged and result.pressure > model.pressure
         boyle_change = air.volume(np.array([result.pressure]))[0] - air.volume(np.array([model.pressure]))[0]
-        assert result.volume - stepper.rest_volume == pytest.approx(boyle_change, rel=1e-6, abs=1e-15)
+        assert result.volume - stepper.rest_volumes[0] == pytest.approx(boyle_change, rel=1e-6, abs=1e-15)
     with pytest.raises(ValueError, match="orthonormal"):
         BatchedStepper(skin, ["sphere_medium"], "cpu").step(np.zeros((1, 3, 3)), np.zeros((1, 3)))
 
@@ -306,3 +307,27 @@ def test_an_indenter_on_the_clamped_rim_moves_no_fixed_vertex(
     assert depth.min() < 0.5 * model.params.thickness  # the indenter reaches into the clamped vertices' skin
     assert not np.any(batched[-1].displacement[fixed])
     _assert_agree(cpu, batched, force_rtol, displacement_atol, area_rtol)
+
+
+def test_systems_of_one_batch_take_their_own_parameters(frictionless_biotac: BioTacModel) -> None:
+    """A batch of two skins of one mesh, one twice as stiff and relaxing, one with trapped air and friction, each
+    inflated on its own: every system reaches what it reaches alone (B = 1), and the stiffer skin pushes back
+    harder at the same depth."""
+    stiff = inflated_biotac(friction=0.0, mu_nh=5.6e5, relaxation_fraction=0.3)
+    soft = inflated_biotac(friction=0.3, air_volume_fraction=0.1)
+    path = _paths(frictionless_biotac)[0]
+    skins = [stiff.inflated_skin(), soft.inflated_skin()]
+    assert skins[1].air_boyle > 0.0 and skins[0].params.mu_nh == 2 * skins[1].params.mu_nh
+    tips = [path.touch_point + s * path.direction for s in STEPS]
+    together = BatchedStepper(skins, ["sphere_medium", "sphere_medium"], "cpu")
+    alone = [BatchedStepper(skin, ["sphere_medium"], "cpu") for skin in skins]
+    rotation = np.stack([path.rotation, path.rotation])
+    for k, tip in enumerate(tips):
+        both = together.step(rotation, np.stack([tip, tip]), times=np.full(2, 0.5 * k))
+        for i, stepper in enumerate(alone):
+            single = stepper.step(path.rotation[None], tip[None], times=np.array([0.5 * k]))[0]
+            _assert_agree([single], [both[i]], 1e-3, 1e-6, 1e-4)  # friction tolerances (module docstring)
+    assert np.linalg.norm(both[0].force) > 1.5 * np.linalg.norm(both[1].force)
+    with pytest.raises(ValueError, match="share mesh"):
+        moved = dataclasses.replace(skins[1], vertices=skins[1].vertices + 1e-3)
+        BatchedStepper([skins[0], moved], ["sphere_medium"] * 2)

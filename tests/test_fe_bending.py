@@ -48,7 +48,7 @@ def _clamped_plate(max_edge: float, radius: float, volume: float) -> tuple[float
         mesh.vertices, mesh.triangles, mesh.fixed, params, newton=newton, volume_origin=np.array([0.0, 0.0, -0.05])
     )
     engine = BatchedStepper(skin, ["sphere_medium"])
-    converged, messages = engine.hold_volume(np.array([engine.rest_volume + volume]))
+    converged, messages = engine.hold_volume(np.array([engine.rest_volumes[0] + volume]))
     assert converged[0], messages[0]
     return float(engine.x[0, 0, 2]), float(engine.pressure[0])
 
