@@ -134,6 +134,7 @@ def _model_file(path: Path, model: TwinModel) -> Path:
         ('{"skin": {}}', "KeyError('mesh_max_edge')"),
         ('{"skin": {"mu_nh": -1}, "mesh_max_edge": 0.002}', "mu_nh=-1 is outside its physical range"),
         ('{"skin": {}, "effects": {"wobble": {}}, "mesh_max_edge": 0.002}', "unknown effect 'wobble'"),
+        ('{"skin": {}, "effects": ["wobble"], "mesh_max_edge": 0.002}', "is not a model JSON"),
     ],
 )
 def test_indent_rejects_a_bad_model_with_one_line(tmp_path: Path, content: str | None, message: str) -> None:

@@ -43,7 +43,7 @@ def model_or_nominal(path: Path | None, mesh_max_edge: float) -> TwinModel:
         return TwinModel.from_dict(json.loads(path.read_text()))
     except OSError as exc:
         raise ValueError(f"cannot read the model {path}: {exc}") from exc
-    except (json.JSONDecodeError, KeyError, TypeError) as exc:
+    except (json.JSONDecodeError, KeyError, TypeError, AttributeError) as exc:
         raise ValueError(f"{path} is not a model JSON (TwinModel.to_dict()): {exc!r}") from exc
 
 
