@@ -159,6 +159,8 @@ def per_system(skin: InflatedSkin | Sequence[InflatedSkin], batch: int) -> list[
         raise ValueError(f"{len(skins)} skins for {batch} systems")
     first = skins[0]
     for other in skins[1:]:
+        if other is first:
+            continue
         same = all(np.array_equal(getattr(first, name), getattr(other, name)) for name in _SHARED)
         if not (same and other.contact == first.contact and other.newton == first.newton):
             raise ValueError("the skins of one batch must share mesh, core, contact and Newton settings")

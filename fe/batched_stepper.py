@@ -280,10 +280,7 @@ class BatchedStepper:
         held = state.target.copy()
         target = np.broadcast_to(np.asarray(target, dtype=np.float64), (self.batch,))
         state.target[which] = (target - shell.air.volume(self.pressure))[which]
-        put_rows(shell.x_start, rows, self.x[rows])
-        put_rows(shell.x, rows, self.x[rows])
-        shell.lag_contact(shell.x, which)
-        shell.begin(state, which, self.pressure)
+        self._begin(which, self.x[rows])
         while state.running.any():
             shell.round(state)
         converged = which & state.converged
@@ -295,11 +292,17 @@ class BatchedStepper:
 
     def _start_solves(self, solving: np.ndarray, travel: np.ndarray) -> None:
         """Warm-start the `solving` systems from their last equilibria and begin their Newton solves."""
-        shell, rows = self.shell, np.flatnonzero(solving)
+        rows = np.flatnonzero(solving)
+        self._begin(solving, self._predict(rows, travel[rows]))
+
+    def _begin(self, which: np.ndarray, start: np.ndarray) -> None:
+        """Begin Newton for the `which` systems from positions `start` (k,V,3) m, their last equilibria being
+        the increment's start (friction slip) and their lagged contact forces taken at `start`."""
+        shell, rows = self.shell, np.flatnonzero(which)
         put_rows(shell.x_start, rows, self.x[rows])
-        put_rows(shell.x, rows, self._predict(rows, travel[rows]))
-        shell.lag_contact(shell.x, solving)
-        shell.begin(self.newton, solving, self.pressure)
+        put_rows(shell.x, rows, start)
+        shell.lag_contact(shell.x, which)
+        shell.begin(self.newton, which, self.pressure)
 
     def _predict(self, rows: np.ndarray, travel: np.ndarray) -> np.ndarray:
         """Warm starts (k,V,3) m of systems `rows` moving their tips by `travel` (k,3) m: the last increment's
