@@ -458,9 +458,30 @@ INDENTERS: dict[str, Indenter] = {
 }
 
 
+#: The public meshes' names (NVlabs/biotac_sim ``meshes/indenters/*.obj``) and our names of the same indenters.
+PUBLIC_NAMES: dict[str, str] = {
+    "sphere_3-5mm": "sphere_small",
+    "sphere_7mm": "sphere_medium",
+    "sphere_14mm": "sphere_large",
+    "cylinder_short_3-5mm": "cylinder_short_small",
+    "cylinder_short_7mm": "cylinder_short_medium",
+    "cylinder_long_7mm": "cylinder_long",
+    "cube_14mm": "cube",
+    "ring_7mm": "ring",
+}
+
+
+def indenter_name(name: str) -> str:
+    """Our name of the indenter called ``name`` (ours or its public mesh name); ValueError for an unknown one."""
+    canonical = PUBLIC_NAMES.get(name, name)
+    if canonical not in INDENTERS:
+        raise ValueError(
+            f"unknown indenter {name!r}; valid names: {', '.join(INDENTERS)} "
+            f"(or the public mesh names {', '.join(PUBLIC_NAMES)})"
+        )
+    return canonical
+
+
 def get_indenter(name: str) -> Indenter:
-    """The indenter called ``name``; ValueError listing the valid names for an unknown one."""
-    try:
-        return INDENTERS[name]
-    except KeyError:
-        raise ValueError(f"unknown indenter {name!r}; valid names: {', '.join(INDENTERS)}") from None
+    """The indenter called ``name`` (ours or its public mesh name); ValueError listing the valid names."""
+    return INDENTERS[indenter_name(name)]
