@@ -7,12 +7,15 @@ from __future__ import annotations
 
 import json
 from pathlib import Path
-from typing import Annotated
+from typing import TYPE_CHECKING, Annotated
 
 import typer
 from rich.table import Table
 
 from twin.cli_common import err_console, guarded, out_console, progress_bar
+
+if TYPE_CHECKING:
+    from learn.checkpoint import Checkpoint
 
 learn_app = typer.Typer(help="Learned electrode models: train, eval, predict.", no_args_is_help=True)
 
@@ -38,9 +41,49 @@ def _metrics_table(title: str, result: dict) -> Table:
     return table
 
 
+def data_files(paths: list[Path]) -> list[Path]:
+    """The data files of `paths` (a folder stands for its *.hdf5 files, sorted), each checked to exist and,
+    when it is a campaign HDF5, to follow the schema (`twin.dataset.check_campaign`); ValueError otherwise."""
+    import h5py
+
+    from twin.dataset import check_campaign_file
+
+    files: list[Path] = []
+    for path in paths:
+        if path.is_dir():
+            found = sorted(p for p in path.glob("*.hdf5") if p.is_file())
+            if not found:
+                raise ValueError(f"{path}: a folder without campaign files (*.hdf5)")
+            files += found
+        elif not path.is_file():
+            raise ValueError(f"{path}: no such file")
+        else:
+            files.append(path)
+    for path in files:
+        if h5py.is_hdf5(path):
+            check_campaign_file(path)
+    return files
+
+
+def load_checkpoint(path: Path) -> Checkpoint:
+    """`learn.checkpoint.Checkpoint.load`, with a missing, empty or foreign file as a one-line ValueError."""
+    import pickle
+
+    from learn.checkpoint import Checkpoint
+
+    if not path.is_file():
+        raise ValueError(f"{path}: no such checkpoint file")
+    try:
+        return Checkpoint.load(path)
+    except (OSError, RuntimeError, EOFError, KeyError, TypeError, pickle.UnpicklingError) as exc:
+        raise ValueError(f"{path}: not a biotac-twin learn checkpoint ({type(exc).__name__}: {exc})") from exc
+
+
 @learn_app.command()
 def train(
-    files: Annotated[list[Path], typer.Argument(help="Data files (campaign HDF5, paper HDF5, Ruppel CSV).")],
+    files: Annotated[
+        list[Path], typer.Argument(help="Data files (campaign HDF5, paper HDF5, Ruppel CSV) or folders of *.hdf5.")
+    ],
     out: Annotated[Path, typer.Option(help="Checkpoint to write.")] = Path("model.pt"),
     model: Annotated[str, typer.Option(help="pointnet | mlp | classical | mean.")] = "pointnet",
     split: Annotated[
@@ -62,11 +105,11 @@ def train(
     as_json: Annotated[bool, typer.Option("--json", help="Print the metrics as JSON.")] = False,
 ) -> None:
     """Fit a model on the training rows of every file; score it per sensor and combined; save it."""
-    from learn.checkpoint import Checkpoint
     from learn.experiment import SplitSpec
     from learn.experiment import train as run_training
     from learn.train import TrainConfig
 
+    paths = guarded(lambda: data_files(files))
     config = guarded(
         lambda: TrainConfig(
             network=model if model in ("pointnet", "mlp") else "pointnet",
@@ -81,7 +124,7 @@ def train(
             device=device,
         )
     )
-    pretrained = guarded(lambda: Checkpoint.load(init)) if init is not None else None
+    pretrained = guarded(lambda: load_checkpoint(init)) if init is not None else None
     with progress_bar() as bar:
         task = bar.add_task(f"training {model}", total=max_epochs)
 
@@ -89,7 +132,7 @@ def train(
             bar.update(task, completed=record.epoch + 1, description=f"{model} val {record.val_loss:.4g}")
 
         checkpoint = guarded(
-            lambda: run_training(files, model, SplitSpec(split, test_fraction, seed), config, pretrained, 0, show)
+            lambda: run_training(paths, model, SplitSpec(split, test_fraction, seed), config, pretrained, 0, show)
         )
     checkpoint.save(out)
     err_console.print(f"wrote {out}")
@@ -109,13 +152,12 @@ def evaluate(
     as_json: Annotated[bool, typer.Option("--json", help="Print the paper's table as JSON.")] = False,
 ) -> None:
     """The paper's table per sensor and combined, for every checkpoint (model and split)."""
-    from learn.checkpoint import Checkpoint
     from learn.experiment import evaluate_checkpoint
 
     results = []
     for path in checkpoints:
-        ckpt = guarded(lambda path=path: Checkpoint.load(path))
-        files = data if data else ckpt.training["files"]
+        ckpt = guarded(lambda path=path: load_checkpoint(path))
+        files = guarded(lambda ckpt=ckpt: data_files(data if data else [Path(p) for p in ckpt.training["files"]]))
         scores = guarded(lambda ckpt=ckpt, files=files: evaluate_checkpoint(ckpt, files, on))
         split = ckpt.training["split"]["name"] if on == "test" else "all rows"
         results.append({"checkpoint": str(path), "model": ckpt.model, "split": split, "on": on, **scores})
@@ -137,10 +179,10 @@ def predict(
     """Predict contact location (m), force (N) and nodal displacements (m) for every row of a file."""
     import h5py
 
-    from learn.checkpoint import Checkpoint
     from learn.experiment import load_files
 
-    ckpt = guarded(lambda: Checkpoint.load(checkpoint))
+    ckpt = guarded(lambda: load_checkpoint(checkpoint))
+    guarded(lambda: data_files([file]))
     (data,) = guarded(lambda: load_files([file], ckpt.training.get("node_ids"), ckpt.training.get("node_seed", 0)))
     predictions = ckpt.estimator.predict(data)
     units = {"contact_loc": "m", "force": "N", "nodal": "m"}

@@ -161,14 +161,192 @@ def _version() -> str:
 
 
 def open_dataset(path: Path | str) -> h5py.File:
-    """Open an HDF5 file for reading, with a clear ValueError when it is missing or not HDF5."""
+    """Open an HDF5 file for reading, with a clear ValueError when it is missing or not HDF5, or when it is a
+    campaign file (attribute `schema_version`) that breaks the schema (`check_campaign`)."""
     path = Path(path)
-    if not path.exists():
+    if not path.is_file():
         raise ValueError(f"no such dataset file: {path}")
     try:
-        return h5py.File(path, "r")
+        f = h5py.File(path, "r")
     except OSError as exc:
         raise ValueError(f"{path} is not an HDF5 file ({exc})") from exc
+    if "schema_version" in f.attrs:
+        try:
+            check_campaign(f)
+        except BaseException:
+            f.close()
+            raise
+    return f
+
+
+def check_campaign_file(path: Path | str) -> None:
+    """ValueError (one line) when `path` is missing, not HDF5, or a campaign file that breaks the schema."""
+    open_dataset(path).close()
+
+
+FEATURE_SHAPES: dict[str, tuple[int, ...]] = {
+    "electrode_vals": (19,),
+    "electrode_tare": (19,),
+    "force": (3,),
+    "contact_loc": (3,),
+    "tip_pos": (3,),
+    "joint_angles": (7,),
+    "fe_force": (3,),
+}
+"""Row shape of the subsampled features that are not one number per row (`nodal_res` is (V, 3))."""
+TRAJECTORY_SHAPES: dict[str, tuple[int, ...]] = {
+    "point": (3,),
+    "direction": (3,),
+    "touch_point": (3,),
+    "rotation": (3, 3),
+    "tool_tip": (4, 4),
+    "registration": (4, 4),
+    "sensor_in_biotac": (4, 4),
+}
+"""Row shape of the per-trajectory metadata that is not one number per trajectory."""
+RAW_SHAPES: dict[str, tuple[int, ...]] = {"joints": (7,), "wrench": (6,), "electrodes": (19,)}
+"""Sample shape of the full-rate recordings that are not one number per sample."""
+
+
+def check_campaign(f: h5py.File) -> None:
+    """ValueError (one line, naming the file and the fault) unless an open campaign file is self-consistent:
+    every subsampled feature has the same number of rows and its documented row shape (docs/dataset.md),
+    the per-trajectory metadata has one finite row per trajectory and its rows lie inside the features,
+    indenter indices name an entry of `indenter_names`, every trajectory has its full-rate recording, the
+    mesh's triangles index its vertices. Reads the small arrays only; NaN measurements are left to the
+    commands (they report them)."""
+    where = f.filename
+    names = _json_attr(f, "indenter_names", list)
+    config = _json_attr(f, "provenance", dict).get("config", {})
+    mesh_max_edge = config.get("mesh_max_edge", 0.5e-3) if isinstance(config, dict) else None
+    if not isinstance(mesh_max_edge, int | float) or not 0 < mesh_max_edge < 1:
+        raise ValueError(f"{where}: provenance mesh_max_edge {mesh_max_edge!r} is not a length in m")
+    sensor_id = f.attrs.get("sensor_id", 1)
+    if not isinstance(sensor_id, int | np.integer) or sensor_id < 1:
+        raise ValueError(f"{where}: attribute sensor_id {sensor_id!r} is not a positive integer")
+    rows = _check_features(f, where)
+    if "indenter_type" in f:
+        _check_indices(f["indenter_type/data"][()], len(names), f"{where}: indenter_type/data")
+    if "trajectories" in f:
+        _check_trajectories(f, where, rows, len(names))
+    if "mesh" in f:
+        _check_mesh(f, where)
+
+
+def _json_attr(f: h5py.File, name: str, kind: type) -> object:
+    """A JSON file attribute of the given kind (list or dict); empty when absent."""
+    text = f.attrs.get(name)
+    if text is None:
+        return kind()
+    try:
+        value = json.loads(text)
+    except (TypeError, ValueError) as exc:
+        raise ValueError(f"{f.filename}: attribute {name} is not JSON ({exc})") from exc
+    if not isinstance(value, kind):
+        raise ValueError(f"{f.filename}: attribute {name} is not a JSON {kind.__name__}")
+    return value
+
+
+def _dataset(f: h5py.File, key: str, where: str) -> h5py.Dataset:
+    item = f.get(key)
+    if not isinstance(item, h5py.Dataset):
+        raise ValueError(f"{where}: {key} is missing or not a dataset (docs/dataset.md)")
+    return item
+
+
+def _check_shape(data: h5py.Dataset, row_shape: tuple[int | None, ...], label: str) -> None:
+    """ValueError unless `data` is (n, *row_shape) (None: any size)."""
+    shape = tuple(data.shape)
+    if len(shape) != 1 + len(row_shape) or any(
+        e is not None and e != s for e, s in zip(row_shape, shape[1:], strict=True)
+    ):
+        wanted = ", ".join("n" if e is None else str(e) for e in (None, *row_shape))
+        raise ValueError(f"{label} has shape {shape}, expected ({wanted})")
+
+
+def _check_features(f: h5py.File, where: str) -> int:
+    """The number of subsampled rows, after checking each feature's row shape and that all have that many."""
+    vertices = f["mesh/vertices"].shape[0] if isinstance(f.get("mesh/vertices"), h5py.Dataset) else None
+    counts: dict[str, int] = {}
+    for name in FEATURE_UNITS:
+        if name in f:
+            data = _dataset(f, f"{name}/data", where)
+            row_shape = (vertices, 3) if name == "nodal_res" else FEATURE_SHAPES.get(name, ())
+            _check_shape(data, row_shape, f"{where}: {name}/data")
+            counts[name] = data.shape[0]
+    if len(set(counts.values())) > 1:
+        detail = ", ".join(f"{k} {v}" for k, v in counts.items())
+        raise ValueError(f"{where}: the subsampled features disagree on their number of rows ({detail})")
+    return next(iter(counts.values()), 0)
+
+
+def _check_indices(values: np.ndarray, count: int, label: str) -> None:
+    """ValueError unless every value is an integer index into `count` entries."""
+    values = np.asarray(values)
+    if values.size and (values.dtype.kind not in "iu" or values.min() < 0 or values.max() >= count):
+        raise ValueError(f"{label} holds indices outside 0..{count - 1} (or not integers)")
+
+
+def _check_trajectories(f: h5py.File, where: str, rows: int, n_names: int) -> None:
+    """Per-trajectory metadata: one finite row each, rows inside the features, recordings present."""
+    group = f["trajectories"]
+    if not isinstance(group, h5py.Group):
+        raise ValueError(f"{where}: trajectories is not a group")
+    meta = {}
+    for name in TRAJECTORY_FIELDS:
+        data = _dataset(f, f"trajectories/{name}", where)
+        _check_shape(data, TRAJECTORY_SHAPES.get(name, ()), f"{where}: trajectories/{name}")
+        meta[name] = data[()]
+    lengths = {len(v) for v in meta.values()}
+    if len(lengths) > 1:
+        raise ValueError(f"{where}: the trajectories datasets disagree on the number of trajectories")
+    for name, values in meta.items():
+        if values.dtype.kind == "f" and not np.isfinite(values).all():
+            raise ValueError(f"{where}: trajectories/{name} holds NaN or infinite values")
+    for name in ("trajectory_id", "first_row", "n_rows"):
+        _check_indices(meta[name], np.iinfo(np.int64).max, f"{where}: trajectories/{name}")
+    _check_indices(meta["arm"], 2, f"{where}: trajectories/arm")
+    _check_indices(meta["indenter_type"], n_names, f"{where}: trajectories/indenter_type")
+    ends = meta["first_row"] + meta["n_rows"]
+    if ends.size and ends.max() > rows:
+        raise ValueError(f"{where}: trajectories first_row + n_rows reach row {ends.max()}, beyond the {rows} rows")
+    if len(np.unique(meta["trajectory_id"])) != len(meta["trajectory_id"]):
+        raise ValueError(f"{where}: trajectories/trajectory_id repeats an id")
+    ids = f["trajectory_id/data"][()] if "trajectory_id" in f else None
+    for tid, first, n in zip(meta["trajectory_id"], meta["first_row"], meta["n_rows"], strict=True):
+        if ids is not None and not np.all(ids[first : first + n] == tid):
+            raise ValueError(f"{where}: rows {first}..{first + n - 1} are not all of trajectory {tid}")
+        if "raw" in f:
+            _check_raw(f, where, int(tid))
+
+
+def _check_raw(f: h5py.File, where: str, trajectory_id: int) -> None:
+    """The full-rate recording of one trajectory: every field, one sample per time, finite times."""
+    key = f"raw/{trajectory_id}"
+    if not isinstance(f.get(key), h5py.Group):
+        raise ValueError(f"{where}: trajectory {trajectory_id} has no full-rate recording {key}")
+    samples = None
+    for name in RAW_FIELDS:
+        data = _dataset(f, f"{key}/{name}", where)
+        _check_shape(data, RAW_SHAPES.get(name, ()), f"{where}: {key}/{name}")
+        if samples is not None and data.shape[0] != samples:
+            raise ValueError(f"{where}: {key}/{name} has {data.shape[0]} samples, time has {samples}")
+        samples = data.shape[0]
+    if not np.isfinite(f[f"{key}/time"][()]).all():
+        raise ValueError(f"{where}: {key}/time holds NaN or infinite values")
+
+
+def _check_mesh(f: h5py.File, where: str) -> None:
+    """mesh/vertices (V, 3) finite, mesh/triangles (T, 3) indices into them, mesh/ventral (V,) if present."""
+    vertices = _dataset(f, "mesh/vertices", where)
+    _check_shape(vertices, (3,), f"{where}: mesh/vertices")
+    if not np.isfinite(vertices[()]).all():
+        raise ValueError(f"{where}: mesh/vertices holds NaN or infinite values")
+    triangles = _dataset(f, "mesh/triangles", where)
+    _check_shape(triangles, (3,), f"{where}: mesh/triangles")
+    _check_indices(triangles[()], vertices.shape[0], f"{where}: mesh/triangles")
+    if "mesh/ventral" in f and _dataset(f, "mesh/ventral", where).shape != (vertices.shape[0],):
+        raise ValueError(f"{where}: mesh/ventral has shape {f['mesh/ventral'].shape}, expected ({vertices.shape[0]},)")
 
 
 def dataset_info(path: Path) -> dict:

@@ -78,14 +78,14 @@ def load_campaign(path: Path | str) -> CampaignData:
     """Load a campaign file for replay; ValueError when it lacks what replay needs."""
     path = Path(path)
     with open_dataset(path) as f:
-        missing = [g for g in ("trajectories", "raw", "force") if g not in f]
+        missing = [g for g in ("trajectories", "raw", *ROW_FEATURES) if g not in f]
         if missing:
             raise ValueError(f"{path} cannot be replayed: it has no {', '.join(missing)} (see docs/dataset.md)")
         names = json.loads(f.attrs.get("indenter_names", "[]"))
         provenance = json.loads(f.attrs.get("provenance", "{}"))
         mesh = float(provenance.get("config", {}).get("mesh_max_edge", 0.5e-3))
         meta = {k: f["trajectories"][k][()] for k in f["trajectories"]}
-        row_data = {k: f[f"{k}/data"][()] for k in ROW_FEATURES if k in f}
+        row_data = {k: f[f"{k}/data"][()] for k in ROW_FEATURES}
         records = []
         for i, tid in enumerate(meta["trajectory_id"]):
             first, n = int(meta["first_row"][i]), int(meta["n_rows"][i])
