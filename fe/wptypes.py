@@ -1,9 +1,54 @@
-"""Double-precision warp types shared by the FE kernels (Newton needs float64 accuracy)."""
+"""Double-precision warp types shared by the FE kernels (Newton needs float64 accuracy), and warp's set-up.
+
+Where no NVIDIA CUDA driver can be loaded, warp is initialised here, on import, without the line its native
+library prints straight to stderr ("Warp CUDA warning: Could not find or load the NVIDIA CUDA driver"): a
+CPU machine stays quiet, and asking for a CUDA device there fails with the device check's own message.
+"""
+
+import ctypes
+import os
+import sys
+import tempfile
 
 import warp as wp
 
 # Keep warp's start-up banner and module-load messages off stdout (the CLI prints JSON there).
 wp.config.log_level = wp.LOG_WARNING
+
+_NO_DRIVER_LINE = "Could not find or load the NVIDIA CUDA driver"
+_DRIVER_LIBRARIES = {"linux": ("libcuda.so", "libcuda.so.1"), "win32": ("nvcuda.dll",)}
+
+
+def _cuda_driver_loadable() -> bool:
+    """Whether a CUDA driver library that warp looks for loads in this process."""
+    for name in _DRIVER_LIBRARIES.get(sys.platform, ()):
+        try:
+            ctypes.CDLL(name)
+        except OSError:
+            continue
+        return True
+    return False
+
+
+def _init_without_driver_warning() -> None:
+    """``wp.init()`` with file descriptor 2 captured; everything but the no-driver line is written back."""
+    sys.stderr.flush()
+    saved = os.dup(2)
+    with tempfile.TemporaryFile() as captured:
+        os.dup2(captured.fileno(), 2)
+        try:
+            wp.init()
+        finally:
+            sys.stderr.flush()
+            os.dup2(saved, 2)
+            os.close(saved)
+        captured.seek(0)
+        lines = captured.read().decode(errors="replace").splitlines(keepends=True)
+    sys.stderr.write("".join(line for line in lines if _NO_DRIVER_LINE not in line))
+
+
+if not _cuda_driver_loadable():
+    _init_without_driver_warning()
 
 mat32d = wp.types.matrix(shape=(3, 2), dtype=wp.float64)
 mat99d = wp.types.matrix(shape=(9, 9), dtype=wp.float64)

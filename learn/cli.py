@@ -19,6 +19,21 @@ if TYPE_CHECKING:
 
 learn_app = typer.Typer(help="Learned electrode models: train, eval, predict.", no_args_is_help=True)
 
+TORCH_FREE_COMMANDS = frozenset({"synth"})
+"""The learn commands that run on the core install; the others need the `learn` extra (torch)."""
+
+
+@learn_app.callback()
+def _require_torch(ctx: typer.Context) -> None:
+    """Without torch, a torch command stops with the install line (exit code 2)."""
+    if ctx.invoked_subcommand in TORCH_FREE_COMMANDS:
+        return
+    try:
+        import torch  # noqa: F401
+    except ImportError:
+        err_console.print('[red]error:[/red] this command needs torch: pip install "biotac-twin\\[learn]"')
+        raise typer.Exit(code=2) from None
+
 METRIC_COLUMNS = (
     ("contact_loc_mean_mm", "loc mean (mm)"),
     ("contact_loc_median_mm", "loc median (mm)"),
@@ -67,15 +82,15 @@ def data_files(paths: list[Path]) -> list[Path]:
 
 def load_checkpoint(path: Path) -> Checkpoint:
     """`learn.checkpoint.Checkpoint.load`, with a missing, empty or foreign file as a one-line ValueError."""
-    import pickle
-
     from learn.checkpoint import Checkpoint
 
     if not path.is_file():
         raise ValueError(f"{path}: no such checkpoint file")
     try:
         return Checkpoint.load(path)
-    except (OSError, RuntimeError, EOFError, KeyError, TypeError, pickle.UnpicklingError) as exc:
+    except ValueError:
+        raise
+    except Exception as exc:  # torch.load of foreign bytes raises many kinds (pickle, zip, index errors)
         raise ValueError(f"{path}: not a biotac-twin learn checkpoint ({type(exc).__name__}: {exc})") from exc
 
 
