@@ -25,7 +25,7 @@ from rich.table import Table
 from assets.biotac import make_biotac
 from fe.batched import BatchedShell
 from fe.device_solver import BatchedBlockMatrix
-from fe.linsolve import SymmetricSolver
+from fe.linsolve import BatchedDirectSolver, SymmetricSolver
 from fe.sensor import BioTacModel
 
 TARGET_S = 1.0
@@ -100,6 +100,7 @@ def instrument(timers: PhaseTimers) -> None:
     """Time the phases of the engine's Newton rounds (class methods: every stepper the model makes)."""
     timers.wrap(BatchedShell, "evaluate", "evaluate (kernels + copies)")
     timers.wrap(BatchedBlockMatrix, "assemble", "assemble")
+    timers.wrap(BatchedDirectSolver, "assemble", "assemble")
     timers.wrap(SymmetricSolver, "factorize", "factorize")
     timers.wrap(SymmetricSolver, "solve", "solve")
     timers.wrap(BatchedShell, "proximity", "indenter proximity (predict)")

@@ -373,12 +373,16 @@ class BatchedShell:
         self.indenters = [(int(kind), tuple(float(d) for d in dims)) for kind, dims in indenters]
         self._kind = arr(np.array([kind for kind, _ in self.indenters], dtype=np.int32), wp.int32)
         self._dims = arr(np.array([dims for _, dims in self.indenters], dtype=np.float64), wp.vec4d)
-        connectivities = [tri, stencils, np.arange(V)[:, None]]
-        self.matrix = BatchedBlockMatrix(BlockPattern.from_connectivities(connectivities, V), B, self.free, device)
+        pattern = BlockPattern.from_connectivities([tri, stencils, np.arange(V)[:, None]], V)
         use_cg = linear == "cg" or (linear == "auto" and wp.get_device(device).is_cuda)
-        self.linear = BatchedCG(self.matrix, 2 * B) if use_cg else BatchedDirectSolver(self.matrix)
-        self.matrix.preconditioned = use_cg
-        """Newton's linear algebra, chosen by the device: batched CG on a GPU, sparse direct per system on the CPU."""
+        self.linear = (
+            BatchedCG(BatchedBlockMatrix(pattern, B, self.free, device), 2 * B)
+            if use_cg
+            else BatchedDirectSolver(pattern, B, self.free)
+        )
+        """Newton's linear algebra, chosen by the device: batched CG on a GPU (block matrix on the device),
+        sparse direct per system on the CPU (host assembly); both `assemble`, `multiply` and `solve`."""
+        self._free_w = arr(self.free, wp.vec3d)
         self._system_of = np.concatenate([np.arange(B), np.arange(B)]).astype(np.int32)
         self._system_of_b = wp.array(np.arange(B, dtype=np.int32), dtype=wp.int32, device=device)
         self._active = z(B, wp.int32)
@@ -513,7 +517,7 @@ class BatchedShell:
                 "gradients": self.gradients,
                 "volume_gradient": buf["volume_gradient"],
                 "pressure": self._per_system("pressure", pressure),
-                "free": self.matrix.free,
+                "free": self._free_w,
                 "residual": self.residual,
                 "gradient": self.gradient,
                 "bvec": self.bvec,
@@ -785,7 +789,7 @@ class BatchedShell:
         systems (in self.dq; the other rows keep theirs) and dp (B,)."""
         buf, B = self.buf, self.batch
         start = time.perf_counter()
-        self.matrix.assemble(
+        self.linear.assemble(
             [
                 (0, buf["membrane_hessian"], None),
                 (1, buf["bending_hessian"], None),
@@ -836,7 +840,7 @@ class BatchedShell:
 
     def _curvature(self, mask: np.ndarray) -> np.ndarray:
         """dq . K dq per system (with the damping of the last assembly)."""
-        self.matrix.multiply(self.dq, self.kdq, self._system_of_b)
+        self.linear.multiply(self.dq, self.kdq, self._system_of_b)
         return np.where(mask, batched_dot(self.dq, self.kdq, self._sums), 0.0)
 
     def _axpy(self, x: wp.array, step: np.ndarray, out: wp.array) -> None:

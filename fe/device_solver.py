@@ -323,8 +323,6 @@ class BatchedBlockMatrix:
         self.values = wp.zeros((batch, len(pattern.columns)), dtype=wp.mat33d, device=device)
         self.preconditioner = wp.zeros((batch, pattern.n_nodes), dtype=wp.mat33d, device=device)
         self._ones = arr(np.ones(batch), wp.float64)
-        self.preconditioned = True
-        """Whether `assemble` refreshes the block-Jacobi preconditioner (CG needs it, a direct solver not)."""
 
     def assemble(
         self,
@@ -358,13 +356,12 @@ class BatchedBlockMatrix:
             [self.values, self.block_row, self.columns, self.free, shift_w, active_w],
             device=self.device,
         )
-        if self.preconditioned:
-            wp.launch(
-                _invert_diagonal,
-                (self.batch, self.pattern.n_nodes),
-                [self.values, self.diagonal, active_w, self.preconditioner],
-                device=self.device,
-            )
+        wp.launch(
+            _invert_diagonal,
+            (self.batch, self.pattern.n_nodes),
+            [self.values, self.diagonal, active_w, self.preconditioner],
+            device=self.device,
+        )
 
     def multiply(self, x: wp.array, y: wp.array, system_of: wp.array) -> None:
         """y[c] = A[system_of[c]] x[c] for (C, V) vec3d arrays."""
@@ -398,6 +395,16 @@ class BatchedCG:
         self.columns_of = wp.zeros((matrix.batch, 2), dtype=wp.int32, device=device)
         self._max_iterations = -1
         self._graph = None
+
+    def assemble(
+        self, terms: list[tuple[int, wp.array, np.ndarray | None]], shift: np.ndarray, active: np.ndarray | None = None
+    ) -> None:
+        """`BatchedBlockMatrix.assemble` of the solver's matrix."""
+        self.matrix.assemble(terms, shift, active)
+
+    def multiply(self, x: wp.array, y: wp.array, system_of: wp.array) -> None:
+        """`BatchedBlockMatrix.multiply` of the solver's matrix."""
+        self.matrix.multiply(x, y, system_of)
 
     def _iterate(self) -> None:
         m, device, shape = self.matrix, self.matrix.device, (self.columns, self.matrix.pattern.n_nodes)

@@ -19,7 +19,7 @@ import scipy.sparse as sp
 import scipy.sparse.linalg as spla
 import warp as wp
 
-from fe.device_solver import CG_CONVERGED, CG_NEGATIVE_CURVATURE, BatchedBlockMatrix
+from fe.device_solver import CG_CONVERGED, CG_NEGATIVE_CURVATURE, BlockPattern
 
 
 class SingularMatrixError(RuntimeError):
@@ -249,33 +249,70 @@ class SymmetricSolver:
 
 
 class BatchedDirectSolver:
-    """The batched CG's interface (`fe.device_solver.BatchedCG.solve`) answered by one sparse direct
-    factorisation per system: the CPU's linear algebra for the batched Newton.
+    """The batched CG's interface (`fe.device_solver.BatchedCG`: `assemble`, `multiply`, `solve`) answered by
+    one sparse direct factorisation per system: the CPU's linear algebra for the batched Newton.
 
-    Each system's 3x3-block matrix is gathered into scalar CSR over the free DOFs only (one precomputed
-    index from the block values into the CSR values), factorised by its own `SymmetricSolver` (the
-    symbolic analysis of the shared pattern is done once per system slot) and solved for its right-hand
-    sides to round-off (fixed DOFs get 0); the factorisation is kept, so `resolve` repeats a solve with it
-    (a chord step) without a new matrix.
+    Element Hessians are summed on the host straight into each system's scalar CSR over the free DOFs (one
+    precomputed sparse scatter matrix per element family, as a serial FE code assembles; no block matrix),
+    factorised by the system's own `SymmetricSolver` (the symbolic analysis of the shared pattern is done once
+    per system slot) and solved for its right-hand sides to round-off (fixed DOFs get 0); the factorisation
+    is kept, so `resolve` repeats a solve with it (a chord step) without a new matrix.
     """
 
     holds_factorization = True
 
-    def __init__(self, matrix: BatchedBlockMatrix) -> None:
-        self.matrix = matrix
-        pattern, n = matrix.pattern, matrix.pattern.n_nodes
-        self._free = np.flatnonzero(matrix.free.numpy().reshape(-1) > 0.0)
-        # Number every block entry (1-based, so none is a structural zero), convert once, keep the free part.
+    def __init__(self, pattern: BlockPattern, batch: int, free: np.ndarray) -> None:
+        """`pattern`: the 3x3-block pattern of the element families; `free` (V,3): 1 for free DOFs, 0 for fixed."""
+        self.batch, n = batch, pattern.n_nodes
+        self._free = np.flatnonzero(np.asarray(free).reshape(-1) > 0.0)
+        # Number every block entry (1-based, so none is a structural zero) and keep the free part's CSR.
         numbers = np.arange(1, 9 * len(pattern.columns) + 1, dtype=np.float64).reshape(-1, 3, 3)
         blocks = sp.bsr_matrix((numbers, pattern.columns, pattern.offsets), shape=(3 * n, 3 * n)).tocsr()
-        free = blocks[self._free][:, self._free].tocsr()
-        free.sort_indices()
-        self._gather = free.data.astype(np.int64) - 1
-        self._indices, self._indptr = free.indices.astype(np.int32), free.indptr.astype(np.int32)
+        csr = blocks[self._free][:, self._free].tocsr()
+        csr.sort_indices()
+        self._indices, self._indptr = csr.indices.astype(np.int32), csr.indptr.astype(np.int32)
+        position = np.full(9 * len(pattern.columns), -1, dtype=np.int64)  # block entry -> CSR value, -1: fixed
+        position[csr.data.astype(np.int64) - 1] = np.arange(csr.nnz)
+        self._diagonal = np.flatnonzero(np.repeat(np.arange(len(self._free)), np.diff(csr.indptr)) == csr.indices)
+        self._scatter = [_family_scatter(pattern, f, position, csr.nnz) for f in range(len(pattern.block_of))]
+        self._trace = [_family_trace(pattern, f) for f in range(len(pattern.block_of))]
+        self._node_of_free = self._free // 3
+        self._matrices: dict[int, sp.csr_matrix] = {}
         self._solvers: dict[int, SymmetricSolver] = {}
-        self._factorized = np.zeros(matrix.batch, dtype=bool)
+        self._factorized = np.zeros(batch, dtype=bool)
         self.x = None
         """(C, V) vec3d solutions of the last solve (a warp array on the matrix's device, owned here)."""
+
+    def assemble(
+        self, terms: list[tuple[int, wp.array, np.ndarray | None]], shift: np.ndarray, active: np.ndarray | None = None
+    ) -> None:
+        """`fe.device_solver.BatchedBlockMatrix.assemble`: sum the element Hessians of each term (family, (B, E_f)
+        matrices, per-system scale or None) over the free DOFs and add the relative damping `shift` (B,)
+        (shift x the node's unconstrained diagonal-block trace / 3) to the free diagonal, for the `active`
+        systems ((B,) bool, default all)."""
+        active = np.ones(self.batch, dtype=bool) if active is None else np.asarray(active, dtype=bool)
+        hessians = [(f, blocks.numpy().reshape(self.batch, -1), scale) for f, blocks, scale in terms if blocks.shape[1]]
+        for b in np.flatnonzero(active):
+            data = np.zeros(len(self._indices))
+            trace = None
+            for f, values, scale in hessians:
+                weight = 1.0 if scale is None else float(scale[b])
+                data += weight * (self._scatter[f] @ values[b])
+                if shift[b] != 0.0:
+                    trace = weight * (self._trace[f] @ values[b]) + (0.0 if trace is None else trace)
+            if trace is not None:
+                data[self._diagonal] += shift[b] * trace[self._node_of_free] / 3.0
+            n = len(self._free)
+            self._matrices[int(b)] = sp.csr_matrix((data, self._indices, self._indptr), shape=(n, n))
+
+    def multiply(self, x: wp.array, y: wp.array, system_of: wp.array) -> None:
+        """y[c] = A[system_of[c]] x[c] for (C, V) vec3d arrays (fixed DOFs: y = x, the unit diagonal)."""
+        x_host, system_of = x.numpy().reshape(len(x.numpy()), -1), system_of.numpy()
+        out = x_host.copy()
+        for c, b in enumerate(system_of):
+            if int(b) in self._matrices:
+                out[c, self._free] = self._matrices[int(b)] @ x_host[c, self._free]
+        y.assign(out.reshape(y.shape + (3,)))
 
     def _solver(self, system: int) -> SymmetricSolver:
         if system not in self._solvers:
@@ -285,17 +322,14 @@ class BatchedDirectSolver:
     def solve(
         self, rhs: wp.array, system_of: np.ndarray, active: np.ndarray, tolerance: np.ndarray, max_iterations: int
     ) -> tuple[wp.array, np.ndarray, np.ndarray]:
-        """Factorise the matrix of every system with an active column, then solve (`BatchedCG.solve`'s
+        """Factorise the matrix (`assemble`) of every system with an active column, then solve (`BatchedCG.solve`'s
         arguments and results; `tolerance` and `max_iterations` are met by construction). A singular
         system's columns come back CG_NEGATIVE_CURVATURE (no usable solution)."""
-        values = self.matrix.values.numpy().reshape(self.matrix.batch, -1)
         systems = np.unique(np.asarray(system_of)[np.asarray(active, dtype=bool)])
-        n = len(self._free)
         for b in systems:
             self._factorized[b] = False
-            matrix = sp.csr_matrix((values[b][self._gather], self._indices, self._indptr), shape=(n, n))
             try:
-                self._solver(int(b)).factorize(matrix)
+                self._solver(int(b)).factorize(self._matrices[int(b)])
             except SingularMatrixError:
                 continue
             self._factorized[b] = True
@@ -322,3 +356,32 @@ class BatchedDirectSolver:
             self.x = wp.zeros(rhs.shape, dtype=wp.vec3d, device=rhs.device)
         self.x.assign(out.reshape(*rhs.shape, 3))
         return self.x, np.zeros(len(system_of), dtype=np.int32), state
+
+
+def _family_scatter(pattern: BlockPattern, family: int, position: np.ndarray, nnz: int) -> sp.csr_matrix:
+    """(nnz, E k^2 9) 0/1 matrix taking the flattened element Hessians (E, 3k x 3k, row-major) of element family
+    `family` (k nodes each) to the free-DOF CSR values (`position`: block entry -> CSR value, -1 for fixed)."""
+    entries = _block_entries(pattern, family)
+    keep = position[entries] >= 0
+    columns = np.flatnonzero(keep)
+    return sp.csr_matrix((np.ones(len(columns)), (position[entries[keep]], columns)), shape=(nnz, entries.size))
+
+
+def _family_trace(pattern: BlockPattern, family: int) -> sp.csr_matrix:
+    """(V, E k^2 9) 0/1 matrix summing the flattened element Hessians of `family` into the trace of each node's
+    unconstrained diagonal block."""
+    entries = _block_entries(pattern, family)
+    block, within = entries // 9, entries % 9
+    on_diagonal = (pattern.block_row[block] == pattern.columns[block]) & (within % 4 == 0)
+    columns = np.flatnonzero(on_diagonal)
+    rows = pattern.block_row[block[on_diagonal]]
+    return sp.csr_matrix((np.ones(len(columns)), (rows, columns)), shape=(pattern.n_nodes, entries.size))
+
+
+def _block_entries(pattern: BlockPattern, family: int) -> np.ndarray:
+    """Block-entry number (9 x block + 3 r + c) of each flattened element-Hessian entry of `family`: entry
+    (3i + r) 3k + 3j + c of element e lands in row r, column c of block block_of[e, i k + j]."""
+    block_of = np.asarray(pattern.block_of[family], dtype=np.int64)
+    k = int(round(np.sqrt(block_of.shape[1])))
+    i, r, j, c = np.meshgrid(np.arange(k), np.arange(3), np.arange(k), np.arange(3), indexing="ij")
+    return (9 * block_of[:, (i * k + j).ravel()] + (3 * r + c).ravel()).reshape(len(block_of), 9 * k * k)

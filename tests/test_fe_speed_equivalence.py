@@ -11,7 +11,7 @@ import warp as wp
 
 from assets.indenters import get_indenter
 from fe.batched_stepper import BatchedStepper
-from fe.device_solver import CG_CONVERGED, BatchedBlockMatrix, BlockPattern
+from fe.device_solver import CG_CONVERGED, BatchedBlockMatrix, BatchedCG, BlockPattern
 from fe.indentation import IndentationStepper, drive
 from fe.linsolve import BatchedDirectSolver
 from fe.sensor import BioTacModel
@@ -19,13 +19,13 @@ from fe.sensor import BioTacModel
 MIDLINE_POINT = np.array([-6e-3, 0.0, -9e-3])
 
 
-def _dense(matrix: BatchedBlockMatrix, system: int) -> np.ndarray:
-    """System `system`'s assembled matrix as a dense (3V, 3V) array, read block by block from the pattern."""
-    pattern, values = matrix.pattern, matrix.values.numpy()[system]
-    dense = np.zeros((3 * pattern.n_nodes, 3 * pattern.n_nodes))
-    for k, (row, col) in enumerate(zip(pattern.block_row, pattern.columns, strict=True)):
-        dense[3 * row : 3 * row + 3, 3 * col : 3 * col + 3] = values[k]
-    return dense
+def _dense(linear: BatchedDirectSolver, system: int, n_nodes: int) -> np.ndarray:
+    """System `system`'s assembled matrix as a dense (3V, 3V) array, read column by column through `multiply`."""
+    unit = np.eye(3 * n_nodes).reshape(3 * n_nodes, n_nodes, 3)
+    out = wp.zeros((3 * n_nodes, n_nodes), dtype=wp.vec3d)
+    system_of = wp.array(np.full(3 * n_nodes, system, dtype=np.int32), dtype=wp.int32)
+    linear.multiply(wp.array(unit, dtype=wp.vec3d), out, system_of)
+    return out.numpy().reshape(3 * n_nodes, 3 * n_nodes).T
 
 
 def _enclosed_volume(model: BioTacModel, x: np.ndarray) -> float:
@@ -47,28 +47,14 @@ def test_direct_solver_matches_a_dense_solve_of_the_summed_element_blocks() -> N
     free = np.ones((n_nodes, 3))
     free[0] = 0.0  # node 0 held
     free[[3, 7], [2, 0]] = 0.0  # two single coordinates held
-    matrix = BatchedBlockMatrix(BlockPattern.from_connectivities(families, n_nodes), batch, free, "cpu")
     keep = free.ravel() > 0
-    blocks, dense = [], np.zeros((batch, 3 * n_nodes, 3 * n_nodes))
-    for family in families:
-        size = 3 * family.shape[1]
-        raw = rng.normal(size=(batch, len(family), size, size))
-        sym = raw + np.swapaxes(raw, 2, 3)
-        blocks.append(sym)
-        dofs = (3 * family[:, :, None] + np.arange(3)).reshape(len(family), -1)
-        for b in range(batch):
-            for d, block in zip(dofs, sym[b], strict=True):
-                dense[b][np.ix_(d, d)] += block
-    terms = []
-    for k, family in enumerate(families):
-        mat = wp.types.matrix(shape=(3 * family.shape[1],) * 2, dtype=wp.float64)
-        terms.append((k, wp.array(blocks[k], dtype=mat), None))
-    matrix.assemble(terms, np.zeros(batch))
+    terms, dense = _random_element_terms(rng, families, batch, n_nodes, None)
+    solver = BatchedDirectSolver(BlockPattern.from_connectivities(families, n_nodes), batch, free)
+    solver.assemble(terms, np.zeros(batch))
     reduced = [dense[b][np.ix_(keep, keep)] for b in range(batch)]
     eigenvalues = np.concatenate([np.linalg.eigvalsh(r) for r in reduced])
     assert eigenvalues.min() < 0 < eigenvalues.max()  # indefinite, as Newton matrices under pressure can be
     assert all(np.linalg.cond(r) < 1e6 for r in reduced)
-    solver = BatchedDirectSolver(matrix)
     system_of = np.array([0, 1, 0, 1])
     for attempt in range(2):
         rhs = rng.standard_normal((4, n_nodes, 3)) * free
@@ -86,6 +72,60 @@ def test_direct_solver_matches_a_dense_solve_of_the_summed_element_blocks() -> N
             assert np.allclose(solution, expected, rtol=0, atol=1e-5 * np.abs(expected).max())
 
 
+def _random_element_terms(
+    rng: np.random.Generator, families: list[np.ndarray], batch: int, n_nodes: int, scale: np.ndarray | None
+) -> tuple[list[tuple[int, wp.array, np.ndarray | None]], np.ndarray]:
+    """Random symmetric element Hessians of each family (the last scaled per system by `scale`), as assembly
+    terms, and their sum (batch, 3V, 3V) done here densely."""
+    terms, dense = [], np.zeros((batch, 3 * n_nodes, 3 * n_nodes))
+    for k, family in enumerate(families):
+        size = 3 * family.shape[1]
+        raw = rng.normal(size=(batch, len(family), size, size))
+        sym = raw + np.swapaxes(raw, 2, 3)
+        weight = scale if scale is not None and k == len(families) - 1 else np.ones(batch)
+        dofs = (3 * family[:, :, None] + np.arange(3)).reshape(len(family), -1)
+        for b in range(batch):
+            for d, block in zip(dofs, sym[b], strict=True):
+                dense[b][np.ix_(d, d)] += weight[b] * block
+        mat = wp.types.matrix(shape=(size, size), dtype=wp.float64)
+        terms.append((k, wp.array(sym, dtype=mat), None if weight is not scale else scale))
+    return terms, dense
+
+
+def test_both_linear_solvers_assemble_scaled_damped_matrices_as_a_dense_sum() -> None:
+    """The CG's block matrix and the direct solver's host assembly against a dense sum done here: a
+    per-system scale on one family, fixed DOFs eliminated (unit diagonal), relative damping shift x the trace
+    of the node's unconstrained diagonal block / 3 on the free diagonal, one system left out."""
+    rng = np.random.default_rng(11)
+    n_nodes, batch = 12, 3
+    families = [np.array([rng.choice(n_nodes, k, replace=False) for _ in range(14)]) for k in (3, 2)]
+    free = np.ones((n_nodes, 3))
+    free[2] = 0.0
+    free[5, 1] = 0.0
+    scale, shift = np.array([1.0, -2.5, 0.7]), np.array([0.0, 0.3, 10.0])
+    terms, dense = _random_element_terms(rng, families, batch, n_nodes, scale)
+    keep = free.ravel()
+    expected = dense * keep[None, :, None] * keep[None, None, :]
+    for b in range(batch):
+        trace = np.einsum(
+            "vii->v", dense[b].reshape(n_nodes, 3, n_nodes, 3).transpose(0, 2, 1, 3)[range(n_nodes), range(n_nodes)]
+        )
+        expected[b][np.diag_indices(3 * n_nodes)] += (1.0 - keep) + shift[b] * np.repeat(trace, 3) / 3.0 * keep
+    pattern = BlockPattern.from_connectivities(families, n_nodes)
+    active = np.array([True, True, False])
+    x = rng.standard_normal((batch, n_nodes, 3))
+    for linear in (
+        BatchedCG(BatchedBlockMatrix(pattern, batch, free, "cpu"), batch),
+        BatchedDirectSolver(pattern, batch, free),
+    ):
+        linear.assemble(terms, shift, active)
+        y = wp.zeros((batch, n_nodes), dtype=wp.vec3d)
+        linear.multiply(wp.array(x, dtype=wp.vec3d), y, wp.array(np.arange(batch, dtype=np.int32), dtype=wp.int32))
+        for b in np.flatnonzero(active):
+            want = expected[b] @ x[b].ravel()
+            assert np.allclose(y.numpy()[b].ravel(), want, rtol=0, atol=1e-12 * np.abs(want).max()), type(linear)
+
+
 def test_direct_solver_solves_the_biotac_newton_matrix(frictional_biotac: BioTacModel) -> None:
     """The Newton matrix the engine left after an angled press (mixed precision with refinement on PARDISO):
     solves to a 1e-6 relative residual of the matrix read back densely, and agree with numpy's dense solve."""
@@ -94,14 +134,15 @@ def test_direct_solver_solves_the_biotac_newton_matrix(frictional_biotac: BioTac
     stepper = IndentationStepper(model.inflated_skin(), "sphere_medium", path.touch_point)
     assert all(inc.converged for inc in drive(stepper, path))
     shell = stepper.engine.shell
-    dense = _dense(shell.matrix, 0)
+    dense = _dense(shell.linear, 0, shell.n_vertices)
     assert np.allclose(dense, dense.T, rtol=0, atol=1e-9 * np.abs(dense).max())
     free = shell.free.ravel() > 0
     rng = np.random.default_rng(5)
     rhs = rng.standard_normal((2, *shell.free.shape)) * shell.free
     rhs[1] = shell.bvec.numpy()[0] * shell.free  # the volume gradient, the Schur complement's column
-    solver = BatchedDirectSolver(shell.matrix)
-    x, _, state = solver.solve(wp.array(rhs, dtype=wp.vec3d), np.array([0, 0]), np.ones(2, dtype=bool), np.zeros(2), 1)
+    x, _, state = shell.linear.solve(
+        wp.array(rhs, dtype=wp.vec3d), np.array([0, 0]), np.ones(2, dtype=bool), np.zeros(2), 1
+    )
     assert np.all(state == CG_CONVERGED)
     for c in range(2):
         solution, b = x.numpy()[c].ravel(), rhs[c].ravel()
