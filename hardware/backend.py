@@ -88,9 +88,11 @@ class HardwareBackend:
             c.biotac.reconnect_s,
         )
         ports = {"left": c.egm.left_port, "right": c.egm.right_port}
+        robot_ports = {"left": c.egm.left_robot_port, "right": c.egm.right_robot_port}
         for arm in ARMS:
             speed = np.minimum(c.egm.max_speed, velocity_limits(arm))
-            self._links[arm] = EgmArmLink(arm, c.egm.bind_host, ports[arm], speed)
+            robot = (c.egm.robot_host, robot_ports[arm])
+            self._links[arm] = EgmArmLink(arm, c.egm.bind_host, ports[arm], speed, robot)
         self._rws = RwsClient(c.rws.host, c.rws.port, c.rws.user, c.rws.password, c.rws.timeout_s)
         if c.rws.start_rapid and not self._rws.rapid_running():
             if self._rws.ctrlstate() != "motoron":
@@ -101,9 +103,12 @@ class HardwareBackend:
             try:
                 link.state.wait(c.egm.startup_timeout_s)
             except StaleDataError as exc:
+                foreign = link.stats["foreign"]
+                dropped = f" ({foreign} datagrams from senders other than egm.robot_host and its port dropped)"
                 raise StaleDataError(
-                    f"{exc}: no EgmRobot on UDP port {link.port} - is RAPID running EGMRunJoint for {arm}, and "
-                    "does the controller's EGM (UDPUC) device point at this PC and port?"
+                    f"{exc}: no EgmRobot on UDP port {link.port} of {link.address[0]} - is RAPID running "
+                    f"EGMRunJoint for {arm}, and does the controller's EGM (UDPUC) device point at this PC and "
+                    f"port?{dropped if foreign else ''}"
                 ) from exc
         self._check_arm_ports()
         self._kms.wrench.wait(c.kms40.timeout_s)

@@ -2,7 +2,9 @@
 
 from __future__ import annotations
 
+import ipaddress
 import json
+import socket
 import time
 from pathlib import Path
 from typing import TYPE_CHECKING, Annotated
@@ -29,9 +31,29 @@ def _ports(text: str) -> tuple[int, int]:
     return left, right
 
 
+def exposure_warning(host: str) -> str | None:
+    """What serving on `host` exposes beyond this machine (None for a loopback address)."""
+    if host in ("0.0.0.0", ""):
+        where = "all interfaces (0.0.0.0)"
+    else:
+        try:
+            if ipaddress.ip_address(socket.gethostbyname(host)).is_loopback:
+                return None
+        except (OSError, ValueError):
+            return None  # not an address of this machine: opening the ports will say so
+        where = host
+    return (
+        f"WARNING: serving on {where}: anyone who reaches this machine can log in to the simulated RWS "
+        "with the factory password ('Default User' / 'robotics') and start RAPID; the KMS40 and the BioTac "
+        "SPI bridge take no password at all. Use this only on a network you trust."
+    )
+
+
 @devices_app.command("serve")
 def serve(
-    host: Annotated[str, typer.Option(help="Address to serve on (loopback by default).")] = "127.0.0.1",
+    host: Annotated[
+        str, typer.Option(help="Address to serve on (loopback by default; others expose the factory password).")
+    ] = "127.0.0.1",
     rws_port: Annotated[int, typer.Option(help="RWS HTTP port (real: 80; 0 = any free port).")] = 80,
     kms40_port: Annotated[int, typer.Option(help="KMS40 TCP port (real: 1000; 0 = any free port).")] = 1000,
     egm_ports: Annotated[
@@ -103,6 +125,8 @@ def serve(
             config_out.write_text(text)
         print(text, flush=True)
         ports = testbed.egm_ports
+        if warning := exposure_warning(host):
+            err_console.print(f"[bold red]{escape(warning)}[/bold red]")
         err_console.print(
             f"serving on {host}: RWS :{testbed.rws.port}, KMS40 :{testbed.kms40.port}, BioTac SPI bridge "
             f":{testbed.biotac_bridge.port}, EGM to :{ports['left']} (left) :{ports['right']} (right); Ctrl-C stops"

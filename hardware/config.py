@@ -15,6 +15,7 @@ from pathlib import Path
 from typing import Any
 
 TRANSPORT_SPEC = re.compile(r"cheetah(:\d+)?|tcp://[^:/\s]+:\d+")
+AUTO_BIND = "auto"
 
 
 @dataclass(frozen=True)
@@ -33,11 +34,17 @@ class RwsConfig:
 
 @dataclass(frozen=True)
 class EgmConfig:
-    """EGM joint streaming: this PC listens on one UDP port per arm."""
+    """EGM joint streaming: this PC listens on one UDP port per arm and hears only the controller."""
 
-    bind_host: str = "0.0.0.0"
+    bind_host: str = AUTO_BIND
+    """Address of this PC to listen on; "auto": the interface that routes to `robot_host` (never all)."""
     left_port: int = 6511
     right_port: int = 6512
+    robot_host: str = "192.168.125.1"
+    """The controller: EgmRobot from any other address is dropped, counted (`foreign`), never answered."""
+    left_robot_port: int = 0
+    right_robot_port: int = 0
+    """UDP port each arm's EGM comes from (the UDPUC device's local port); 0: any port of `robot_host`."""
     startup_timeout_s: float = 10.0
     """How long to wait for the first EgmRobot of each arm after RAPID starts."""
     watchdog_s: float = 0.1
@@ -107,6 +114,8 @@ class HardwareConfig:
             ("rws.port", self.rws.port),
             ("egm.left_port", self.egm.left_port),
             ("egm.right_port", self.egm.right_port),
+            ("egm.left_robot_port", self.egm.left_robot_port),
+            ("egm.right_robot_port", self.egm.right_robot_port),
             ("kms40.port", self.kms40.port),
         ):
             if not 0 <= port <= 65535:

@@ -5,6 +5,12 @@ answered at once, to its sender, with the current joint setpoint. The setpoint w
 set by `set_goal` at no more than `max_speed` (rad/s per joint), so a far goal becomes a smooth
 speed-limited motion. Before the first goal the link holds the robot where it is.
 
+Only the configured robot may speak: a datagram from any other address (or, when the robot's port
+is given, any other port) is dropped unread, counted in `stats["foreign"]` and never answered, so a
+stranger can neither feed forged joints or motor states to the safety logic nor learn the
+setpoints. The link listens on one interface: the configured one, or with "auto" the one that
+routes to the robot.
+
 Bad datagrams (garbage, truncated, oversized, missing joints) and old or repeated sequence numbers
 are counted in `stats` and never answered; a sequence number far behind the last one, or any older
 one after a pause in traffic, is taken as a restart of EGM on the controller.
@@ -20,6 +26,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from hardware.config import AUTO_BIND
 from hardware.egm_messages import (
     MAX_DATAGRAM_BYTES,
     EgmHeader,
@@ -49,16 +56,29 @@ class RobotState:
     rapid_running: bool
 
 
-class EgmArmLink:
-    """EGM sensor endpoint for one arm, bound to `host:port` (port 0 picks a free one)."""
+def interface_toward(host: str) -> str:
+    """This machine's IPv4 address on the interface that routes to `host` (nothing is sent)."""
+    with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as probe:
+        probe.connect((host, 9))  # UDP connect only picks the route
+        return probe.getsockname()[0]
 
-    def __init__(self, arm: str, host: str, port: int, max_speed: np.ndarray) -> None:
+
+class EgmArmLink:
+    """EGM sensor endpoint for one arm, bound to `host:port` (port 0 picks a free one; host "auto":
+    the interface facing the robot), hearing only `robot` = (address, port; port 0 = any of its ports)."""
+
+    def __init__(self, arm: str, host: str, port: int, max_speed: np.ndarray, robot: tuple[str, int]) -> None:
         self.arm = arm
         self.max_speed = np.asarray(max_speed, dtype=float)
         self.state: Latest[RobotState] = Latest(f"EGM {arm}")
         self.stats: Counter[str] = Counter()
+        self.robot = (socket.gethostbyname(robot[0]), robot[1])
         self._sock = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
-        self._sock.bind((host, port))
+        try:
+            self._sock.bind((interface_toward(robot[0]) if host == AUTO_BIND else host, port))
+        except OSError:
+            self._sock.close()
+            raise
         self._sock.settimeout(0.02)  # how soon close() is noticed
         self._lock = threading.Lock()
         self._goal: np.ndarray | None = None
@@ -72,9 +92,14 @@ class EgmArmLink:
         self._thread.start()
 
     @property
+    def address(self) -> tuple[str, int]:
+        """The (address, UDP port) this link listens on."""
+        return self._sock.getsockname()
+
+    @property
     def port(self) -> int:
         """The UDP port this link listens on."""
-        return self._sock.getsockname()[1]
+        return self.address[1]
 
     def set_goal(self, q: np.ndarray) -> None:
         """Move toward joints `q` (rad, chain order) at no more than `max_speed`; no limit checks here."""
@@ -103,6 +128,9 @@ class EgmArmLink:
             except OSError:
                 self.stats["socket_errors"] += 1
                 continue
+            if not self._from_robot(sender):
+                self.stats["foreign"] += 1
+                continue
             try:
                 if flags & socket.MSG_TRUNC:
                     raise EgmMessageError("oversized EGM datagram")
@@ -112,6 +140,10 @@ class EgmArmLink:
                 continue
             if robot is not None:
                 self._reply(robot, sender)
+
+    def _from_robot(self, sender: tuple[str, int]) -> bool:
+        host, port = self.robot
+        return sender[0] == host and port in (0, sender[1])
 
     def _accept(self, msg: EgmRobot) -> RobotState | None:
         """Validate one message (joints, then sequence number); None for an old or repeated one."""

@@ -2,9 +2,11 @@
 
 While streaming (RAPID running), each cycle the arm moves toward the last valid joint target by at
 most `velocity_limits * cycle_s` per joint, clamps to the position limits, and sends its feedback
-(degrees, axis 7 in externalJoints[0]) to the sensor address. Replies that are garbage, oversized,
-carry no joints, or are not newer than the last accepted one are counted and ignored. `joints` is the
-arm's current configuration (rad, chain order) for whoever drives a twin from it.
+(degrees, axis 7 in externalJoints[0]) to the sensor address. Only that address (host and port) is
+the registered peer: datagrams from any other sender are counted (`foreign`) and ignored, whatever
+their sequence number. Replies that are garbage, oversized, carry no joints, or are not newer than
+the last accepted one are counted and ignored. `joints` is the arm's current configuration (rad,
+chain order) for whoever drives a twin from it.
 """
 
 from __future__ import annotations
@@ -45,6 +47,7 @@ class SimEgmArm:
     ) -> None:
         self.arm = arm
         self.sensor_addr = sensor_addr
+        self._peer = (socket.gethostbyname(sensor_addr[0]), sensor_addr[1])
         self.cycle_s = cycle_s
         self.limits = np.asarray(position_limits, dtype=float)
         self.max_step = np.asarray(velocity_limits, dtype=float) * cycle_s
@@ -61,6 +64,11 @@ class SimEgmArm:
         self._sock.bind((sensor_addr[0], 0))
         self._thread = threading.Thread(target=self._run, name=f"egm-sim-{arm}", daemon=True)
         self._thread.start()
+
+    @property
+    def port(self) -> int:
+        """The UDP port the arm sends from (what the sensor sees as the robot's port)."""
+        return self._sock.getsockname()[1]
 
     @property
     def joints(self) -> np.ndarray:
@@ -126,11 +134,14 @@ class SimEgmArm:
         while (remaining := deadline - time.monotonic()) > 0:
             self._sock.settimeout(remaining)
             try:
-                data = self._sock.recv(MAX_DATAGRAM_BYTES + 1)
+                data, sender = self._sock.recvfrom(MAX_DATAGRAM_BYTES + 1)
             except TimeoutError:
                 return
             except OSError:
                 self.stats["receive_errors"] += 1
+                continue
+            if sender != self._peer:
+                self.stats["foreign"] += 1
                 continue
             try:
                 self._accept(parse_datagram(EgmSensor, data))

@@ -43,6 +43,11 @@ class UdpFaultProxy:
         """The port clients send to."""
         return self._front.getsockname()[1]
 
+    @property
+    def source_port(self) -> int:
+        """The port the proxy forwards from: the sender's port that the target sees."""
+        return self._back.getsockname()[1]
+
     def close(self) -> None:
         """Stop forwarding; safe to call twice."""
         self._stop.set()

@@ -2,7 +2,15 @@
 
 HTTP Digest (MD5, qop=auth, realm "validusers@robapi.abb") opens a session whose cookie later
 requests reuse; beyond `max_sessions` sessions a new one gets 503, as on the real controller. Replies
-are JSON shaped `{"_embedded": {"_state": [...]}}` whatever `?json=1` says. Resources served:
+are JSON shaped `{"_embedded": {"_state": [...]}}` whatever `?json=1` says.
+
+A Digest answer counts only with a nonce this server issued less than `nonce_ttl_s` ago, a nonce
+count (nc) above any earlier one for that nonce (a captured header does not replay), and a `uri`
+equal to the request's target. Sessions idle for `session_idle_s` expire (the client logs in
+again). Before authentication nothing a stranger sends holds resources: at most `max_nonces`
+nonces are kept (the oldest go first), at most `max_connections` connections are served at once
+(more are closed at once), every read times out after `request_timeout_s`, and a Content-Length
+that is not a number gets 400, one over 64 KiB 413, before any body is read. Resources served:
 
 - GET  rw/panel/ctrlstate, POST rw/panel/ctrlstate?action=setctrlstate (ctrl-state=motoron|motoroff)
 - GET  rw/panel/opmode
@@ -20,8 +28,11 @@ import hashlib
 import json
 import re
 import secrets
+import socket
 import threading
+import time
 from collections.abc import Callable
+from dataclasses import dataclass
 from http.server import BaseHTTPRequestHandler, ThreadingHTTPServer
 from urllib.parse import parse_qs, urlsplit
 
@@ -30,6 +41,8 @@ import numpy as np
 REALM = "validusers@robapi.abb"
 SESSION_COOKIE = "-http-session-"
 _DIGEST_PARAM = re.compile(r'(\w+)=(?:"([^"]*)"|([^,\s]*))')
+_CONTENT_LENGTH = re.compile(r"[0-9]+")
+MAX_BODY_BYTES = 65536
 
 
 def _md5(text: str) -> str:
@@ -44,6 +57,40 @@ class _Request(Exception):
         self.status = status
 
 
+@dataclass
+class _Nonce:
+    issued: float
+    """When the challenge carrying it was sent (s, monotonic)."""
+    last_nc: int = 0
+    """The highest nonce count accepted with it so far."""
+
+
+class _BoundedHTTPServer(ThreadingHTTPServer):
+    """A threading HTTP server that serves at most `max_connections` connections at once."""
+
+    daemon_threads = True
+
+    def __init__(self, address: tuple[str, int], handler: type[BaseHTTPRequestHandler], max_connections: int) -> None:
+        self._slots = threading.BoundedSemaphore(max_connections)
+        super().__init__(address, handler)
+
+    def process_request(self, request: socket.socket, client_address: tuple[str, int]) -> None:
+        if not self._slots.acquire(blocking=False):
+            self.shutdown_request(request)
+            return
+        try:
+            super().process_request(request, client_address)
+        except BaseException:
+            self._slots.release()
+            raise
+
+    def process_request_thread(self, request: socket.socket, client_address: tuple[str, int]) -> None:
+        try:
+            super().process_request_thread(request, client_address)
+        finally:
+            self._slots.release()
+
+
 class SimRwsServer:
     """RWS 1.0 on `host:port` (port 0 picks one) for the mechanical units in `joints` (rad, chain order)."""
 
@@ -55,26 +102,39 @@ class SimRwsServer:
         user: str = "Default User",
         password: str = "robotics",
         max_sessions: int = 70,
+        session_idle_s: float = 300.0,
+        nonce_ttl_s: float = 60.0,
+        max_nonces: int = 1024,
+        max_connections: int = 16,
+        request_timeout_s: float = 5.0,
         on_rapid_start: Callable[[], None] = lambda: None,
         on_rapid_stop: Callable[[], None] = lambda: None,
         symbols: dict[str, str] | None = None,
     ) -> None:
         self.joints = joints
         self.user, self.password = user, password
-        self.max_sessions = max_sessions
+        self.max_sessions, self.session_idle_s = max_sessions, session_idle_s
+        self.nonce_ttl_s, self.max_nonces = nonce_ttl_s, max_nonces
+        self.max_connections, self.request_timeout_s = max_connections, request_timeout_s
         self.on_rapid_start, self.on_rapid_stop = on_rapid_start, on_rapid_stop
         self.symbols = dict(symbols or {})  # "TASK/name" -> RAPID literal
         self.ctrlstate = "motoron"
         self.opmode = "AUTO"
         self.rapid_running = False
-        self.sessions: set[str] = set()
+        self.sessions: dict[str, float] = {}  # session id -> when last used (s, monotonic)
         self.challenges = 0  # 401 replies sent (how often a client had to authenticate)
-        self._nonces: set[str] = set()
+        self._nonces: dict[str, _Nonce] = {}  # in the order issued
         self._lock = threading.Lock()
-        self._httpd = ThreadingHTTPServer((host, port), self._handler_class())
-        self._httpd.daemon_threads = True
+        self._httpd = _BoundedHTTPServer((host, port), self._handler_class(), max_connections)
         self._thread = threading.Thread(target=self._httpd.serve_forever, args=(0.05,), name="rws-sim", daemon=True)
         self._thread.start()
+
+    @property
+    def pending_nonces(self) -> int:
+        """How many issued nonces the server still remembers (bounded by `max_nonces`)."""
+        with self._lock:
+            self._prune(time.monotonic())
+            return len(self._nonces)
 
     @property
     def port(self) -> int:
@@ -88,33 +148,60 @@ class SimRwsServer:
         self._httpd.server_close()
 
     # -- auth ------------------------------------------------------------------------------------
-    def _authorize(self, method: str, cookie: str, authorization: str) -> str | None:
-        """Return a new session id to set (or "" when the cookie's session is valid); None -> 401."""
+    def _authorize(self, method: str, target: str, cookie: str, authorization: str) -> str | None:
+        """Return a new session id to set (or "" when the cookie's session is valid); None -> 401.
+
+        `target` is the request's target as sent (path and query), which the Digest `uri` must equal.
+        """
         with self._lock:
+            now = time.monotonic()
+            self._prune(now)
             for part in cookie.split(";"):
                 name, _, value = part.strip().partition("=")
                 if name == SESSION_COOKIE and value in self.sessions:
+                    self.sessions[value] = now
                     return ""
-            if not authorization.startswith("Digest "):
-                return None
-            p = {m[0]: m[1] or m[2] for m in _digest_params(authorization)}
-            if p.get("nonce") not in self._nonces or p.get("username") != self.user or p.get("realm") != REALM:
-                return None
-            ha1 = _md5(f"{self.user}:{REALM}:{self.password}")
-            ha2 = _md5(f"{method}:{p.get('uri', '')}")
-            expected = _md5(f"{ha1}:{p['nonce']}:{p.get('nc', '')}:{p.get('cnonce', '')}:{p.get('qop', '')}:{ha2}")
-            if p.get("qop") != "auth" or not secrets.compare_digest(expected, p.get("response", "")):
+            if not authorization.startswith("Digest ") or not self._digest_valid(method, target, authorization):
                 return None
             if len(self.sessions) >= self.max_sessions:
                 raise _Request(503, "too many sessions")
             session = secrets.token_hex(16)
-            self.sessions.add(session)
+            self.sessions[session] = now
             return session
+
+    def _digest_valid(self, method: str, target: str, authorization: str) -> bool:
+        """RFC 2617 Digest (MD5, qop=auth) with a fresh nonce of ours, a new nonce count and our URI."""
+        p = {m[0]: m[1] or m[2] for m in _digest_params(authorization)}
+        nonce = self._nonces.get(p.get("nonce", ""))
+        fields = (p.get("username"), p.get("realm"), p.get("qop"), p.get("uri"))
+        if nonce is None or fields != (self.user, REALM, "auth", target):
+            return False
+        try:
+            nc = int(p.get("nc", ""), 16)
+        except ValueError:
+            return False
+        ha1 = _md5(f"{self.user}:{REALM}:{self.password}")
+        ha2 = _md5(f"{method}:{target}")
+        expected = _md5(f"{ha1}:{p['nonce']}:{p['nc']}:{p.get('cnonce', '')}:auth:{ha2}")
+        if nc <= nonce.last_nc or not secrets.compare_digest(expected.encode(), p.get("response", "").encode()):
+            return False
+        nonce.last_nc = nc
+        return True
+
+    def _prune(self, now: float) -> None:
+        """Forget expired nonces, nonces beyond `max_nonces` (oldest first) and idle sessions."""
+        while self._nonces and (
+            len(self._nonces) > self.max_nonces or now - next(iter(self._nonces.values())).issued > self.nonce_ttl_s
+        ):
+            del self._nonces[next(iter(self._nonces))]
+        for session in [s for s, used in self.sessions.items() if now - used > self.session_idle_s]:
+            del self.sessions[session]
 
     def _challenge(self) -> str:
         with self._lock:
             nonce = secrets.token_hex(16)
-            self._nonces.add(nonce)
+            self._nonces[nonce] = _Nonce(time.monotonic())
+            self._prune(time.monotonic())
             self.challenges += 1
         return f'Digest realm="{REALM}", qop="auth", nonce="{nonce}", algorithm=MD5'
 
@@ -174,6 +261,8 @@ class SimRwsServer:
         server = self
 
         class Handler(BaseHTTPRequestHandler):
+            timeout = server.request_timeout_s  # every read and write of the connection
+
             def log_message(self, *args: object) -> None:  # keep test and CLI output clean
                 pass
 
@@ -185,11 +274,10 @@ class SimRwsServer:
 
             def _serve(self, method: str) -> None:
                 url = urlsplit(self.path)
-                length = min(int(self.headers.get("Content-Length") or 0), 65536)
-                body = self.rfile.read(length).decode(errors="replace") if length else ""
                 try:
+                    body = self._body()
                     session = server._authorize(
-                        method, self.headers.get("Cookie", ""), self.headers.get("Authorization", "")
+                        method, self.path, self.headers.get("Cookie", ""), self.headers.get("Authorization", "")
                     )
                     if session is None:
                         self._reply(401, None, {"WWW-Authenticate": server._challenge()})
@@ -205,7 +293,17 @@ class SimRwsServer:
                             server._post(path, action, form)
                             self._reply(204, None, headers)
                 except _Request as exc:
+                    self.close_connection = True  # an unread body must not be taken for the next request
                     self._reply(exc.status, {"status": {"code": exc.status, "msg": str(exc)}}, {})
+
+            def _body(self) -> str:
+                """The request body, read only when Content-Length is a number up to MAX_BODY_BYTES."""
+                text = self.headers.get("Content-Length", "0").strip()
+                if not _CONTENT_LENGTH.fullmatch(text):
+                    raise _Request(400, f"bad Content-Length {text[:20]!r}")
+                if len(text) > len(str(MAX_BODY_BYTES)) or int(text) > MAX_BODY_BYTES:
+                    raise _Request(413, f"body over {MAX_BODY_BYTES} bytes")
+                return self.rfile.read(int(text)).decode(errors="replace")
 
             def _reply(self, status: int, payload: dict | None, headers: dict[str, str]) -> None:
                 data = json.dumps(payload).encode() if payload is not None else b""

@@ -8,7 +8,10 @@ the KMS40 and a BioTac on an SPI bus behind a TCP bridge. The sensors read two p
 
 and the arms' joints are `testbed.arms[arm].joints` (rad, chain order). By default the sources are
 constants (`rest_wrench`, `rest_electrodes`); `hardware.twin_sources` drives them from the twin.
-`hardware_config()` is the HardwareConfig that points `HardwareBackend` at these devices.
+`hardware_config()` is the HardwareConfig that points `HardwareBackend` at these devices, and
+tells its EGM links which ports the arms send from (the only senders they hear). On a wildcard
+`host` (0.0.0.0) the devices listen on every interface, but the arms stream to, and the config
+points at, this machine's loopback address.
 """
 
 from __future__ import annotations
@@ -31,6 +34,7 @@ from twin.backend import ARMS
 from twin.kinematics import joint_limits, velocity_limits
 
 DEFAULT_BIOTAC_BRIDGE_PORT = 6540
+WILDCARD, LOOPBACK = "0.0.0.0", "127.0.0.1"
 REST_WRENCH = np.array([0.0, 0.0, -1.18, 0.0, 0.0, 0.0])  # the mounted BioTac's weight (~0.12 kg), N and N·m
 REST_ELECTRODES = np.full(19, 3000.0)  # counts, mid-range of a BioTac at rest (unit-specific in reality)
 REST_PDC = 2000.0  # counts
@@ -76,8 +80,10 @@ class SimulatedTestbed:
         egm_cycle_s: float = EGM_CYCLE_S,
     ) -> None:
         self.host = host
+        self.local_host = LOOPBACK if host == WILDCARD else host
+        """Where a backend on this machine reaches the devices (loopback when `host` is the wildcard)."""
         self.biotac_slot = biotac_slot
-        self.egm_ports = dict(zip(ARMS, (p or free_udp_port(host) for p in egm_ports), strict=True))
+        self.egm_ports = dict(zip(ARMS, (p or free_udp_port(self.local_host) for p in egm_ports), strict=True))
         self.proxies: dict[str, UdpFaultProxy] = {}
         self.arms: dict[str, SimEgmArm] = {}
         self._closers: list[Callable[[], None]] = []
@@ -85,12 +91,14 @@ class SimulatedTestbed:
             for arm in ARMS:
                 dest = self.egm_ports[arm]
                 if egm_loss or egm_delay_s:
-                    proxy = UdpFaultProxy((host, dest), egm_loss, egm_delay_s, seed=ARMS.index(arm), host=host)
+                    proxy = UdpFaultProxy(
+                        (self.local_host, dest), egm_loss, egm_delay_s, seed=ARMS.index(arm), host=self.local_host
+                    )
                     self._closers.append(proxy.close)
                     self.proxies[arm], dest = proxy, proxy.port
                 q0 = (joints0 or {}).get(arm, np.zeros(7))
                 self.arms[arm] = SimEgmArm(
-                    arm, (host, dest), q0, joint_limits(arm), velocity_limits(arm), cycle_s=egm_cycle_s
+                    arm, (self.local_host, dest), q0, joint_limits(arm), velocity_limits(arm), cycle_s=egm_cycle_s
                 )
                 self._closers.append(self.arms[arm].close)
             self.rws = SimRwsServer(
@@ -124,16 +132,28 @@ class SimulatedTestbed:
 
     def hardware_config(self, base: HardwareConfig | None = None) -> HardwareConfig:
         """`base` (default: the real testbed's config) with every address and port pointing here."""
+        host = self.local_host
         return with_changes(
             base or HardwareConfig(),
-            rws={"host": self.host, "port": self.rws.port},
-            egm={"bind_host": self.host, "left_port": self.egm_ports["left"], "right_port": self.egm_ports["right"]},
-            kms40={"host": self.host, "port": self.kms40.port},
+            rws={"host": host, "port": self.rws.port},
+            egm={
+                "bind_host": host,
+                "left_port": self.egm_ports["left"],
+                "right_port": self.egm_ports["right"],
+                "robot_host": host,
+                "left_robot_port": self.robot_port("left"),
+                "right_robot_port": self.robot_port("right"),
+            },
+            kms40={"host": host, "port": self.kms40.port},
             biotac={
-                "transport": f"tcp://{self.host}:{self.biotac_bridge.port}",
+                "transport": f"tcp://{host}:{self.biotac_bridge.port}",
                 "select_mask": SELECT_MASKS[self.biotac_slot],
             },
         )
+
+    def robot_port(self, arm: str) -> int:
+        """The UDP port `arm`'s EGM reaches the backend from: the arm's own, or its fault proxy's."""
+        return self.proxies[arm].source_port if arm in self.proxies else self.arms[arm].port
 
     def add_closer(self, close: Callable[[], None]) -> None:
         """Also call `close` when the testbed closes, before the devices stop (e.g. a twin driving them)."""

@@ -165,7 +165,7 @@ def test_lossy_slow_egm_and_garbage_datagrams_are_survived() -> None:
                     rogue.sendto(junk, ("127.0.0.1", port))
             _move(backend, "right", np.full(7, 0.02))
             stats = backend.status()["egm"]["right"]
-            assert stats["lost"] > 0 and stats["malformed"] == 3
+            assert stats["lost"] > 0 and stats["foreign"] == 3 and "malformed" not in stats  # dropped unread
             assert sum(p.dropped for p in testbed.proxies.values()) > 0
         finally:
             backend.close()
@@ -199,8 +199,11 @@ def test_open_failures_are_clear_and_release_everything(testbed: SimulatedTestbe
 def test_swapped_egm_ports_are_caught_by_comparing_with_rws() -> None:
     with _testbed(joints0={"right": np.full(7, 0.1)}) as testbed:
         ports = testbed.egm_ports
-        with pytest.raises(BackendError, match="EGM on port .* does not carry the left arm"):
-            HardwareBackend(_config(testbed, egm={"left_port": ports["right"], "right_port": ports["left"]}))
+        swapped = {"left_port": ports["right"], "right_port": ports["left"]}
+        with pytest.raises(BackendError, match="EGM on port .* does not carry the left arm"):  # any robot port
+            HardwareBackend(_config(testbed, egm={**swapped, "left_robot_port": 0, "right_robot_port": 0}))
+        with pytest.raises(BackendError, match="datagrams from senders other than egm.robot_host"):  # its port
+            HardwareBackend(_config(testbed, egm={**swapped, "startup_timeout_s": 0.3}))
 
 
 def test_close_is_idempotent_and_stops_what_it_started(testbed: SimulatedTestbed, backend: HardwareBackend) -> None:

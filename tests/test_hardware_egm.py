@@ -106,7 +106,7 @@ def test_sequence_numbers_wrap_around() -> None:
 
 
 def _pair(link_speed: float, arm_speed: float):
-    link = EgmArmLink("left", "127.0.0.1", 0, np.full(7, link_speed))
+    link = EgmArmLink("left", "127.0.0.1", 0, np.full(7, link_speed), robot=("127.0.0.1", 0))
     arm = SimEgmArm("left", ("127.0.0.1", link.port), np.zeros(7), LIMITS, np.full(7, arm_speed))
     arm.start_streaming()
     link.state.wait(1.0)
@@ -155,9 +155,9 @@ def _robot_msg(seq: int, q: np.ndarray | None = None) -> bytes:
 
 
 def test_link_answers_only_valid_new_messages() -> None:
-    link = EgmArmLink("right", "127.0.0.1", 0, np.full(7, 1.0))
     robot = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
     robot.bind(("127.0.0.1", 0))
+    link = EgmArmLink("right", "127.0.0.1", 0, np.full(7, 1.0), robot=robot.getsockname())
     q = np.full(7, 0.1)
 
     def answered(data: bytes) -> EgmSensor:
