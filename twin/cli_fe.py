@@ -30,14 +30,20 @@ def balloon(
     thickness_mm: Annotated[float, typer.Option(help="Membrane thickness (mm).")] = 0.1,
     mu_pa: Annotated[float, typer.Option(help="Neo-Hookean shear modulus (Pa).")] = 1e5,
     volume_ratios: Annotated[str, typer.Option(help="Comma-separated V/V0 values.")] = "1.2,1.5,2.0,2.63,3.375",
-    subdivisions: Annotated[int, typer.Option(help="Icosphere subdivisions of the mesh.")] = 3,
+    subdivisions: Annotated[int, typer.Option(min=0, max=6, help="Icosphere subdivisions of the mesh.")] = 3,
     as_json: Annotated[bool, typer.Option("--json", help="Print JSON.")] = False,
 ) -> None:
     """Inflate a closed Neo-Hookean spherical membrane by volume control; compare with membrane theory."""
-    from fe.balloon import inflate_balloon
+    from fe.balloon import check_balloon_input, inflate_balloon
 
     ratios = _floats(volume_ratios, None, "--volume-ratios")
-    points = _guarded(lambda: inflate_balloon(radius_mm * 1e-3, thickness_mm * 1e-3, mu_pa, ratios, subdivisions))
+    size = (radius_mm * 1e-3, thickness_mm * 1e-3, mu_pa)
+    _guarded(lambda: check_balloon_input(*size, ratios))
+    with _progress() as progress:
+        task = progress.add_task("volume steps", total=None)
+        points = inflate_balloon(
+            *size, ratios, subdivisions, on_step=lambda done, total: progress.update(task, completed=done, total=total)
+        )
     records = [
         {
             "volume_ratio": p.volume_ratio,
@@ -156,6 +162,9 @@ def indent(
 
     point = np.array(_floats(point_mm, 3, "--point-mm")) * 1e-3
     _guarded(lambda: get_indenter(indenter))
+    numbers = {"--point-mm": point * 1e3, "--angle-deg": angle_deg, "--azimuth-deg": azimuth_deg}
+    numbers |= {"--depth-mm": depth_mm, "--step-mm": step_mm, "--speed-mm-s": speed_mm_s}
+    _guarded(lambda: _check_finite(numbers))
     if depth_mm < 0 or step_mm <= 0 or speed_mm_s <= 0:
         raise typer.BadParameter("--depth-mm must be >= 0, --step-mm and --speed-mm-s > 0")
     _guarded(lambda: _check_device(device))
@@ -196,7 +205,22 @@ def indent(
             )
     if as_json:
         print(json.dumps(records))
-        return
+    else:
+        _print_indentation(records)
+    if records and not records[-1]["converged"]:
+        _err.print("[yellow]the last increment did not converge; the trajectory stopped there[/yellow]")
+        sys.exit(1)
+
+
+def _check_finite(options: dict[str, object]) -> None:
+    """ValueError naming the first option whose value is NaN or infinite."""
+    for name, value in options.items():
+        if not np.all(np.isfinite(value)):
+            raise ValueError(f"{name} must be finite, got {value}")
+
+
+def _print_indentation(records: list[dict]) -> None:
+    """The `twin fe indent` table of its JSON records."""
     table = Table("depth (mm)", "Fx (N)", "Fy (N)", "Fz (N)", "p (kPa)", "contact (mm^2)", "Newton", "ok", "s")
     for r in records:
         fx, fy, fz = r["force_n"]
@@ -212,9 +236,6 @@ def indent(
             f"{r['wall_s']:.2f}",
         )
     _out.print(table)
-    if records and not records[-1]["converged"]:
-        _err.print("[yellow]the last increment did not converge; the trajectory stopped there[/yellow]")
-        sys.exit(1)
 
 
 def _advance(increments, progress: Progress, task) -> object:

@@ -288,36 +288,44 @@ def _check_indices(values: np.ndarray, count: int, label: str) -> None:
 
 
 def _check_trajectories(f: h5py.File, where: str, rows: int, n_names: int) -> None:
-    """Per-trajectory metadata: one finite row each, rows inside the features, recordings present."""
+    """Per-trajectory metadata (the fields present): one finite row each of its documented shape, rows inside
+    the features and of that trajectory, indenter indices in the names, full-rate recordings present."""
     group = f["trajectories"]
     if not isinstance(group, h5py.Group):
         raise ValueError(f"{where}: trajectories is not a group")
     meta = {}
-    for name in TRAJECTORY_FIELDS:
+    for name in (n for n in TRAJECTORY_FIELDS if n in group):
         data = _dataset(f, f"trajectories/{name}", where)
         _check_shape(data, TRAJECTORY_SHAPES.get(name, ()), f"{where}: trajectories/{name}")
         meta[name] = data[()]
-    lengths = {len(v) for v in meta.values()}
-    if len(lengths) > 1:
-        raise ValueError(f"{where}: the trajectories datasets disagree on the number of trajectories")
-    for name, values in meta.items():
-        if values.dtype.kind == "f" and not np.isfinite(values).all():
+        if meta[name].dtype.kind == "f" and not np.isfinite(meta[name]).all():
             raise ValueError(f"{where}: trajectories/{name} holds NaN or infinite values")
-    for name in ("trajectory_id", "first_row", "n_rows"):
-        _check_indices(meta[name], np.iinfo(np.int64).max, f"{where}: trajectories/{name}")
-    _check_indices(meta["arm"], 2, f"{where}: trajectories/arm")
-    _check_indices(meta["indenter_type"], n_names, f"{where}: trajectories/indenter_type")
-    ends = meta["first_row"] + meta["n_rows"]
+    if len({len(v) for v in meta.values()}) > 1:
+        raise ValueError(f"{where}: the trajectories datasets disagree on the number of trajectories")
+    for name in ("trajectory_id", "first_row", "n_rows", "arm", "indenter_type"):
+        count = {"arm": 2, "indenter_type": n_names}.get(name, np.iinfo(np.int64).max)
+        _check_indices(meta.get(name, np.zeros(0, dtype=np.int64)), count, f"{where}: trajectories/{name}")
+    ids = meta.get("trajectory_id", np.zeros(0, dtype=np.int64))
+    if len(np.unique(ids)) != len(ids):
+        raise ValueError(f"{where}: trajectories/trajectory_id repeats an id")
+    if "first_row" in meta and "n_rows" in meta:
+        _check_row_ranges(f, where, rows, ids, meta["first_row"], meta["n_rows"])
+    if "raw" in f:
+        for tid in ids:
+            _check_raw(f, where, int(tid))
+
+
+def _check_row_ranges(
+    f: h5py.File, where: str, rows: int, ids: np.ndarray, first: np.ndarray, count: np.ndarray
+) -> None:
+    """Each trajectory's rows first..first+count-1 lie inside the `rows` subsampled rows and are its own."""
+    ends = first + count
     if ends.size and ends.max() > rows:
         raise ValueError(f"{where}: trajectories first_row + n_rows reach row {ends.max()}, beyond the {rows} rows")
-    if len(np.unique(meta["trajectory_id"])) != len(meta["trajectory_id"]):
-        raise ValueError(f"{where}: trajectories/trajectory_id repeats an id")
-    ids = f["trajectory_id/data"][()] if "trajectory_id" in f else None
-    for tid, first, n in zip(meta["trajectory_id"], meta["first_row"], meta["n_rows"], strict=True):
-        if ids is not None and not np.all(ids[first : first + n] == tid):
-            raise ValueError(f"{where}: rows {first}..{first + n - 1} are not all of trajectory {tid}")
-        if "raw" in f:
-            _check_raw(f, where, int(tid))
+    row_ids = f["trajectory_id/data"][()] if "trajectory_id" in f else None
+    for tid, start, n in zip(ids, first, count, strict=True):
+        if row_ids is not None and not np.all(row_ids[start : start + n] == tid):
+            raise ValueError(f"{where}: rows {start}..{start + n - 1} are not all of trajectory {tid}")
 
 
 def _check_raw(f: h5py.File, where: str, trajectory_id: int) -> None:

@@ -14,7 +14,7 @@ from pathlib import Path
 import numpy as np
 
 from twin.controller import Recording
-from twin.dataset import RAW_FIELDS, open_dataset
+from twin.dataset import RAW_FIELDS, TRAJECTORY_FIELDS, open_dataset
 
 ROW_FEATURES = ("force", "pdc", "electrode_vals", "depth", "phase", "contact_loc", "time", "trajectory_id")
 
@@ -79,6 +79,9 @@ def load_campaign(path: Path | str) -> CampaignData:
     path = Path(path)
     with open_dataset(path) as f:
         missing = [g for g in ("trajectories", "raw", *ROW_FEATURES) if g not in f]
+        missing += [
+            f"trajectories/{k}" for k in TRAJECTORY_FIELDS if "trajectories" in f and k not in f["trajectories"]
+        ]
         if missing:
             raise ValueError(f"{path} cannot be replayed: it has no {', '.join(missing)} (see docs/dataset.md)")
         names = json.loads(f.attrs.get("indenter_names", "[]"))
