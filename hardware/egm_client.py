@@ -72,13 +72,13 @@ class EgmArmLink:
         self.max_speed = np.asarray(max_speed, dtype=float)
         self.state: Latest[RobotState] = Latest(f"EGM {arm}")
         self.stats: Counter[str] = Counter()
-        self.robot = (socket.gethostbyname(robot[0]), robot[1])
         self._sock = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
         try:
-            self._sock.bind((interface_toward(robot[0]) if host == AUTO_BIND else host, port))
-        except OSError:
+            self.robot = (socket.gethostbyname(robot[0]), robot[1])
+            self._sock.bind((interface_toward(self.robot[0]) if host == AUTO_BIND else host, port))
+        except OSError as exc:
             self._sock.close()
-            raise
+            raise OSError(f"EGM {arm}: cannot listen on {host}:{port} for the robot at {robot[0]}: {exc}") from exc
         self._sock.settimeout(0.02)  # how soon close() is noticed
         self._lock = threading.Lock()
         self._goal: np.ndarray | None = None

@@ -75,6 +75,8 @@ def test_factory_egm_link_never_listens_on_every_interface() -> None:
     finally:
         link.close()
         robot.close()
+    with pytest.raises(OSError, match="cannot listen on 192.0.2.1:0 for the robot at 127.0.0.1"):
+        EgmArmLink("left", "192.0.2.1", 0, np.ones(7), robot=("127.0.0.1", 0))  # not an address of ours
 
 
 def test_link_drops_and_counts_strangers_and_never_answers_them() -> None:
