@@ -101,6 +101,8 @@ class SimulatedTestbed:
                     arm, (self.local_host, dest), q0, joint_limits(arm), velocity_limits(arm), cycle_s=egm_cycle_s
                 )
                 self._closers.append(self.arms[arm].close)
+                if arm in self.proxies:
+                    self.proxies[arm].client = (self.local_host, self.arms[arm].port)
             self.rws = SimRwsServer(
                 {MECHUNITS[arm]: self._joints_of(arm) for arm in ARMS},
                 host,

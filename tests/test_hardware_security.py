@@ -1,10 +1,11 @@
 """An attacker on loopback (another socket, another port) can neither steer nor exhaust the devices.
 
 EGM: the PC link hears only the configured robot and never answers anyone else; a simulated arm
-follows only the registered link. RWS: a Digest header is good once, for one URI, for a while;
-sessions expire; bad or hostile headers before authentication get an HTTP error, never a held
-thread or a traceback; what the server keeps per stranger is bounded. `twin devices serve` warns
-before it exposes the factory password beyond loopback.
+follows only the registered link; the rehearsal's lossy proxy forwards only between those two.
+RWS: a Digest header is good once, for one URI, for a while; sessions expire; bad or hostile
+headers before authentication get an HTTP error, never a held thread or a traceback; what the
+server keeps per stranger is bounded. `twin devices serve` warns before it exposes the factory
+password beyond loopback.
 """
 
 import hashlib
@@ -23,6 +24,7 @@ from hardware.config import HardwareConfig
 from hardware.egm_client import EgmArmLink, interface_toward
 from hardware.egm_messages import EgmRobot, EgmSensor, get_joints, set_joints
 from hardware.egm_sim import SimEgmArm
+from hardware.faults import UdpFaultProxy
 from hardware.rws_client import RwsClient
 from hardware.rws_sim import REALM, SimRwsServer
 from hardware.stamped import wait_for
@@ -135,6 +137,28 @@ def test_sim_arm_follows_only_its_registered_link() -> None:
         arm.close()
         sensor.close()
         stranger.close()
+
+
+def test_fault_proxy_forwards_only_between_its_two_ends() -> None:
+    robot, link, stranger = _udp(), _udp(), _udp()
+    proxy = UdpFaultProxy(link.getsockname())
+    proxy.client = robot.getsockname()
+    try:
+        stranger.sendto(b"forged feedback", ("127.0.0.1", proxy.port))  # would reach the link as the robot
+        robot.sendto(b"feedback", ("127.0.0.1", proxy.port))
+        link.settimeout(1.0)
+        assert link.recvfrom(64) == (b"feedback", ("127.0.0.1", proxy.source_port))
+        assert _silent(link)
+        stranger.sendto(b"forged setpoint", ("127.0.0.1", proxy.source_port))  # would reach the robot
+        link.sendto(b"setpoint", ("127.0.0.1", proxy.source_port))
+        robot.settimeout(1.0)
+        assert robot.recv(64) == b"setpoint"
+        assert _silent(robot) and _silent(stranger)
+        assert proxy.foreign == 2
+    finally:
+        proxy.close()
+        for sock in (robot, link, stranger):
+            sock.close()
 
 
 # -- RWS: Digest --------------------------------------------------------------------------------
