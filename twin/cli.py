@@ -7,6 +7,7 @@ from learn.cli import learn_app
 from twin.cli_analysis import analysis_app
 from twin.cli_calibrate import calibrate_app
 from twin.cli_campaign import campaign_app, dataset_app
+from twin.cli_export import export_app
 from twin.cli_fe import fe_app
 from twin.cli_loop import loop_app
 from twin.cli_view import view_app
@@ -21,3 +22,4 @@ app.registered_commands += analysis_app.registered_commands
 app.registered_commands += loop_app.registered_commands
 app.registered_commands += calibrate_app.registered_commands
 app.registered_commands += view_app.registered_commands
+app.registered_commands += export_app.registered_commands
