@@ -2,8 +2,9 @@
 
 Three layouts are read, chosen by content, never by file name:
 - ``campaign``: this project's campaign HDF5 (docs/dataset.md; file attribute ``schema_version`` = 1).
-- ``paper``: the paper's public HDF5 (``electrode_vals/data``, ``contact_loc/data``, ``indenter_type/data``;
-  nodal fields from the FE companion ``<stem>_simulated.hdf5`` next to it when present).
+- ``paper``: the paper's public HDF5 (``electrode_vals/data``, ``contact_loc/data``, ``indenter_type/data``,
+  forces in ``force_vec/data`` (or ``force/data``); nodal fields from the FE companion
+  ``<stem>_simulated.hdf5`` next to it when present).
 - ``ruppel``: the Ruppel et al. single-contact CSV (``%time``, ``position.x/y/z`` m, ``force.x/y/z`` N,
   ``electrodes0..18``).
 Anything else raises `UnknownLayoutError` naming the three.
@@ -32,6 +33,8 @@ LOCATION_JUMP = 2e-3
 """Files without trajectory ids: a new trajectory starts where the contact location jumps by more (m)."""
 CHUNK_ROWS = 1024
 """Rows read at once from a nodal field dataset."""
+PAPER_FORCE_GROUPS = ("force_vec", "force")
+"""Where a paper-layout file keeps the force (N): the public files' group first, then this project's."""
 
 
 class UnknownLayoutError(ValueError):
@@ -276,7 +279,7 @@ def _load_paper(path: Path, node_ids: np.ndarray | None, node_seed: int) -> Tact
         if loc is not None and np.abs(loc).max(initial=0.0) > 0.1:
             loc = loc * 1e-3
         indenter = f["indenter_type/data"][:].astype(np.int64).ravel() if "indenter_type" in f else None
-        force = f["force/data"][:].astype(float) if "force" in f else None
+        force = next((f[f"{k}/data"][:].astype(float) for k in PAPER_FORCE_GROUPS if k in f), None)
         if "trajectory_id" in f:
             trajectory = f["trajectory_id/data"][:].astype(np.int64)
         elif loc is not None:
