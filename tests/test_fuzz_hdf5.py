@@ -7,87 +7,19 @@ from pathlib import Path
 import h5py
 import numpy as np
 import pytest
-import trimesh
+from fake_campaign import write_fake_campaign
 from typer.testing import CliRunner
 
 from assets.indenters import INDENTERS
 from twin.cli import app
-from twin.dataset import assemble_sensor_file, write_part
 
 runner = CliRunner()
-ROWS, SAMPLES = 4, 10
-"""Subsampled rows and full-rate samples of each fake trajectory."""
-
-
-def _fake_part(trajectory_id: int, vertices: np.ndarray) -> dict[str, np.ndarray]:
-    """A schema-complete part of ROWS rows: a press of 0..0.3 mm along -z under a growing +z force."""
-    n, m, v = ROWS, SAMPLES, len(vertices)
-    depth = np.linspace(0.0, 0.3e-3, n)
-    rows = {
-        "electrode_vals": np.outer(depth, np.ones(19)) * 1e5,
-        "electrode_tare": np.full((n, 19), 2000.0),
-        "pdc": 2000.0 + depth * 1e5,
-        "force": np.column_stack([np.zeros(n), np.zeros(n), depth * 1e3]),
-        "contact_loc": np.tile([-5e-3, 0.0, -9e-3], (n, 1)),
-        "tip_pos": np.tile([0.4, 0.0, 0.2], (n, 1)),
-        "depth": depth,
-        "phase": np.zeros(n),
-        "joint_angles": np.zeros((n, 7)),
-        "time": trajectory_id * 600.0 + np.arange(n, dtype=float),
-        "trajectory_id": np.full(n, trajectory_id, dtype=np.int64),
-        "indenter_type": np.full(n, 1, dtype=np.int64),
-        "fe_force": np.column_stack([np.zeros(n), np.zeros(n), depth * 1e3]),
-        "fe_pressure": np.full(n, 4000.0),
-        "fe_converged": np.ones(n, dtype=bool),
-        "nodal_res": np.zeros((n, v, 3)),
-    }
-    meta = {
-        "trajectory_id": trajectory_id,
-        "indenter_type": 1,
-        "arm": 0,
-        "angle": 0.0,
-        "azimuth": 0.0,
-        "point": [-5e-3, 0.0, -9e-3],
-        "direction": [0.0, 0.0, 1.0],
-        "rotation": np.eye(3),
-        "touch_point": [-5e-3, 0.0, -9e-3],
-        "complete": True,
-        "message": "",
-        "tool_tip": np.eye(4),
-        "registration": np.eye(4),
-        "sensor_in_biotac": np.eye(4),
-    }
-    raw = {
-        "time": trajectory_id * 600.0 + np.linspace(0, n, m),
-        "joints": np.zeros((m, 7)),
-        "wrench": np.zeros((m, 6)),
-        "electrodes": np.full((m, 19), 2000.0),
-        "pdc": np.full(m, 2000.0),
-        "depth_command": np.linspace(0, 0.3e-3, m),
-        "increment": np.arange(m) - 1,
-    }
-    arrays = {f"row_{k}": np.asarray(x) for k, x in rows.items()}
-    arrays |= {f"meta_{k}": np.asarray(x) for k, x in meta.items()}
-    arrays |= {f"raw_{k}": np.asarray(x) for k, x in raw.items()}
-    arrays["mesh_reference"] = vertices
-    return arrays
 
 
 @pytest.fixture(scope="module")
 def valid_file(tmp_path_factory: pytest.TempPathFactory) -> Path:
-    """A tiny two-trajectory sensor file written by the campaign's own assembler (icosahedron skin)."""
-    folder = tmp_path_factory.mktemp("fake")
-    mesh = trimesh.creation.icosahedron()
-    vertices = np.asarray(mesh.vertices) * 5e-3
-    parts = []
-    for tid in (0, 1):
-        path = folder / f"trajectory_{tid:06d}.npz"
-        write_part(path, _fake_part(tid, vertices))
-        parts.append(path)
-    provenance = {"config": {"mesh_max_edge": 3e-3}}
-    out = folder / "biotac2.hdf5"
-    assemble_sensor_file(parts, out, 2, list(INDENTERS), provenance, mesh.faces, vertices[:, 2] < 0)
-    return out
+    """A tiny two-trajectory sensor file written by the campaign's own assembler."""
+    return write_fake_campaign(tmp_path_factory.mktemp("fake"))
 
 
 def _replace(key: str, value: Callable[[np.ndarray], np.ndarray]) -> Callable[[h5py.File], None]:

@@ -9,8 +9,11 @@ part files (written atomically); a resume skips them. The same holds for the exe
 
 from __future__ import annotations
 
+import hashlib
 import json
 import os
+import shutil
+import tempfile
 from collections.abc import Callable
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
@@ -230,6 +233,83 @@ def trajectory_arrays(
     return arrays
 
 
+# -- what made the parts (resume safety) ------------------------------------------------------------
+MANIFEST = "campaign.json"
+"""File in `out/parts` recording the options its parts were made with (`campaign_options`)."""
+OPTION_NAMES = {
+    "seed": "--seed",
+    "mesh_max_edge": "--mesh-mm",
+    "sensors": "--sensors",
+    "indenters": "--indenters",
+    "settings": "--quick/--paper (protocol)",
+    "plant": "the plant (hidden effects)",
+}
+"""The command-line name of each option a resume must repeat (other config fields go by their own name)."""
+
+
+def campaign_options(config: CampaignConfig, plant: Plant) -> dict:
+    """Everything a trajectory's part depends on: the config (as JSON values) and the plant's fingerprint."""
+    return {**json.loads(json.dumps(asdict(config), default=str)), "plant": plant.fingerprint()}
+
+
+def options_digest(options: dict) -> str:
+    """A short hash of `campaign_options` (each part carries it as `meta_options_digest`)."""
+    return hashlib.sha256(json.dumps(options, sort_keys=True).encode()).hexdigest()[:16]
+
+
+def prepare_out_dir(out_dir: Path) -> None:
+    """Create the output folder; ValueError (one line) when it is a file, under a file, or not writable."""
+    if out_dir.exists() and not out_dir.is_dir():
+        raise ValueError(f"--out {out_dir} is a file, not a folder")
+    try:
+        out_dir.mkdir(parents=True, exist_ok=True)
+        with tempfile.TemporaryFile(dir=out_dir):
+            pass
+    except OSError as exc:
+        raise ValueError(f"--out {out_dir} is not a writable folder: {exc.strerror or exc}") from exc
+
+
+def claim_parts(parts_dir: Path, options: dict, restart: bool = False) -> None:
+    """Make `parts_dir` hold parts of the campaign `options` describe: discard its parts when `restart`,
+    start it (writing MANIFEST) when new, and refuse with a ValueError naming the differing options when its
+    parts were made with other options or carry no record of them (a resume would mix two campaigns)."""
+    manifest = parts_dir / MANIFEST
+    if restart and parts_dir.exists():
+        shutil.rmtree(parts_dir)
+    if manifest.exists():
+        stored = json.loads(manifest.read_text())
+        differing = [k for k in sorted(stored.keys() | options.keys()) if stored.get(k) != options.get(k)]
+        if differing:
+            detail = "; ".join(
+                f"{OPTION_NAMES.get(k, k)}: {_shown(k, stored.get(k))} there, {_shown(k, options.get(k))} here"
+                for k in differing
+            )
+            raise ValueError(
+                f"{parts_dir.parent} holds parts of a campaign made with other options ({detail}); "
+                "repeat its options to resume it, or pass --restart to discard its parts"
+            )
+        return
+    if any(parts_dir.rglob("*.npz")):
+        raise ValueError(
+            f"{parts_dir.parent} holds parts without a record of their options ({MANIFEST}); "
+            "pass --restart to discard them"
+        )
+    parts_dir.mkdir(parents=True, exist_ok=True)
+    tmp = manifest.with_name(f"{MANIFEST}.{os.getpid()}.tmp")
+    tmp.write_text(json.dumps(options, sort_keys=True, indent=1))
+    os.replace(tmp, manifest)
+
+
+def _shown(key: str, value: object) -> str:
+    """An option value as the command line writes it (mesh sizes in mm; long values elided)."""
+    if key == "mesh_max_edge" and isinstance(value, int | float):
+        return f"{value * 1e3:g}"
+    if isinstance(value, list):
+        return ",".join(map(str, value))
+    text = str(value)
+    return text if len(text) <= 24 else "other values"
+
+
 def _run_one(job: PlannedTrajectory, slot: int, registration: np.ndarray, parts_dir: str) -> tuple[int, int, bool]:
     worker = _WORKER
     config, sid, spec = worker.config, job.sensor_id, job.spec
@@ -252,6 +332,7 @@ def _run_one(job: PlannedTrajectory, slot: int, registration: np.ndarray, parts_
     arrays = trajectory_arrays(job, recording, registration, scene, config.settings.sample_rate_hz)
     arrays.update(_fe_rows(backend, arrays["row_time"], model))
     arrays["mesh_reference"] = model.reference
+    arrays["meta_options_digest"] = np.asarray(options_digest(campaign_options(config, worker.plant)))
     write_part(part_path(Path(parts_dir), sid, spec.trajectory_id), arrays)
     return sid, spec.trajectory_id, recording.complete
 
@@ -301,6 +382,7 @@ def run_campaign(
     on_progress: Callable[[int, int], None] | None = None,
     executor: Executor | None = None,
     on_trajectory: Callable[[int, dict[str, np.ndarray]], None] | None = None,
+    restart: bool = False,
 ) -> CampaignResult:
     """Plan and run the campaign into `out_dir` (one HDF5 per sensor); resumes from existing parts.
 
@@ -308,13 +390,17 @@ def run_campaign(
     on_progress(done, total) is called after each trajectory; on_trajectory(sensor id, part arrays as
     `twin.dataset.read_part` returns them) after each one that ran now (a live view). Parts live in
     `out_dir/parts` until the sensor files are assembled; they are kept so that a later run can resume
-    or re-assemble.
+    or re-assemble. A resume must repeat the options the parts were made with (ValueError naming the
+    difference, `claim_parts`) unless `restart` discards them.
     """
     out_dir = Path(out_dir)
-    out_dir.mkdir(parents=True, exist_ok=True)
+    prepare_out_dir(out_dir)
     plant = plant if plant is not None else make_plant(list(config.sensors), config.seed)
-    plan = plan_campaign(config, plant)
     parts_dir = out_dir / "parts"
+    options = campaign_options(config, plant)
+    claim_parts(parts_dir, options, restart)
+    _check_part_digests(parts_dir, options_digest(options))
+    plan = plan_campaign(config, plant)
     jobs = [job for job in plan.planned if job.kept]
     slots = {}
     for job in jobs:
@@ -350,6 +436,18 @@ def run_campaign(
             parts, out_dir / f"biotac{sid}.hdf5", sid, list(INDENTERS), provenance_sid, skin.triangles, skin.ventral
         ).path
     return CampaignResult(files, plan.statistics(), len(todo), len(jobs) - len(todo), incomplete)
+
+
+def _check_part_digests(parts_dir: Path, digest: str) -> None:
+    """ValueError when a part in `parts_dir` was made with other options than those of `digest`."""
+    for path in sorted(parts_dir.rglob("trajectory_*.npz")):
+        with np.load(path, allow_pickle=False) as part:
+            made_by = str(part["meta_options_digest"]) if "meta_options_digest" in part.files else "unknown"
+        if made_by != digest:
+            raise ValueError(
+                f"{path} was made with other campaign options (digest {made_by}, this run {digest}); "
+                "pass --restart to discard the parts"
+            )
 
 
 def code_version() -> str:

@@ -7,7 +7,7 @@ from typing import Annotated
 import typer
 from rich.table import Table
 
-from twin.cli_common import err_console, guarded, out_console, progress_bar
+from twin.cli_common import err_console, guarded, out_console, progress_bar, sigterm_as_interrupt
 
 campaign_app = typer.Typer(help="Plan and run indentation campaigns (simulated or on hardware).", no_args_is_help=True)
 dataset_app = typer.Typer(help="Inspect campaign datasets (HDF5).", no_args_is_help=True)
@@ -116,6 +116,10 @@ def run(
     view_save: Annotated[
         Path | None, typer.Option("--view-save", help="Sim: record each finished trajectory to this .rrd file.")
     ] = None,
+    restart: Annotated[
+        bool,
+        typer.Option("--restart", help="Sim: discard the parts in --out (made with other options) and start over."),
+    ] = False,
 ) -> None:
     """Run a campaign, simulated on local workers or on the testbed's devices; a killed run resumes where it stopped.
 
@@ -125,6 +129,7 @@ def run(
     from rich.markup import escape
 
     from twin.backend import BackendError
+    from twin.campaign import prepare_out_dir
 
     if backend not in ("sim", "hardware"):
         raise typer.BadParameter(f"--backend must be sim or hardware, got {backend!r}")
@@ -140,6 +145,9 @@ def run(
         raise typer.BadParameter("--executor/--address: a hardware campaign runs on one robot, here")
     if backend == "hardware" and (view or view_save is not None):
         raise typer.BadParameter("--view/--view-save show simulated campaigns (hardware parts lack the fe fields)")
+    if backend == "hardware" and restart:
+        raise typer.BadParameter("--restart: a hardware campaign's parts are measurements; move them away yourself")
+    guarded(lambda: prepare_out_dir(out))
     pool = _executor(executor, workers or 2, address) if backend == "sim" else None
     config = guarded(lambda: _config(quick, sensors, indenters, seed, mesh_mm))
     viewer = _campaign_viewer(config, view, view_save) if backend == "sim" else None
@@ -160,9 +168,20 @@ def run(
 
             on_trajectory = viewer.log_trajectory if viewer else None
             try:
-                result = guarded(
-                    lambda: run_campaign(config, out, on_progress=report, executor=pool, on_trajectory=on_trajectory)
+                with sigterm_as_interrupt():
+                    result = guarded(
+                        lambda: run_campaign(
+                            config, out, on_progress=report, executor=pool, on_trajectory=on_trajectory, restart=restart
+                        )
+                    )
+            except KeyboardInterrupt as exc:
+                progress.stop()
+                kept = escape(str(out / "parts"))
+                err_console.print(
+                    f"[yellow]interrupted:[/yellow] the finished trajectories are kept in {kept}; "
+                    "run the same command again to resume"
                 )
+                raise typer.Exit(code=130) from exc
             finally:
                 if viewer:
                     viewer.close()

@@ -1,9 +1,11 @@
-"""Shared CLI helpers: number parsing, bad-input guarding, progress bars (stderr), consoles, the fe model and
-warp device of the `twin fe` commands."""
+"""Shared CLI helpers: number parsing, bad-input guarding, SIGTERM as Ctrl-C, progress bars (stderr), consoles,
+the fe model and warp device of the `twin fe` commands."""
 
 from __future__ import annotations
 
-from collections.abc import Callable
+import signal
+from collections.abc import Callable, Iterator
+from contextlib import contextmanager
 from dataclasses import replace
 from pathlib import Path
 from typing import TYPE_CHECKING, TypeVar
@@ -41,6 +43,17 @@ def guarded(action: Callable[[], T]) -> T:
     except ValueError as exc:
         err_console.print(f"[red]error:[/red] {escape(str(exc))}", soft_wrap=True)
         raise typer.Exit(code=2) from exc
+
+
+@contextmanager
+def sigterm_as_interrupt() -> Iterator[None]:
+    """Within the block SIGTERM raises KeyboardInterrupt, like Ctrl-C, so that a terminated command cleans up
+    (ends its workers, removes temporary files) and says so (main thread only)."""
+    previous = signal.signal(signal.SIGTERM, signal.default_int_handler)
+    try:
+        yield
+    finally:
+        signal.signal(signal.SIGTERM, previous)
 
 
 def progress_bar() -> Progress:

@@ -1,15 +1,21 @@
 """Campaign datasets: per-trajectory part files while running, one HDF5 per sensor at the end.
 
 Layout and meaning of every feature: docs/dataset.md (schema version 1). Parts are `.npz` files
-written to a temporary name and renamed, so a killed campaign leaves only whole parts behind; the
-HDF5 file is assembled from the parts in trajectory order (also through a temporary name), so a
-resumed campaign produces the same file as an uninterrupted one.
+written to a temporary name of their writer's own and renamed, so a killed campaign leaves only whole
+parts behind and two writers never share a temporary file; the HDF5 file is assembled from the parts
+in trajectory order (also through a temporary name, after a check of the free disk space), so a
+resumed campaign produces the same file as an uninterrupted one. Files are checked against the schema
+when opened (`open_dataset`, `check_campaign`).
 """
 
 from __future__ import annotations
 
 import json
 import os
+import secrets
+import shutil
+from collections.abc import Iterator
+from contextlib import contextmanager
 from dataclasses import dataclass
 from datetime import UTC, datetime
 from pathlib import Path
@@ -65,14 +71,25 @@ def part_path(parts_dir: Path, sensor_id: int, trajectory_id: int) -> Path:
 
 
 def write_part(path: Path, arrays: dict[str, np.ndarray]) -> None:
-    """Write a part atomically: a temporary file in the same folder, then a rename."""
+    """Write a part atomically: a temporary file of its own in the same folder, then a rename."""
     path.parent.mkdir(parents=True, exist_ok=True)
-    tmp = path.with_name(path.name + ".tmp")
-    with open(tmp, "wb") as handle:
-        np.savez(handle, **arrays)
-        handle.flush()
-        os.fsync(handle.fileno())
-    os.replace(tmp, path)
+    with _temporary_beside(path) as tmp:
+        with open(tmp, "xb") as handle:
+            np.savez(handle, **arrays)
+            handle.flush()
+            os.fsync(handle.fileno())
+        os.replace(tmp, path)
+
+
+@contextmanager
+def _temporary_beside(path: Path) -> Iterator[Path]:
+    """A temporary file name next to `path` of this writer alone (process id and random tag: no two writers
+    share one); the file is removed on any failure (if still there: a successful writer renames it)."""
+    tmp = path.with_name(f"{path.name}.{os.getpid()}-{secrets.token_hex(4)}.tmp")
+    try:
+        yield tmp
+    finally:
+        tmp.unlink(missing_ok=True)
 
 
 def read_part(path: Path) -> dict[str, np.ndarray]:
@@ -101,11 +118,48 @@ def assemble_sensor_file(
 ) -> SensorFileInfo:
     """Concatenate part files (sorted by trajectory id) into one schema-v1 HDF5 file, atomically.
 
+    Checks the free disk space first; a ValueError says when it is short or the writing fails, and no
+    temporary file is left behind.
+
     triangles: (T, 3) skin mesh of `nodal_res`; its inflated reference vertices come from the parts.
     ventral: (V,) bool, the skin vertices of the ventral region (where indentation points are sampled).
     """
+    check_free_space(out_path.parent, sum(p.stat().st_size for p in parts))
     loaded = sorted((read_part(p) for p in parts), key=lambda d: int(d["meta_trajectory_id"]))
-    tmp = out_path.with_name(out_path.name + ".tmp")
+    with _temporary_beside(out_path) as tmp:
+        try:
+            rows = _write_sensor_file(tmp, loaded, sensor_id, indenter_names, provenance, triangles, ventral)
+        except OSError as exc:
+            raise ValueError(f"writing {out_path} failed ({exc}); the parts are kept: rerun to assemble it") from exc
+        os.replace(tmp, out_path)
+    return SensorFileInfo(out_path, rows, len(loaded))
+
+
+FREE_SPACE_MARGIN = 1.1
+"""Free space `check_free_space` wants beyond the estimate (a fraction of it; uncompressed parts overestimate)."""
+
+
+def check_free_space(folder: Path, estimate_bytes: int) -> None:
+    """ValueError (one line) unless `folder`'s file system has room for `estimate_bytes` (times the margin)."""
+    free = shutil.disk_usage(folder).free
+    needed = int(estimate_bytes * FREE_SPACE_MARGIN)
+    if free < needed:
+        raise ValueError(
+            f"not enough free disk space in {folder}: the sensor file needs about {needed / 1e6:.1f} MB, "
+            f"{free / 1e6:.1f} MB are free; free some and rerun (the parts are kept)"
+        )
+
+
+def _write_sensor_file(
+    tmp: Path,
+    loaded: list[dict[str, np.ndarray]],
+    sensor_id: int,
+    indenter_names: list[str],
+    provenance: dict,
+    triangles: np.ndarray | None,
+    ventral: np.ndarray | None,
+) -> int:
+    """Write the loaded parts (trajectory order) as a schema-v1 file at `tmp`; returns the number of rows."""
     first_row = 0
     meta: dict[str, list] = {name: [] for name in TRAJECTORY_FIELDS}
     features: dict[str, list[np.ndarray]] = {}
@@ -150,8 +204,7 @@ def assemble_sensor_file(
             if ventral is not None:
                 f.create_dataset("mesh/ventral", data=np.asarray(ventral, dtype=bool))
         f.flush()
-    os.replace(tmp, out_path)
-    return SensorFileInfo(out_path, first_row, len(loaded))
+    return first_row
 
 
 def _version() -> str:

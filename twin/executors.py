@@ -12,6 +12,13 @@ a task that re-runs after its worker died writes exactly what the first attempt 
 
 from __future__ import annotations
 
+import ctypes
+import ctypes.util
+import os
+import signal
+import sys
+import threading
+import time
 from abc import ABC, abstractmethod
 from collections.abc import Callable, Iterator, Sequence
 from concurrent.futures import ProcessPoolExecutor, as_completed
@@ -44,7 +51,12 @@ class Executor(ABC):
 
 
 class LocalExecutor(Executor):
-    """`workers` spawned local processes (spawn, so warp and MuJoCo start clean in each)."""
+    """`workers` spawned local processes (spawn, so warp and MuJoCo start clean in each).
+
+    The workers die with this process, however it ends (`_die_with_parent`), and leave Ctrl-C to it; when
+    the iteration ends early (an exception, KeyboardInterrupt, the consumer stopping) they are terminated
+    at once rather than left to finish their trajectories.
+    """
 
     def __init__(self, workers: int = 2) -> None:
         if workers < 1:
@@ -56,10 +68,47 @@ class LocalExecutor(Executor):
     ) -> Iterator[Any]:
         if not jobs:
             return
-        with ProcessPoolExecutor(self.workers, get_context("spawn"), setup, setup_args) as pool:
+        pool = ProcessPoolExecutor(self.workers, get_context("spawn"), _local_setup, (os.getpid(), setup, setup_args))
+        try:
             futures = [pool.submit(task, *job) for job in jobs]
             for future in as_completed(futures):
                 yield future.result()
+        except BaseException:
+            for process in list(pool._processes.values()):  # no public way before Python 3.14's terminate_workers
+                process.terminate()
+            raise
+        finally:
+            pool.shutdown(wait=True, cancel_futures=True)
+
+
+PR_SET_PDEATHSIG = 1
+"""Linux prctl option: the signal this process gets when its parent dies."""
+PARENT_POLL_S = 1.0
+"""How often a worker without prctl checks that its parent is alive (s)."""
+
+
+def _local_setup(parent_pid: int, setup: Callable[..., None], setup_args: tuple) -> None:
+    """A local worker's start: tie its life to the parent's, leave Ctrl-C to the parent, run `setup`."""
+    _die_with_parent(parent_pid)
+    signal.signal(signal.SIGINT, signal.SIG_IGN)
+    setup(*setup_args)
+
+
+def _die_with_parent(parent_pid: int) -> None:
+    """Make this process end when `parent_pid` (its parent) ends, even by SIGKILL: PR_SET_PDEATHSIG on Linux,
+    else a daemon thread polling the parent pid every PARENT_POLL_S."""
+    libc = ctypes.util.find_library("c") if sys.platform.startswith("linux") else None
+    if libc is not None and ctypes.CDLL(libc, use_errno=True).prctl(PR_SET_PDEATHSIG, signal.SIGKILL) == 0:
+        if os.getppid() != parent_pid:  # the parent died before prctl took effect
+            os._exit(1)
+        return
+
+    def watch() -> None:
+        while os.getppid() == parent_pid:
+            time.sleep(PARENT_POLL_S)
+        os._exit(1)
+
+    threading.Thread(target=watch, name="parent-watchdog", daemon=True).start()
 
 
 _RAY_SETUP_DONE: set[str] = set()
