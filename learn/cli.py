@@ -12,7 +12,7 @@ from typing import TYPE_CHECKING, Annotated
 import typer
 from rich.table import Table
 
-from twin.cli_common import err_console, guarded, out_console, progress_bar
+from twin.cli_common import err_console, guarded, out_console, progress_bar, warn_nonfinite_forces
 
 if TYPE_CHECKING:
     from learn.checkpoint import Checkpoint
@@ -33,6 +33,7 @@ def _require_torch(ctx: typer.Context) -> None:
     except ImportError:
         err_console.print('[red]error:[/red] this command needs torch: pip install "biotac-twin\\[learn]"')
         raise typer.Exit(code=2) from None
+
 
 METRIC_COLUMNS = (
     ("contact_loc_mean_mm", "loc mean (mm)"),
@@ -173,6 +174,7 @@ def evaluate(
     for path in checkpoints:
         ckpt = guarded(lambda path=path: load_checkpoint(path))
         files = guarded(lambda ckpt=ckpt: data_files(data if data else [Path(p) for p in ckpt.training["files"]]))
+        warn_nonfinite_forces(files)
         scores = guarded(lambda ckpt=ckpt, files=files: evaluate_checkpoint(ckpt, files, on))
         split = ckpt.training["split"]["name"] if on == "test" else "all rows"
         results.append({"checkpoint": str(path), "model": ckpt.model, "split": split, "on": on, **scores})

@@ -7,6 +7,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from fake_campaign import write_fake_campaign
 from typer.testing import CliRunner
 
 from fe.balloon import MAX_VOLUME_RATIO, analytic_balloon_pressure, inflate_balloon
@@ -117,3 +118,35 @@ def test_learn_train_reads_a_folder_of_campaign_files(tmp_path: Path) -> None:
 
     assert [Path(p) for p in Checkpoint.load(checkpoint).training["files"]] == [folder / "biotac1.hdf5"]
     _usage_error(["learn", "eval", str(checkpoint), "--data", str(tmp_path / "gone.hdf5")], "no such file")
+
+
+def _stop_before_fe(*args: object, **kwargs: object) -> None:
+    raise ValueError("stopped before any FE work")
+
+
+def test_nan_forces_are_counted_and_warned_never_dropped_in_silence(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """Two of the eight rows of a file get a NaN or infinite force: every reader says how many."""
+    import h5py
+
+    path = write_fake_campaign(tmp_path)
+    checkpoint = tmp_path / "mean.pt"
+    trained = runner.invoke(
+        app, ["learn", "train", str(path), "--model", "mean", "--split", "none", "--out", str(checkpoint)]
+    )
+    assert trained.exit_code == 0, trained.output
+    with h5py.File(path, "r+") as f:
+        f["force/data"][1, 0] = np.nan
+        f["force/data"][5, 2] = np.inf
+    warning = "2 of 8 rows have NaN or infinite forces"
+    scored = runner.invoke(app, ["learn", "eval", str(checkpoint), "--data", str(path), "--on", "all"])
+    assert scored.exit_code == 0 and warning in scored.output, scored.output
+    for name in ("twin.cli_analysis.model_or_nominal", "twin.cli_calibrate.model_or_nominal"):
+        monkeypatch.setattr(name, _stop_before_fe)
+    monkeypatch.setattr("twin.analysis.diagnose.diagnose", _stop_before_fe)
+    readers = (["compare", str(path), "--out", str(tmp_path / "r")], ["validate", str(path)], ["diagnose", str(path)])
+    for command in readers:
+        result = runner.invoke(app, command)
+        assert result.exit_code == 2 and "stopped before any FE work" in result.output, result.output
+        assert warning in result.output.replace("\n", " "), result.output

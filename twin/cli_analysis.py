@@ -10,7 +10,7 @@ from typing import TYPE_CHECKING, Annotated
 import typer
 from rich.table import Table
 
-from twin.cli_common import err_console, guarded, out_console, progress_bar
+from twin.cli_common import err_console, guarded, out_console, progress_bar, warn_nonfinite_forces
 
 if TYPE_CHECKING:
     from twin.analysis.data import CampaignData, TrajectoryRecord
@@ -48,10 +48,12 @@ def model_or_nominal(path: Path | None, mesh_max_edge: float) -> TwinModel:
 
 
 def load_datasets(paths: list[Path]) -> list[CampaignData]:
-    """The campaign files; ValueError when they disagree on the mesh size the default model needs."""
+    """The campaign files (warning about NaN forces); ValueError when they disagree on the mesh size the default
+    model needs."""
     from twin.analysis.data import load_campaign
 
     datasets = [load_campaign(p) for p in paths]
+    warn_nonfinite_forces(paths)
     if len({d.mesh_max_edge for d in datasets}) > 1:
         raise ValueError("the datasets were made with different mesh sizes: pass --model")
     return datasets

@@ -1,5 +1,5 @@
-"""Shared CLI helpers: number parsing, bad-input guarding, SIGTERM as Ctrl-C, progress bars (stderr), consoles,
-the fe model and warp device of the `twin fe` commands."""
+"""Shared CLI helpers: number parsing, bad-input guarding, warnings about NaN forces, SIGTERM as Ctrl-C, progress
+bars (stderr), consoles, the fe model and warp device of the `twin fe` commands."""
 
 from __future__ import annotations
 
@@ -43,6 +43,23 @@ def guarded(action: Callable[[], T]) -> T:
     except ValueError as exc:
         err_console.print(f"[red]error:[/red] {escape(str(exc))}", soft_wrap=True)
         raise typer.Exit(code=2) from exc
+
+
+def warn_nonfinite_forces(paths: list[Path]) -> None:
+    """A warning on stderr, with the count, for each file whose measured forces have NaN or infinite rows
+    (the commands leave those rows out of the force errors: never in silence)."""
+    import h5py
+
+    from twin.dataset import nonfinite_rows
+
+    for path in paths:
+        bad, total = nonfinite_rows(path) if h5py.is_hdf5(path) else (0, 0)
+        if bad:
+            err_console.print(
+                f"[yellow]warning:[/yellow] {escape(str(path))}: {bad} of {total} rows have NaN or infinite "
+                "forces; the force errors leave them out",
+                soft_wrap=True,
+            )
 
 
 @contextmanager

@@ -7,7 +7,7 @@ from typing import Annotated
 import typer
 from rich.table import Table
 
-from twin.cli_common import err_console, guarded, out_console
+from twin.cli_common import err_console, guarded, out_console, warn_nonfinite_forces
 
 loop_app = typer.Typer()
 
@@ -22,6 +22,7 @@ def _inputs(datasets: list[Path], model_path: Path | None):
     from twin.analysis.predict import TwinModel
 
     data = [guarded(lambda p=p: load_campaign(p)) for p in datasets]
+    warn_nonfinite_forces(datasets)
     model = guarded(lambda: load_model(model_path)) if model_path else TwinModel(mesh_max_edge=data[0].mesh_max_edge)
     return data, model
 

@@ -410,6 +410,17 @@ def _check_mesh(f: h5py.File, where: str) -> None:
         raise ValueError(f"{where}: mesh/ventral has shape {f['mesh/ventral'].shape}, expected ({vertices.shape[0]},)")
 
 
+def nonfinite_rows(path: Path | str, feature: str = "force") -> tuple[int, int]:
+    """(rows with a NaN or infinite value of `feature`, all rows) of an HDF5 file's `feature/data`; (0, 0)
+    when the file lacks it."""
+    with h5py.File(path, "r") as f:
+        data = f.get(f"{feature}/data")
+        if not isinstance(data, h5py.Dataset) or data.ndim == 0:
+            return 0, 0
+        values = data[()].reshape(data.shape[0], -1)
+    return int((~np.isfinite(values).all(axis=1)).sum()), len(values)
+
+
 def dataset_info(path: Path) -> dict:
     """Features (shape, dtype, units, frame), trajectory counts and attributes of a campaign file."""
     path = Path(path)
