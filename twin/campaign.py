@@ -278,12 +278,9 @@ def claim_parts(parts_dir: Path, options: dict, restart: bool = False) -> None:
         shutil.rmtree(parts_dir)
     if manifest.exists():
         stored = json.loads(manifest.read_text())
-        differing = [k for k in sorted(stored.keys() | options.keys()) if stored.get(k) != options.get(k)]
+        differing = _differences(stored, options)
         if differing:
-            detail = "; ".join(
-                f"{OPTION_NAMES.get(k, k)}: {_shown(k, stored.get(k))} there, {_shown(k, options.get(k))} here"
-                for k in differing
-            )
+            detail = "; ".join(differing)
             raise ValueError(
                 f"{parts_dir.parent} holds parts of a campaign made with other options ({detail}); "
                 "repeat its options to resume it, or pass --restart to discard its parts"
@@ -300,14 +297,30 @@ def claim_parts(parts_dir: Path, options: dict, restart: bool = False) -> None:
     os.replace(tmp, manifest)
 
 
+def _differences(stored: dict, options: dict) -> list[str]:
+    """ "NAME: A there, B here" for each option that differs (a group such as the protocol settings by its
+    differing fields), NAME as the command line spells it (`OPTION_NAMES`)."""
+    out = []
+    for key in sorted(stored.keys() | options.keys()):
+        old, new = stored.get(key), options.get(key)
+        if old == new:
+            continue
+        if isinstance(old, dict) and isinstance(new, dict):
+            fields = [k for k in sorted(old.keys() | new.keys()) if old.get(k) != new.get(k)]
+            shown = ", ".join(f"{k} {old.get(k)} there, {new.get(k)} here" for k in fields)
+            out.append(f"{OPTION_NAMES.get(key, key)}: {shown}")
+        else:
+            out.append(f"{OPTION_NAMES.get(key, key)}: {_shown(key, old)} there, {_shown(key, new)} here")
+    return out
+
+
 def _shown(key: str, value: object) -> str:
-    """An option value as the command line writes it (mesh sizes in mm; long values elided)."""
+    """An option value as the command line writes it (mesh sizes in mm, lists comma-separated)."""
     if key == "mesh_max_edge" and isinstance(value, int | float):
         return f"{value * 1e3:g}"
     if isinstance(value, list):
         return ",".join(map(str, value))
-    text = str(value)
-    return text if len(text) <= 24 else "other values"
+    return str(value)
 
 
 def _run_one(job: PlannedTrajectory, slot: int, registration: np.ndarray, parts_dir: str) -> tuple[int, int, bool]:

@@ -218,7 +218,8 @@ def open_dataset(path: Path | str) -> h5py.File:
     campaign file (attribute `schema_version`) that breaks the schema (`check_campaign`)."""
     path = Path(path)
     if not path.is_file():
-        raise ValueError(f"no such dataset file: {path}")
+        what = "a folder, not a dataset file" if path.is_dir() else "no such dataset file"
+        raise ValueError(f"{what}: {path}")
     try:
         f = h5py.File(path, "r")
     except OSError as exc:
