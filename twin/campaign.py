@@ -247,6 +247,9 @@ OPTION_NAMES = {
 """The command-line name of each option a resume must repeat (other config fields go by their own name)."""
 
 
+_START_OVER = "`twin campaign run ... --restart` discards the parts (or delete {parts})"
+
+
 def campaign_options(config: CampaignConfig, plant: Plant) -> dict:
     """Everything a trajectory's part depends on: the config (as JSON values) and the plant's fingerprint."""
     return {**json.loads(json.dumps(asdict(config), default=str)), "plant": plant.fingerprint()}
@@ -283,13 +286,13 @@ def claim_parts(parts_dir: Path, options: dict, restart: bool = False) -> None:
             detail = "; ".join(differing)
             raise ValueError(
                 f"{parts_dir.parent} holds parts of a campaign made with other options ({detail}); "
-                "repeat its options to resume it, or pass --restart to discard its parts"
+                f"repeat its options to resume it, or start over: {_START_OVER.format(parts=parts_dir)}"
             )
         return
     if any(parts_dir.rglob("*.npz")):
         raise ValueError(
             f"{parts_dir.parent} holds parts without a record of their options ({MANIFEST}); "
-            "pass --restart to discard them"
+            f"start over: {_START_OVER.format(parts=parts_dir)}"
         )
     parts_dir.mkdir(parents=True, exist_ok=True)
     tmp = manifest.with_name(f"{MANIFEST}.{os.getpid()}.tmp")
@@ -459,7 +462,7 @@ def _check_part_digests(parts_dir: Path, digest: str) -> None:
         if made_by != digest:
             raise ValueError(
                 f"{path} was made with other campaign options (digest {made_by}, this run {digest}); "
-                "pass --restart to discard the parts"
+                f"start over: {_START_OVER.format(parts=parts_dir)}"
             )
 
 
