@@ -34,7 +34,7 @@ import warp as wp
 
 from fe import batched_kernels as bk
 from fe import bending, contact, membrane, viscoelastic, volume
-from fe.device_solver import CG_NEGATIVE_CURVATURE, BatchedBlockMatrix, BatchedCG, BlockPattern, batched_dot
+from fe.device_solver import CG_NEGATIVE_CURVATURE, BatchedBlockMatrix, BatchedCG, BlockPattern
 from fe.linsolve import BatchedDirectSolver
 from fe.newton import NewtonSettings
 from fe.params import ContactSettings, SkinParameters
@@ -362,7 +362,6 @@ class BatchedShell:
         self.rhs = z((2 * B, V), wp.vec3d)
         self.kdq = z((B, V), wp.vec3d)
         self._stats = z((B, 3), wp.float64)
-        self._sums = z(B, wp.float64)
         self._totals = z((B, 2), wp.float64)
         self._pair = z((B, 2), wp.float64)
         self._scratch: dict[str, wp.array] = {}
@@ -841,7 +840,7 @@ class BatchedShell:
     def _curvature(self, mask: np.ndarray) -> np.ndarray:
         """dq . K dq per system (with the damping of the last assembly)."""
         self.linear.multiply(self.dq, self.kdq, self._system_of_b)
-        return np.where(mask, batched_dot(self.dq, self.kdq, self._sums), 0.0)
+        return np.where(mask, self._two_dots(self.dq, self.kdq, self.kdq)[0], 0.0)
 
     def _axpy(self, x: wp.array, step: np.ndarray, out: wp.array) -> None:
         """out = x + step dq per system (rows with step 0 copied from x, whatever dq holds)."""

@@ -477,16 +477,3 @@ class BatchedCG:
             else:
                 self._iterate()
         return self.x, self.iterations.numpy(), self.state.numpy()
-
-
-def batched_dot(a: wp.array, b: wp.array, out: wp.array) -> np.ndarray:
-    """Per-row dot products of two (C, V) vec3d arrays, (C,) on the host (out is a (C,) float64 scratch)."""
-    out.zero_()
-    wp.launch(_row_dot, a.shape, [a, b, out], device=a.device)
-    return out.numpy().copy()
-
-
-@wp.kernel
-def _row_dot(a: wp.array2d(dtype=wp.vec3d), b: wp.array2d(dtype=wp.vec3d), out: wp.array(dtype=wp.float64)):
-    c, v = wp.tid()
-    wp.atomic_add(out, c, wp.dot(a[c, v], b[c, v]))
