@@ -239,6 +239,7 @@ def fit_forward(
     """Fit the learned forward model (FE field -> this sensor's tared electrodes); report held-out RMSE."""
     from learn.forward import campaign_field_samples, fit_and_score
 
+    guarded(lambda: data_files([file]))
     samples = guarded(lambda: campaign_field_samples(file, skin_thickness_mm * 1e-3))
     model, scores = guarded(lambda: fit_and_score(samples, seed=seed))
     record = {

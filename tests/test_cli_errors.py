@@ -49,10 +49,18 @@ def test_balloon_reaches_the_largest_ratio_in_few_steps_on_membrane_theory() -> 
 
 
 @pytest.mark.parametrize(
-    ("option", "value"), [("--depth-mm", "nan"), ("--depth-mm", "inf"), ("--step-mm", "nan"), ("--speed-mm-s", "inf")]
+    ("command", "option", "value"),
+    [
+        ("indent", "--depth-mm", "nan"),
+        ("indent", "--depth-mm", "inf"),
+        ("indent", "--step-mm", "nan"),
+        ("indent", "--speed-mm-s", "inf"),
+        ("dome", "--depth-mm", "nan"),
+        ("dome", "--volume-ratio", "inf"),
+    ],
 )
-def test_indent_refuses_non_finite_numbers(option: str, value: str) -> None:
-    _usage_error(["fe", "indent", "--mesh-mm", "3", option, value], option)
+def test_fe_commands_refuse_non_finite_numbers(command: str, option: str, value: str) -> None:
+    _usage_error(["fe", command, "--mesh-mm", "3", option, value], option)
 
 
 @dataclass

@@ -88,6 +88,9 @@ def dome(
 
     if bending not in ("on", "off"):
         raise typer.BadParameter("--bending must be on or off")
+    sizes = {"--radius-mm": radius_mm, "--thickness-mm": thickness_mm, "--mu-pa": mu_pa, "--volume-ratio": volume_ratio}
+    sizes |= {"--depth-mm": depth_mm, "--step-mm": step_mm}
+    _guarded(lambda: _check_finite(sizes))
     if depth_mm < 0 or step_mm <= 0:
         raise typer.BadParameter("--depth-mm must be >= 0 and --step-mm > 0")
     depths = np.arange(0, int(round(depth_mm / step_mm)) + 1) * step_mm * 1e-3
