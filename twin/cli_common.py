@@ -46,8 +46,8 @@ def guarded(action: Callable[[], T]) -> T:
 
 
 def warn_nonfinite_forces(paths: list[Path]) -> None:
-    """A warning on stderr, with the count, for each file whose measured forces have NaN or infinite rows
-    (the commands leave those rows out of the force errors: never in silence)."""
+    """A warning on stderr, with the count, for each file whose measured forces have NaN or infinite rows, so
+    that no command leaves them out of (or lets them spoil) its force errors in silence."""
     import h5py
 
     from twin.dataset import nonfinite_rows
@@ -57,7 +57,7 @@ def warn_nonfinite_forces(paths: list[Path]) -> None:
         if bad:
             err_console.print(
                 f"[yellow]warning:[/yellow] {escape(str(path))}: {bad} of {total} rows have NaN or infinite "
-                "forces; the force errors leave them out",
+                "forces; force errors cannot use them",
                 soft_wrap=True,
             )
 

@@ -5,7 +5,8 @@ order. Each worker process first runs `setup(*setup_args)` once (e.g. building t
 then any number of tasks. Tasks must be idempotent: a campaign task writes its part file atomically, so
 a task that re-runs after its worker died writes exactly what the first attempt would have written.
 
-- `LocalExecutor`: a `ProcessPoolExecutor` over spawned processes; needs nothing extra.
+- `LocalExecutor`: a `ProcessPoolExecutor` over spawned processes that die with their parent; needs
+  nothing extra.
 - `RayExecutor`: Ray tasks on a local or existing cluster (`pip install "biotac-twin[ray]"`); a task
   whose worker dies is re-run by Ray (up to `max_retries` times), so a killed worker loses nothing.
 """
