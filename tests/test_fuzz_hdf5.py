@@ -67,6 +67,7 @@ MALFORMED: dict[str, tuple[Callable[[h5py.File], None], tuple[str, ...]]] = {
     "NaN raw time": (_replace("raw/1/time", _nan_at((2,))), READERS),
     "triangle index past the vertices": (_replace("mesh/triangles", lambda x: x + 100), READERS),
     "nodal field of another mesh": (_replace("nodal_res/data", lambda x: x[:, :5]), READERS),
+    "indenter names missing": (lambda f: f.attrs.__delitem__("indenter_names"), REPLAY),
     "indenter names not JSON": (lambda f: f.attrs.__setitem__("indenter_names", "[sphere"), READERS),
     "sensor id not a number": (lambda f: f.attrs.__setitem__("sensor_id", "two"), READERS),
 }

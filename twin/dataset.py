@@ -23,6 +23,8 @@ from pathlib import Path
 import h5py
 import numpy as np
 
+from assets.indenters import INDENTERS
+
 SCHEMA_VERSION = 1
 
 FEATURE_UNITS: dict[str, tuple[str, str | None]] = {
@@ -266,11 +268,11 @@ def check_campaign(f: h5py.File) -> None:
     """ValueError (one line, naming the file and the fault) unless an open campaign file is self-consistent:
     every subsampled feature has the same number of rows and its documented row shape (docs/dataset.md),
     the per-trajectory metadata has one finite row per trajectory and its rows lie inside the features,
-    indenter indices name an entry of `indenter_names`, every trajectory has its full-rate recording, the
-    mesh's triangles index its vertices. Reads the small arrays only; NaN measurements are left to the
-    commands (they report them)."""
+    indenter indices name an entry of `indenter_names` (default: the nine indenters), every trajectory has
+    its full-rate recording, the mesh's triangles index its vertices. Reads the small arrays only; NaN
+    measurements are left to the commands (they report them)."""
     where = f.filename
-    names = _json_attr(f, "indenter_names", list)
+    names = _json_attr(f, "indenter_names", list) if "indenter_names" in f.attrs else list(INDENTERS)
     config = _json_attr(f, "provenance", dict).get("config", {})
     mesh_max_edge = config.get("mesh_max_edge", 0.5e-3) if isinstance(config, dict) else None
     if not isinstance(mesh_max_edge, int | float) or not 0 < mesh_max_edge < 1:

@@ -82,6 +82,7 @@ def load_campaign(path: Path | str) -> CampaignData:
         missing += [
             f"trajectories/{k}" for k in TRAJECTORY_FIELDS if "trajectories" in f and k not in f["trajectories"]
         ]
+        missing += [] if "indenter_names" in f.attrs else ["attribute indenter_names"]
         if missing:
             raise ValueError(f"{path} cannot be replayed: it has no {', '.join(missing)} (see docs/dataset.md)")
         names = json.loads(f.attrs.get("indenter_names", "[]"))
