@@ -86,7 +86,7 @@ def test_batch_rejects_bad_input_with_a_message(tmp_path: Path) -> None:
     result = runner.invoke(app, ["fe", "batch", "--out", str(tmp_path / "x.npz"), "--device", "cuda:99"])
     assert result.exit_code == 2 and "'cuda:99' is not available" in result.output
     result = runner.invoke(app, ["fe", "batch", "--out", str(tmp_path / "x.npz"), "--indenters", "spoon"])
-    assert result.exit_code == 2 and "unknown indenters" in result.output
+    assert result.exit_code == 2 and "unknown indenter" in result.output
     result = runner.invoke(app, ["fe", "batch", "--out", str(tmp_path / "x.npz"), "--poses", str(tmp_path / "no.npz")])
     assert result.exit_code == 2 and "no poses file" in result.output
     result = runner.invoke(app, ["fe", "batch", "--out", str(tmp_path / "x.npz"), "--max-cuts", "-1"])

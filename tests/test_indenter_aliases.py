@@ -73,3 +73,14 @@ def test_docs_table_names_the_same_public_meshes() -> None:
 def test_unknown_name_lists_both_spellings() -> None:
     with pytest.raises(ValueError, match=r"unknown indenter 'sphere_99mm'.*sphere_large.*sphere_14mm"):
         get_indenter("sphere_99mm")
+
+
+def test_campaign_config_takes_public_names_and_refuses_unknown_ones() -> None:
+    """A campaign asked for public mesh names runs our indenters (the names the files and the plan use)."""
+    from twin.campaign import CampaignConfig
+
+    config = CampaignConfig(indenters=("sphere_14mm", "sphere_medium"))
+    assert config.indenters == (indenter_name("sphere_14mm"), "sphere_medium")
+    assert config.indenters[0] != "sphere_14mm"
+    with pytest.raises(ValueError, match="unknown indenter"):
+        CampaignConfig(indenters=("sphere_99mm",))

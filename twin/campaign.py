@@ -21,7 +21,7 @@ from pathlib import Path
 import numpy as np
 
 from assets.biotac import BioTacGeometry, make_biotac
-from assets.indenters import INDENTERS
+from assets.indenters import INDENTERS, indenter_name
 from fe.params import SkinParameters
 from fe.sensor import BioTacModel
 from learn.electrode_physics import ElectrodeModel
@@ -59,9 +59,7 @@ class CampaignConfig:
     scene: SceneParameters = field(default_factory=lambda: SceneParameters(adapter_length=INDENTER_ADAPTER_LENGTH))
 
     def __post_init__(self) -> None:
-        unknown = [n for n in self.indenters if n not in INDENTERS]
-        if unknown:
-            raise ValueError(f"unknown indenters {unknown}; choose from {list(INDENTERS)}")
+        object.__setattr__(self, "indenters", tuple(indenter_name(n) for n in self.indenters))  # public names too
         if not self.sensors or min(self.sensors) < 1:
             raise ValueError(f"sensors must be positive ids, got {self.sensors!r}")
 

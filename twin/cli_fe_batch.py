@@ -50,9 +50,7 @@ def batch(
     time_limit: Annotated[
         float, typer.Option(help="Stop after this many seconds (unfinished ones keep theirs).")
     ] = 1e9,
-    max_cuts: Annotated[
-        int, typer.Option(min=0, help="Halvings of a failed step before it ends the trajectory.")
-    ] = 3,
+    max_cuts: Annotated[int, typer.Option(min=0, help="Halvings of a failed step before it ends the trajectory.")] = 3,
     speed_mm_s: Annotated[
         float, typer.Option(help="Tip speed (mm/s) timing the poses; only a relaxing skin feels it.")
     ] = 1.0,
@@ -62,17 +60,16 @@ def batch(
     as_json: Annotated[bool, typer.Option("--json", help="Print the summary as JSON.")] = False,
 ) -> None:
     """Run many indentation trajectories batched on a warp device and write their forces and contact."""
-    from assets.indenters import INDENTERS
+    from assets.indenters import INDENTERS, indenter_name
     from fe.batched import InflatedSkin
     from fe.batched_runner import PoseTrajectory, run_trajectories
     from fe.trajectory_sets import press_travels, random_paths, round_robin, to_trajectories
 
     if slots < 1 or trajectories < 1 or depth_mm < 0 or step_mm <= 0 or force_limit <= 0 or speed_mm_s <= 0:
         raise typer.BadParameter("--slots and --trajectories must be >= 1, --depth-mm >= 0, the rest > 0")
-    names = list(INDENTERS) if indenters == "all" else indenters.split(",")
-    unknown = [n for n in names if n not in INDENTERS]
-    if unknown:
-        raise typer.BadParameter(f"unknown indenters {unknown}; see `twin fe indenters`")
+    names = (
+        list(INDENTERS) if indenters == "all" else _guarded(lambda: [indenter_name(n) for n in indenters.split(",")])
+    )
     _guarded(lambda: _check_device(device))
     asked = _guarded(lambda: read_poses(poses)) if poses is not None else None
     twin_model, model, inflation = _inflated_twin_model(model_json, mesh_mm)
