@@ -7,13 +7,19 @@ from typing import Annotated
 import typer
 from rich.table import Table
 
-from twin.cli_common import err_console, guarded, out_console, warn_nonfinite_forces
+from twin.cli_common import err_console, guarded, out_console, progress_bar, warn_nonfinite_forces
 
 loop_app = typer.Typer()
 
 Datasets = Annotated[list[Path], typer.Argument(help="Campaign HDF5 file(s).")]
 ModelOption = Annotated[Path | None, typer.Option("--model", help="Model JSON (default: nominal).")]
-HistoryOption = Annotated[Path, typer.Option("--history", help="History file (JSON lines).")]
+HistoryOption = Annotated[
+    Path | None,
+    typer.Option(
+        "--history",
+        help="History file (JSON lines); default twin-history.jsonl beside --model, else beside the first dataset.",
+    ),
+]
 
 
 def _inputs(datasets: list[Path], model_path: Path | None):
@@ -31,16 +37,27 @@ def _inputs(datasets: list[Path], model_path: Path | None):
 def diagnose(
     datasets: Datasets,
     model: ModelOption = None,
-    as_json: Annotated[bool, typer.Option("--json", help="Print JSON.")] = False,
+    as_json: Annotated[bool, typer.Option("--json", help="Print JSON (strict: NaN as null).")] = False,
+    refit_top: Annotated[
+        int, typer.Option("--refit-top", min=0, help="How many of the best-ranked candidates are refitted.")
+    ] = 3,
 ) -> None:
     """Rank candidate effects by how much of the model-vs-measurement residual each explains."""
     from twin.analysis.diagnose import diagnose as run_diagnosis
+    from twin.effects import EFFECTS
 
     data, twin_model = _inputs(datasets, model)
     err_console.print("diagnosing (replaying every trajectory per candidate parameter) ...")
-    result = guarded(lambda: run_diagnosis(data, twin_model))
+    steps = sum(1 for k in EFFECTS if k not in twin_model.effects)
+    with progress_bar() as progress:
+        task = progress.add_task("diagnosing", total=steps + min(refit_top, steps))
+
+        def report(stage: str, name: str) -> None:
+            progress.update(task, description=f"{stage} {name}", completed=progress.tasks[task].completed + 1)
+
+        result = guarded(lambda: run_diagnosis(data, twin_model, top=refit_top, on_progress=report))
     if as_json:
-        print(json.dumps(result.to_dict()))
+        print(result.to_json())
         return
     table = Table("rank", "effect", "kind", "evidence", "explains", "held-out RMS/noise", "refit RMS/noise", "fit")
     for rank, c in enumerate(result.candidates, start=1):
@@ -58,14 +75,16 @@ def improve(
     datasets: Datasets,
     add: Annotated[str, typer.Option("--add", help="Effect to add (see `twin effects`).")],
     model: ModelOption = None,
-    history: HistoryOption = Path("twin-history.jsonl"),
+    history: HistoryOption = None,
     out: Annotated[Path | None, typer.Option(help="Also write the new model JSON here.")] = None,
 ) -> None:
-    """Fit an effect's parameters, show the error before and after, save the model in the history."""
+    """Fit an effect's parameters, show the error before and after, save the model in the history (beside
+    the model or the dataset unless --history names one)."""
     from twin.analysis.diagnose import fit_effect
-    from twin.analysis.history import append_entry
+    from twin.analysis.history import append_entry, history_beside
 
     data, twin_model = _inputs(datasets, model)
+    history = history if history is not None else history_beside(datasets, model)
     fit = guarded(lambda: fit_effect(data, twin_model, add))
     table = Table("", "RMS / noise")
     table.add_row("before", f"{fit.rms_before:.2f}")
@@ -91,12 +110,17 @@ def improve(
 
 @loop_app.command("history")
 def show_history(
-    history: HistoryOption = Path("twin-history.jsonl"),
+    beside: Annotated[
+        Path | None, typer.Argument(help="A dataset or model file: show the history beside it (as improve keeps it).")
+    ] = None,
+    history: HistoryOption = None,
     as_json: Annotated[bool, typer.Option("--json", help="Print JSON.")] = False,
 ) -> None:
-    """The sequence of models and how the error fell."""
-    from twin.analysis.history import read_history
+    """The sequence of models and how the error fell (default: twin-history.jsonl here)."""
+    from twin.analysis.history import HISTORY_NAME, history_beside, read_history
 
+    if history is None:
+        history = history_beside([beside]) if beside is not None else Path(HISTORY_NAME)
     entries = guarded(lambda: read_history(history))
     if as_json:
         print(json.dumps(entries))
@@ -131,7 +155,9 @@ def list_effects() -> None:
 @loop_app.command()
 def demo(
     out: Annotated[Path, typer.Option(help="Output folder.")] = Path("runs/demo"),
-    seed: Annotated[int, typer.Option(help="Seed of the hidden effect and of the campaign.")] = 0,
+    seed: Annotated[
+        int, typer.Option(help="Seed of the hidden effect and of the campaign (its points and noise).")
+    ] = 0,
 ) -> None:
     """The loop end to end: hidden effect, quick campaign, report, diagnosis, the effect added, error falling."""
     from twin.demo import run_demo

@@ -24,6 +24,8 @@ down to 1.3 times the noise, and is identifiable; otherwise it says "unexplained
 
 from __future__ import annotations
 
+import json
+from collections.abc import Callable
 from dataclasses import dataclass, field, replace
 
 import numpy as np
@@ -96,6 +98,21 @@ class Diagnosis:
             "signatures": self.signatures,
             "candidates": [c.__dict__ for c in self.candidates],
         }
+
+    def to_json(self) -> str:
+        """Strict JSON text of `to_dict` (a NaN or infinite number becomes null)."""
+        return json.dumps(strict_json(self.to_dict()), allow_nan=False)
+
+
+def strict_json(value: object) -> object:
+    """`value` (nested dicts, lists, numbers) with every NaN or infinite float replaced by None."""
+    if isinstance(value, dict):
+        return {k: strict_json(v) for k, v in value.items()}
+    if isinstance(value, list | tuple):
+        return [strict_json(v) for v in value]
+    if isinstance(value, float | np.floating):
+        return float(value) if np.isfinite(value) else None
+    return value
 
 
 def _fullrate_prediction(predictor: Predictor, model: TwinModel, trajectories: list[TrajectoryRecord]) -> list:
@@ -311,8 +328,14 @@ def diagnose(
     predictor: Predictor | None = None,
     candidates: list[str] | None = None,
     top: int = 3,
+    on_progress: Callable[[str, str], None] | None = None,
 ) -> Diagnosis:
-    """Rank the library's effects (off in `model`) by how well each explains the residual."""
+    """Rank the library's effects (off in `model`) by how well each explains the residual; the first
+    `top` of the ranking are refitted. on_progress(stage, effect) is called before each candidate's
+    sensitivity ("evidence") and refit ("refit")."""
+    if top < 0:
+        raise ValueError(f"the number of candidates to refit must be >= 0, got {top}")
+    report = on_progress or (lambda stage, name: None)
     predictor = predictor or Predictor()
     base = _base_residual(datasets, model, predictor)
     residual = base.residual
@@ -325,6 +348,7 @@ def diagnose(
     ranked: list[tuple[Candidate, Linearisation]] = []
     for name in names:
         effect = EFFECTS[name]
+        report("evidence", name)
         lin = sensitivity(effect, model, predictor, base)
         delta = _linear_fit(effect, lin.point, lin.jac, r - lin.offset)
         drop = chi2 - base.nuisance.chi2(r - lin.offset - lin.jac @ delta)
@@ -342,6 +366,7 @@ def diagnose(
     # also predict left-out indenters to within the tolerance rank ahead of those that do not.
     ranked.sort(key=lambda item: (not generalises(item[0]), -item[0].evidence))
     for candidate, lin in ranked[:top]:
+        report("refit", candidate.name)
         _identifiability(candidate, lin.jac)
         _refit(candidate, model, predictor, base, lin)
     ordered = [c for c, _ in ranked]
@@ -393,13 +418,16 @@ def _refit(
     """Linear steps re-predicted nonlinearly each time: the first with the given J; a physics effect that
     still leaves more than the tolerance is linearised again where it stands (Gauss-Newton: one fe replay
     per parameter), a measurement effect keeps J (its predictions reuse cached fe replays) and ends with a
-    nonlinear least-squares polish."""
+    nonlinear least-squares polish. When the result fits worse than the model's own values of the effect
+    (the starting point), those are kept."""
     effect = EFFECTS[candidate.name]
     values = lin.point
 
     def misfit(trial_values: dict[str, float]) -> np.ndarray:
         return base.residual.values - base.shifted(predictor, model.with_effects({candidate.name: trial_values}))
 
+    start = effect.values(model.effects.get(candidate.name))
+    best = (_rms(misfit(start)), start)
     residual = base.residual.values - lin.offset
     for iteration in range(iterations):
         delta = _linear_fit(effect, values, lin.jac, residual)
@@ -409,12 +437,17 @@ def _refit(
         }
         residual = misfit(values)
         more = iteration + 1 < iterations
-        if more and effect.kind == "physics" and np.sqrt(np.nanmean(residual**2)) > NOISE_TOLERANCE:
+        if more and effect.kind == "physics" and _rms(residual) > NOISE_TOLERANCE:
             lin = linearise(effect, model, values, predictor, base)
     if effect.kind == "measurement":
         values, residual = _polish(effect, values, misfit)
-    candidate.refit_parameters = values
-    candidate.refit_rms = float(np.sqrt(np.nanmean(residual**2)))
+    # Never end above the starting point (the model as given): a step the linearisation misjudged is undone.
+    candidate.refit_rms, candidate.refit_parameters = min(best, (_rms(residual), values), key=lambda b: b[0])
+
+
+def _rms(residual: np.ndarray) -> float:
+    """Whitened RMS of a residual, skipping samples without a prediction (NaN)."""
+    return float(np.sqrt(np.nanmean(residual**2)))
 
 
 def _polish(effect: Effect, start: dict[str, float], misfit) -> tuple[dict[str, float], np.ndarray]:

@@ -14,7 +14,15 @@ from pathlib import Path
 
 from twin.analysis.predict import TwinModel
 
-DEFAULT_HISTORY = Path("twin-history.jsonl")
+HISTORY_NAME = "twin-history.jsonl"
+"""File name of a history kept beside the data or the model it improves."""
+
+
+def history_beside(datasets: list[Path], model: Path | None = None) -> Path:
+    """Where a history goes when none is named: beside the model file when there is one (it continues
+    that model's sequence), else beside the first dataset; never the folder the command runs in."""
+    anchor = Path(model) if model is not None else Path(datasets[0])
+    return anchor.resolve().parent / HISTORY_NAME
 
 
 def append_entry(history: Path, entry: dict) -> dict:

@@ -1,0 +1,125 @@
+"""The loop's plumbing (issue 24): refits never end above their start, strict JSON from `twin diagnose
+--json`, the refit count as an option with progress per candidate, the history kept beside the data.
+
+No fe work here: the residual and the model's response are stand-ins with known answers.
+"""
+
+import json
+from pathlib import Path
+
+import numpy as np
+import pytest
+from typer.testing import CliRunner
+
+import twin.analysis.diagnose as diagnose_module
+import twin.cli_loop as cli_loop
+from twin.analysis.diagnose import Candidate, Diagnosis, EffectFit, Linearisation, _refit
+from twin.analysis.history import read_history
+from twin.analysis.predict import TwinModel
+from twin.cli import app
+
+runner = CliRunner()
+
+
+class _StepResponse:
+    """A null data set (the residual is pure noise) and a delay whose effect comes in whole samples: any
+    delay above zero moves the prediction by a fixed pattern, so no delay beats the model as it is."""
+
+    def __init__(self, n: int = 400) -> None:
+        rng = np.random.default_rng(1)
+        self.residual = type("R", (), {"values": rng.standard_normal(n)})()
+        self.pattern = 3.0 * np.sign(np.sin(np.arange(n)))
+
+    def shifted(self, predictor: object, model: TwinModel) -> np.ndarray:
+        seconds = model.effects.get("time_delay", {}).get("seconds", 0.0)
+        return self.pattern if seconds > 0.0 else np.zeros_like(self.pattern)
+
+
+def test_a_refit_never_ends_above_its_starting_point() -> None:
+    base = _StepResponse()
+    noise = base.residual.values
+    # The linearisation points along the noise itself, so its step goes to a delay of 0.1 s that fits worse.
+    lin = Linearisation({"seconds": 0.0}, np.zeros_like(noise), 10.0 * noise[:, None])
+    candidate = Candidate("time_delay", "measurement", {}, 0.0, 0.0, 0.0)
+    _refit(candidate, TwinModel(), None, base, lin)
+    start_rms = float(np.sqrt(np.mean(noise**2)))
+    assert candidate.refit_rms <= start_rms + 1e-12
+    assert candidate.refit_parameters == {"seconds": 0.0}
+
+
+def _raise_on_constant(name: str) -> None:
+    raise ValueError(f"not strict JSON: {name}")
+
+
+def _diagnosis_with_nan() -> Diagnosis:
+    candidate = Candidate("time_delay", "measurement", {"seconds": 0.05}, 12.0, 5.0, 0.5, heldout_rms=float("nan"))
+    return Diagnosis(float("nan"), {"corr": float("inf")}, [candidate], "unexplained", "no fit")
+
+
+def test_diagnosis_json_is_strict_with_nan_as_null() -> None:
+    text = _diagnosis_with_nan().to_json()
+    parsed = json.loads(text, parse_constant=_raise_on_constant)
+    assert parsed["base_rms_over_noise"] is None
+    assert parsed["signatures"]["corr"] is None
+    assert parsed["candidates"][0]["condition"] is None  # never computed: NaN in the dataclass
+    assert parsed["candidates"][0]["chi2_drop"] == 12.0
+
+
+@pytest.fixture
+def fake_inputs(monkeypatch: pytest.MonkeyPatch, tmp_path: Path) -> Path:
+    """A dataset path and `_inputs` returning no data and the nominal model (no file is read)."""
+    dataset = tmp_path / "data" / "biotac2.hdf5"
+    dataset.parent.mkdir()
+    dataset.write_bytes(b"")
+    monkeypatch.setattr(cli_loop, "_inputs", lambda datasets, model: ([], TwinModel()))
+    return dataset
+
+
+def test_diagnose_json_strict_refit_count_and_progress_per_candidate(
+    fake_inputs: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    calls: dict = {}
+
+    def fake_diagnose(data, model, top=3, on_progress=None):
+        calls["top"] = top
+        for name in ("skin_modulus", "time_delay", "ft_gain"):
+            on_progress("evidence", name)
+        for name in ("skin_modulus", "time_delay")[:top]:
+            on_progress("refit", name)
+            calls.setdefault("refits", []).append(name)
+        return _diagnosis_with_nan()
+
+    monkeypatch.setattr(diagnose_module, "diagnose", fake_diagnose)
+    result = runner.invoke(app, ["diagnose", str(fake_inputs), "--json", "--refit-top", "1"])
+    assert result.exit_code == 0, result.output
+    assert calls == {"top": 1, "refits": ["skin_modulus"]}
+    parsed = json.loads(result.stdout, parse_constant=_raise_on_constant)
+    assert parsed["verdict"] == "unexplained"
+    bad = runner.invoke(app, ["diagnose", str(fake_inputs), "--refit-top", "-1"])
+    assert bad.exit_code == 2 and "Traceback" not in bad.output
+
+
+def test_improve_keeps_the_history_beside_the_dataset_or_the_model(
+    fake_inputs: Path, monkeypatch: pytest.MonkeyPatch, tmp_path: Path
+) -> None:
+    fitted = TwinModel().with_effects({"time_delay": {"seconds": 0.05}})
+    fit = EffectFit("time_delay", {"seconds": 0.05}, 2.0, 1.0, 1.0, fitted)
+    monkeypatch.setattr(diagnose_module, "fit_effect", lambda data, model, name: fit)
+    elsewhere = tmp_path / "elsewhere"
+    elsewhere.mkdir()
+    monkeypatch.chdir(elsewhere)
+    result = runner.invoke(app, ["improve", str(fake_inputs), "--add", "time_delay"], env={"COLUMNS": "300"})
+    assert result.exit_code == 0, result.output
+    beside = fake_inputs.parent / "twin-history.jsonl"
+    assert [e["added"]["effect"] for e in read_history(beside)] == ["time_delay"]
+    assert not (elsewhere / "twin-history.jsonl").exists()
+    assert str(beside) in result.output.replace("\n", "")
+    shown = runner.invoke(app, ["history", str(fake_inputs), "--json"])
+    assert shown.exit_code == 0 and json.loads(shown.stdout)[0]["added"]["effect"] == "time_delay"
+
+    model_file = tmp_path / "models" / "m.json"
+    model_file.parent.mkdir()
+    model_file.write_text(json.dumps(TwinModel().to_dict()))
+    result = runner.invoke(app, ["improve", str(fake_inputs), "--add", "time_delay", "--model", str(model_file)])
+    assert result.exit_code == 0, result.output
+    assert len(read_history(model_file.parent / "twin-history.jsonl")) == 1
