@@ -1,5 +1,6 @@
 """Shared CLI helpers: number parsing, bad-input guarding, warnings about NaN forces, SIGTERM as Ctrl-C, progress
-bars (stderr), consoles, the fe model and warp device of the `twin fe` commands."""
+bars (stderr), consoles, the fe model and warp device of the `twin fe` commands, the predictor (and its warp device)
+of the analysis commands."""
 
 from __future__ import annotations
 
@@ -8,7 +9,7 @@ from collections.abc import Callable, Iterator
 from contextlib import contextmanager
 from dataclasses import replace
 from pathlib import Path
-from typing import TYPE_CHECKING, TypeVar
+from typing import TYPE_CHECKING, Annotated, TypeVar
 
 import typer
 from rich.console import Console
@@ -18,7 +19,7 @@ from rich.progress import BarColumn, Progress, TextColumn, TimeElapsedColumn, Ti
 if TYPE_CHECKING:
     from fe.params import SkinParameters
     from fe.sensor import BioTacModel, InflationResult
-    from twin.analysis.predict import TwinModel
+    from twin.analysis.predict import Predictor, TwinModel
 
 err_console = Console(stderr=True)
 out_console = Console()
@@ -136,3 +137,23 @@ def check_device(device: str) -> None:
         wp.get_device(device)
     except (RuntimeError, ValueError) as exc:
         raise ValueError(f"warp device {device!r} is not available here: {exc}") from exc
+
+
+DeviceOption = Annotated[
+    str,
+    typer.Option(
+        "--device",
+        help="Warp device of the fe replays: cpu, cuda, cuda:0, ...; the trajectories of each model are solved "
+        "as the systems of one batch.",
+    ),
+]
+"""The --device option of compare, validate, calibrate, diagnose and improve (`analysis_predictor`)."""
+
+
+def analysis_predictor(device: str) -> Predictor:
+    """A `twin.analysis.predict.Predictor` replaying on the warp `device`; a device warp cannot use here is a
+    one-line message and exit code 2."""
+    from twin.analysis.predict import Predictor
+
+    guarded(lambda: check_device(device))
+    return Predictor(device)

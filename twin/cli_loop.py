@@ -7,7 +7,15 @@ from typing import Annotated
 import typer
 from rich.table import Table
 
-from twin.cli_common import err_console, guarded, out_console, progress_bar, warn_nonfinite_forces
+from twin.cli_common import (
+    DeviceOption,
+    analysis_predictor,
+    err_console,
+    guarded,
+    out_console,
+    progress_bar,
+    warn_nonfinite_forces,
+)
 
 loop_app = typer.Typer()
 
@@ -41,11 +49,13 @@ def diagnose(
     refit_top: Annotated[
         int, typer.Option("--refit-top", min=0, help="How many of the best-ranked candidates are refitted.")
     ] = 3,
+    device: DeviceOption = "cpu",
 ) -> None:
     """Rank candidate effects by how much of the model-vs-measurement residual each explains."""
     from twin.analysis.diagnose import diagnose as run_diagnosis
     from twin.effects import EFFECTS
 
+    predictor = analysis_predictor(device)
     data, twin_model = _inputs(datasets, model)
     err_console.print("diagnosing (replaying every trajectory per candidate parameter) ...")
     steps = sum(1 for k in EFFECTS if k not in twin_model.effects)
@@ -55,7 +65,7 @@ def diagnose(
         def report(stage: str, name: str) -> None:
             progress.update(task, description=f"{stage} {name}", completed=progress.tasks[task].completed + 1)
 
-        result = guarded(lambda: run_diagnosis(data, twin_model, top=refit_top, on_progress=report))
+        result = guarded(lambda: run_diagnosis(data, twin_model, predictor, top=refit_top, on_progress=report))
     if as_json:
         print(result.to_json())
         return
@@ -77,15 +87,17 @@ def improve(
     model: ModelOption = None,
     history: HistoryOption = None,
     out: Annotated[Path | None, typer.Option(help="Also write the new model JSON here.")] = None,
+    device: DeviceOption = "cpu",
 ) -> None:
     """Fit an effect's parameters, show the error before and after, save the model in the history (beside
     the model or the dataset unless --history names one)."""
     from twin.analysis.diagnose import fit_effect
     from twin.analysis.history import append_entry, history_beside
 
+    predictor = analysis_predictor(device)
     data, twin_model = _inputs(datasets, model)
     history = history if history is not None else history_beside(datasets, model)
-    fit = guarded(lambda: fit_effect(data, twin_model, add))
+    fit = guarded(lambda: fit_effect(data, twin_model, add, predictor))
     table = Table("", "RMS / noise")
     table.add_row("before", f"{fit.rms_before:.2f}")
     table.add_row(f"after adding {add}", f"{fit.rms_after:.2f}")

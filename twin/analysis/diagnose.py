@@ -116,7 +116,9 @@ def strict_json(value: object) -> object:
 
 
 def _fullrate_prediction(predictor: Predictor, model: TwinModel, trajectories: list[TrajectoryRecord]) -> list:
-    """Per trajectory (T, 4): predicted tared force x, y, z (N) and PDC (counts)."""
+    """Per trajectory (T, 4): predicted tared force x, y, z (N) and PDC (counts); the model's missing replays
+    solved as one batch first (`Predictor.prefetch`)."""
+    predictor.prefetch(model, trajectories)
     out = []
     for t in trajectories:
         p = predictor.predict(model, t)

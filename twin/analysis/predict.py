@@ -12,12 +12,16 @@ from __future__ import annotations
 
 import hashlib
 import json
+from collections.abc import Callable, Sequence
 from dataclasses import asdict, dataclass, field, replace
 
 import numpy as np
 
 from assets.biotac import make_biotac
+from fe.batched_runner import PoseTrajectory, run_trajectories
+from fe.indentation import IndentationStepper
 from fe.params import SkinParameters
+from fe.results import IncrementResult
 from fe.sensor import SENSOR_THICKNESS, BioTacModel, InflationResult
 from learn.electrode_physics import ElectrodeModel
 from twin.analysis.data import TrajectoryRecord
@@ -30,6 +34,8 @@ INFLATION_RULES = ("thickness", "thermal")
 """How a model's skin is inflated (see TwinModel)."""
 MODEL_CACHE_SIZE = 24
 """Inflated fe models a Predictor keeps (first built dropped first); replays, small arrays, are all kept."""
+PREFETCH_SLOTS = 256
+"""Systems of one batched prefetch run at most (more trajectories queue for the slots that free up)."""
 
 
 @dataclass(frozen=True)
@@ -100,14 +106,29 @@ class Prediction:
     rows: ProcessedRows
 
 
+@dataclass(frozen=True)
+class _ReplayPlan:
+    """What a trajectory's replay under a model needs: its cache key, indenter tip of each path index (m,
+    biotac frame), solve events (see `solve_events`) and whether the skin relaxes (timed solves)."""
+
+    key: tuple
+    tips: np.ndarray
+    events: tuple[np.ndarray, np.ndarray]
+    timed: bool
+
+
 class Predictor:
-    """Replays trajectories; inflated fe models and fe replays are cached.
+    """Replays trajectories on a warp `device` ("cpu", "cuda", ...); inflated fe models and fe replays are
+    cached.
 
     A replay depends only on the skin parameters, the mesh and the indenter path, so predictions that
-    differ only in measurement effects reuse it.
+    differ only in measurement effects reuse it. `predict` replays one trajectory at a time when its replay
+    is not cached; `prefetch` solves the missing replays of many trajectories of one model as the systems
+    of one batched run (`fe.batched_runner`), which is how a GPU is kept busy.
     """
 
-    def __init__(self) -> None:
+    def __init__(self, device: str = "cpu") -> None:
+        self.device = device
         self._models: dict[tuple, tuple[BioTacModel, InflationResult]] = {}
         self._electrodes: dict[int, ElectrodeModel] = {}
         self._replays: dict[tuple, Replay] = {}
@@ -136,20 +157,73 @@ class Predictor:
             self._electrodes[key] = ElectrodeModel(fe.geometry, None, fe.reference, fe.params.thickness)
         return self._electrodes[key]
 
-    def predict(self, model: TwinModel, trajectory: TrajectoryRecord) -> Prediction:
-        """The model's prediction of `trajectory` (see the module docstring)."""
+    def _plan(self, model: TwinModel, trajectory: TrajectoryRecord) -> _ReplayPlan:
+        """The replay `model` needs for `trajectory` (its key says which cached replay serves it)."""
         skin = apply_skin(model.skin, model.effects)
         raw = trajectory.raw
-        path_depths = _path_depths(raw)
-        tips = apply_path(trajectory.touch_point + np.outer(path_depths, trajectory.direction), model.effects)
+        tips = apply_path(trajectory.touch_point + np.outer(_path_depths(raw), trajectory.direction), model.effects)
         timed = skin.relaxation_fraction > 0.0
         model_key = (tuple(sorted(asdict(skin).items())), model.mesh_max_edge, model.inflation)
         key = (model_key, trajectory.sensor_id, trajectory.trajectory_id, tips.round(12).tobytes())
-        if key not in self._replays:
-            fe = self.fe_model(skin, model.mesh_max_edge, model.inflation)
-            events = solve_events(raw, RELAXATION_SOLVE_INTERVAL_S if timed else None)
-            self._replays[key] = _replay(fe, self.electrode_model(fe), trajectory, tips, events, timed)
-        replay = self._replays[key]
+        events = solve_events(raw, RELAXATION_SOLVE_INTERVAL_S if timed else None)
+        return _ReplayPlan(key, tips, events, timed)
+
+    def _model_fe(self, model: TwinModel) -> BioTacModel:
+        """The inflated fe model of `model`'s skin with its effects applied."""
+        return self.fe_model(apply_skin(model.skin, model.effects), model.mesh_max_edge, model.inflation)
+
+    def prefetch(
+        self,
+        model: TwinModel,
+        trajectories: Sequence[TrajectoryRecord],
+        progress: Callable[[int, int], None] | None = None,
+    ) -> int:
+        """Solve the replays `model` needs for `trajectories` and does not have cached yet, all in one batched
+        run on the predictor's device (one system per trajectory, at most `PREFETCH_SLOTS` at once), so that
+        `predict` then finds them cached. Each replay is what `predict` would solve one at a time: the same
+        events, stopped at the first increment that does not converge (no cut-backs, no force limit).
+        progress(done, total) after each replay solved; returns how many were solved."""
+        pending: dict[tuple, tuple[TrajectoryRecord, _ReplayPlan]] = {}
+        for trajectory in trajectories:
+            plan = self._plan(model, trajectory)
+            if plan.key not in self._replays:
+                pending.setdefault(plan.key, (trajectory, plan))
+        if not pending:
+            return 0
+        fe = self._model_fe(model)
+        electrodes = self.electrode_model(fe)
+        work = list(pending.values())
+        poses = [_pose_trajectory(trajectory, plan) for trajectory, plan in work]
+        solved: list[tuple] = []
+
+        def finished(index: int, increments: list[IncrementResult]) -> None:
+            plan = work[index][1]
+            self._replays[plan.key] = _replay_of(fe, electrodes, plan.events, increments)
+            increments.clear()  # the displacement fields are read: free them as the run goes on
+            solved.append(plan.key)
+            if progress is not None:
+                progress(len(solved), len(work))
+
+        run_trajectories(
+            fe.inflated_skin(),
+            poses,
+            self.device,
+            slots=min(len(poses), PREFETCH_SLOTS),
+            on_trajectory=finished,
+            max_cuts=0,
+        )
+        return len(work)
+
+    def predict(self, model: TwinModel, trajectory: TrajectoryRecord) -> Prediction:
+        """The model's prediction of `trajectory` (see the module docstring)."""
+        plan = self._plan(model, trajectory)
+        if plan.key not in self._replays:
+            fe = self._model_fe(model)
+            stepper = fe.stepper(trajectory.indenter, self.device)
+            increments = _step_until_failure(stepper, trajectory.rotation, plan)
+            self._replays[plan.key] = _replay_of(fe, self.electrode_model(fe), plan.events, increments)
+        replay = self._replays[plan.key]
+        tips, raw = plan.tips, trajectory.raw
         times = raw.time
         sample_event = np.clip(np.searchsorted(replay.time, times, side="right") - 1, 0, None)
         loads = np.array(
@@ -230,23 +304,37 @@ def solve_events(raw: Recording, interval_s: float | None) -> tuple[np.ndarray, 
     return np.asarray(times, dtype=float), np.asarray(indices, dtype=int)
 
 
-def _replay(
+def _pose_trajectory(trajectory: TrajectoryRecord, plan: _ReplayPlan) -> PoseTrajectory:
+    """The indenter poses of a replay's events for the batched runner (timed when the skin relaxes)."""
+    times, indices = plan.events
+    rotations = np.repeat(np.asarray(trajectory.rotation, dtype=np.float64)[None], len(times), axis=0)
+    return PoseTrajectory(trajectory.indenter, rotations, plan.tips[indices], times if plan.timed else None)
+
+
+def _step_until_failure(stepper: IndentationStepper, rotation: np.ndarray, plan: _ReplayPlan) -> list[IncrementResult]:
+    """Step one system through a replay's events, up to and including the first that does not converge."""
+    increments = []
+    for t, k in zip(*plan.events, strict=True):
+        increments.append(stepper.step(rotation, plan.tips[k], float(t) if plan.timed else None))
+        if not increments[-1].converged:
+            break
+    return increments
+
+
+def _replay_of(
     fe: BioTacModel,
     electrode_model: ElectrodeModel,
-    trajectory: TrajectoryRecord,
-    tips: np.ndarray,
     events: tuple[np.ndarray, np.ndarray],
-    timed: bool,
+    increments: Sequence[IncrementResult],
 ) -> Replay:
-    """Solve the skin at every event (see `solve_events`); stops at the first failure."""
-    stepper = fe.stepper(trajectory.indenter)
+    """The replay of the events (see `solve_events`) from their increments in order, which end at the first
+    that did not converge: that event and the later ones are NaN and not converged."""
     times, indices = events
     n = len(times)
     replay = Replay(
         times, indices, np.full((n, 3), np.nan), np.full(n, np.nan), np.full((n, 19), np.nan), np.zeros(n, bool)
     )
-    for s, (t, k) in enumerate(zip(times, indices, strict=True)):
-        result = stepper.step(trajectory.rotation, tips[k], float(t) if timed else None)
+    for s, result in enumerate(increments):
         if not result.converged:
             break
         replay.force[s], replay.pressure[s], replay.converged[s] = result.force, result.pressure, True
