@@ -218,5 +218,9 @@ def info(
     for name, feature in summary["features"].items():
         table.add_row(name, str(tuple(feature["shape"])), feature["dtype"], feature["units"], feature["frame"] or "")
     out_console.print(table)
+    if summary["simulation_only"]:
+        out_console.print(
+            f"simulation only (the plant's view; the analysis never reads it): {', '.join(summary['simulation_only'])}"
+        )
     if "trajectories" in summary:
         out_console.print(f"trajectories: {summary['trajectories']}")

@@ -46,6 +46,10 @@ FEATURE_UNITS: dict[str, tuple[str, str | None]] = {
     "nodal_res": ("m", "biotac"),
 }
 """Every subsampled feature with its units and frame (None where it has none)."""
+SIMULATION_ONLY = ("fe_force", "fe_pressure", "fe_converged", "nodal_res", "mesh")
+"""What only a simulated campaign has: the plant's own fe view (its forces, pressure, convergence, nodal
+displacements and inflated mesh). Marked `simulation_only` in the file; the analysis never reads them,
+because a measurement has no such truth."""
 
 TRAJECTORY_FIELDS = (
     "trajectory_id",
@@ -197,12 +201,15 @@ def _write_sensor_file(
             dataset.attrs["units"] = units
             if frame is not None:
                 dataset.attrs["frame"] = frame
+            if name in SIMULATION_ONLY:
+                dataset.attrs["simulation_only"] = True
         group = f.create_group("trajectories")
         for name, values in meta.items():
             group.create_dataset(name, data=np.array(values))
         if triangles is not None and loaded:
             f.create_dataset("mesh/vertices", data=loaded[0]["mesh_reference"]).attrs["units"] = "m"
             f.create_dataset("mesh/triangles", data=triangles)
+            f["mesh"].attrs["simulation_only"] = True
             if ventral is not None:
                 f.create_dataset("mesh/ventral", data=np.asarray(ventral, dtype=bool))
         f.flush()
@@ -437,6 +444,7 @@ def dataset_info(path: Path) -> dict:
                     "dtype": str(data.dtype),
                     "units": str(data.attrs.get("units", "")),
                     "frame": str(data.attrs.get("frame", "")) or None,
+                    "simulation_only": name in SIMULATION_ONLY or bool(data.attrs.get("simulation_only", False)),
                 }
         info: dict = {"path": str(path), "features": features}
         if "trajectories" in f:
@@ -452,6 +460,7 @@ def dataset_info(path: Path) -> dict:
                 },
             }
         info["rows"] = next((v["shape"][0] for v in features.values()), 0)
+        info["simulation_only"] = [name for name in SIMULATION_ONLY if name in f]
         info["attributes"] = {k: _plain(v) for k, v in f.attrs.items()}
     return info
 
