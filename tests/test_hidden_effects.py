@@ -3,18 +3,22 @@ when nothing is hidden; an effect outside the library comes out "unexplained".
 
 Each case hides one effect, drawn with its size from a seed inside `twin.hidden`, in a plant; the
 diagnosis sees only the campaign file. The seed can be changed with BIOTAC_TWIN_HIDDEN_SEED to draw
-other sizes. The fe replays of the nominal model and its finite-difference neighbours are shared
-between cases (same paths), so each case pays for its campaign and its refits.
+other sizes, trajectory points and noise. The fe replays of the nominal model and its finite-difference
+neighbours are shared between cases (same paths), so each case pays for its campaign and its refits.
 """
 
+import json
 import os
 from dataclasses import replace
 from pathlib import Path
 
+import h5py
 import pytest
+from measurement import strip_plant_view
 
-from twin.analysis.diagnose import NOISE_TOLERANCE
-from twin.analysis.predict import Predictor
+from twin.analysis.data import load_campaign
+from twin.analysis.diagnose import NOISE_TOLERANCE, diagnose, fit_effect
+from twin.analysis.predict import Predictor, TwinModel
 from twin.campaign import QUICK_CONFIG
 from twin.demo import LoopResult, run_loop
 from twin.effects import EFFECTS, UNLISTED_EFFECTS
@@ -65,10 +69,34 @@ def test_a_hidden_library_effect_ranks_first_and_adding_it_brings_the_error_to_t
     assert result.fit.heldout_rms is not None and result.fit.heldout_rms <= NOISE_TOLERANCE, result.fit
 
 
-def test_with_nothing_hidden_nothing_is_claimed(tmp_path: Path, predictor: Predictor) -> None:
-    result = _loop(tmp_path, None, predictor)
-    assert result.diagnosis.verdict == "nothing", result.diagnosis.reason
-    assert result.fit is None
+@pytest.fixture(scope="module")
+def null_loop(tmp_path_factory: pytest.TempPathFactory, predictor: Predictor) -> LoopResult:
+    return _loop(tmp_path_factory.mktemp("null"), None, predictor)
+
+
+def test_with_nothing_hidden_nothing_is_claimed(null_loop: LoopResult) -> None:
+    assert null_loop.diagnosis.verdict == "nothing", null_loop.diagnosis.reason
+    assert null_loop.fit is None
+    with h5py.File(null_loop.dataset, "r") as f:
+        provenance = json.loads(f.attrs["provenance"])
+    assert provenance["config"]["seed"] == SEED, "points and noise must come from the seed"
+    assert "registration_error_m" not in provenance, "the registration error is the plant's truth"
+
+
+def test_the_verdict_is_the_same_without_the_plants_fe_view(
+    null_loop: LoopResult, predictor: Predictor, tmp_path: Path
+) -> None:
+    data = load_campaign(strip_plant_view(null_loop.dataset, tmp_path / "measured.hdf5"))
+    model = TwinModel(mesh_max_edge=data.mesh_max_edge)
+    again = diagnose([data], model, predictor, top=1)
+    assert again.verdict == null_loop.diagnosis.verdict
+    assert again.base_rms == pytest.approx(null_loop.diagnosis.base_rms, rel=1e-12)
+
+
+def test_a_refit_on_a_null_never_ends_above_the_nominal_model(null_loop: LoopResult, predictor: Predictor) -> None:
+    data = load_campaign(null_loop.dataset)
+    fit = fit_effect([data], TwinModel(mesh_max_edge=data.mesh_max_edge), "time_delay", predictor)
+    assert fit.rms_after <= fit.rms_before
 
 
 @pytest.mark.parametrize("hidden", sorted(UNLISTED_EFFECTS))

@@ -9,6 +9,7 @@ from pathlib import Path
 import h5py
 import numpy as np
 from fake_campaign import write_fake_campaign
+from measurement import strip_plant_view
 from typer.testing import CliRunner
 
 from twin.analysis.data import load_campaign
@@ -61,17 +62,6 @@ def test_the_plants_fe_view_is_marked_simulation_only_and_dataset_info_says_so(t
     assert set(parsed["simulation_only"]) == set(PLANT_VIEW) | {"mesh"}
     text = runner.invoke(app, ["dataset", "info", str(path)], env={"COLUMNS": "300"})
     assert text.exit_code == 0 and "simulation only" in text.output and "nodal_res" in text.output
-
-
-def strip_plant_view(path: Path, out: Path) -> Path:
-    """A copy of a campaign file without the plant's fe view (what a real testbed's file would hold)."""
-    with h5py.File(path, "r") as src, h5py.File(out, "w") as dst:
-        for key, value in src.attrs.items():
-            dst.attrs[key] = value
-        for name in src:
-            if name not in SIMULATION_ONLY:
-                src.copy(src[name], dst, name)
-    return out
 
 
 def test_the_analysis_reads_the_same_data_without_the_plants_fe_view(tmp_path: Path) -> None:

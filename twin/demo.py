@@ -22,7 +22,7 @@ from twin.analysis.predict import Predictor, TwinModel
 from twin.analysis.report import write_report
 from twin.campaign import QUICK_CONFIG, CampaignConfig, run_campaign
 from twin.hidden import draw_hidden, write_sealed_manifest
-from twin.plant import make_plant
+from twin.plant import Plant, make_plant
 
 DEMO_EFFECTS = (
     "time_delay",
@@ -70,24 +70,14 @@ def run_loop(
     """Hide `hidden` (None: nothing) in a plant, run `config`'s campaign into `out_dir`, then compare,
     diagnose and, when the diagnosis names an effect (or ranks one first among tied ones), add it.
 
-    The plant has no unit-to-unit variability and exact registration, so the hidden effect is the only
-    difference between it and the nominal model besides noise and the sensor's electrode read-out.
-    `predictor` may be shared between runs on the same paths (its fe replays are cached); `top`
-    candidates are refitted.
+    `seed` draws the hidden effect's size, the campaign's points and its noise (`loop_setup`).
+    `predictor` may be shared between runs on the same paths (same seed; its fe replays are cached);
+    `top` candidates are refitted.
     """
     out_dir = Path(out_dir)
     out_dir.mkdir(parents=True, exist_ok=True)
-    effects = draw_hidden(hidden, seed)
-    write_sealed_manifest(out_dir / "sealed_manifest.json", hidden, effects, seed)
-    plant = make_plant(
-        list(config.sensors),
-        seed,
-        variability=0.0,
-        mount_rotation_error=0.0,
-        mount_translation_error=0.0,
-        effects=effects,
-        exact_registration=True,
-    )
+    config, plant = loop_setup(hidden, seed, config)
+    write_sealed_manifest(out_dir / "sealed_manifest.json", hidden, plant.effects, seed)
     seconds = {}
     start = time.perf_counter()
     say("1/4 running a quick campaign on a plant with a hidden effect ...")
@@ -118,6 +108,23 @@ def run_loop(
         say("3/4 nothing to add")
     say(f"4/4 the hidden effect was: {hidden or 'none'}")
     return LoopResult(path, diagnosis, fit, hidden, seconds)
+
+
+def loop_setup(hidden: str | None, seed: int, config: CampaignConfig) -> tuple[CampaignConfig, Plant]:
+    """The campaign and the plant of one loop, both drawn from `seed`: the hidden effect's size, the
+    trajectory points and the measurement noise (the campaign's seed). The plant has no unit-to-unit
+    variability and exact registration, so the hidden effect is the only difference between it and the
+    nominal model besides noise and the sensor's electrode read-out."""
+    plant = make_plant(
+        list(config.sensors),
+        seed,
+        variability=0.0,
+        mount_rotation_error=0.0,
+        mount_translation_error=0.0,
+        effects=draw_hidden(hidden, seed),
+        exact_registration=True,
+    )
+    return replace(config, seed=seed), plant
 
 
 def run_demo(
