@@ -3,34 +3,27 @@
 from __future__ import annotations
 
 import json
-from collections.abc import Callable
 from pathlib import Path
 from typing import TYPE_CHECKING, Annotated
 
 import typer
 from rich.table import Table
 
-from twin.cli_common import err_console, guarded, out_console, progress_bar, warn_nonfinite_forces
+from twin.cli_common import (
+    DeviceOption,
+    analysis_predictor,
+    err_console,
+    guarded,
+    out_console,
+    progress_bar,
+    warn_nonfinite_forces,
+)
 
 if TYPE_CHECKING:
-    from twin.analysis.data import CampaignData, TrajectoryRecord
-    from twin.analysis.predict import Prediction, Predictor, TwinModel
+    from twin.analysis.data import CampaignData
+    from twin.analysis.predict import TwinModel
 
 analysis_app = typer.Typer(help="Compare the model with measurements.")
-
-
-class _CountingPredictor:
-    """Forwards `predict` to a Predictor and calls `advance()` after each trajectory (progress bars)."""
-
-    def __init__(self, predictor: Predictor, advance: Callable[[], None]) -> None:
-        self._predictor = predictor
-        self._advance = advance
-
-    def predict(self, model: TwinModel, trajectory: TrajectoryRecord) -> Prediction:
-        """The wrapped predictor's prediction of `trajectory`."""
-        prediction = self._predictor.predict(model, trajectory)
-        self._advance()
-        return prediction
 
 
 def model_or_nominal(path: Path | None, mesh_max_edge: float) -> TwinModel:
@@ -86,19 +79,21 @@ def compare_command(
     ] = None,
     title: Annotated[str | None, typer.Option(help="Report title.")] = None,
     as_json: Annotated[bool, typer.Option("--json", help="Print summary.json.")] = False,
+    device: DeviceOption = "cpu",
 ) -> None:
     """Measured vs predicted on every channel: error tables, plots, residual field on the skin."""
     from twin.analysis.compare import compare
-    from twin.analysis.predict import Predictor
     from twin.analysis.report import DEFAULT_TITLE, write_report
 
+    predictor = analysis_predictor(device)
     data = guarded(lambda: load_datasets(datasets))
     twin_model = guarded(lambda: model_or_nominal(model, data[0].mesh_max_edge))
     total = sum(len(d.trajectories) for d in data)
     with progress_bar() as progress:
-        task = progress.add_task("predicting", total=total)
-        predictor = _CountingPredictor(Predictor(), lambda: progress.advance(task))
-        comparison = compare(data, twin_model, predictor)  # type: ignore[arg-type]
+        task = progress.add_task(f"replaying on {device}", total=total)
+        comparison = compare(
+            data, twin_model, predictor, progress=lambda done, _: progress.update(task, completed=done)
+        )
     err_console.print("writing the report ...")
     files = write_report(comparison, out, title or DEFAULT_TITLE)
     if as_json:

@@ -11,7 +11,7 @@ import typer
 from rich.table import Table
 
 from twin.cli_analysis import load_datasets, model_or_nominal
-from twin.cli_common import err_console, guarded, out_console, progress_bar
+from twin.cli_common import DeviceOption, analysis_predictor, err_console, guarded, out_console, progress_bar
 
 calibrate_app = typer.Typer()
 
@@ -51,11 +51,13 @@ def calibrate(
     max_iter: Annotated[int, typer.Option(min=1, help="SLSQP iterations at most.")] = 20,
     out: Annotated[Path | None, typer.Option(help="Write the calibrated model JSON here (for --model).")] = None,
     as_json: Annotated[bool, typer.Option("--json", help="Print the result as JSON.")] = False,
+    device: DeviceOption = "cpu",
 ) -> None:
     """The paper's SLSQP over t_s, mu_NH, mu_fr, T_fl on one angled trajectory, with uncertainty."""
     from twin.analysis.calibrate import CalibrationSettings
     from twin.analysis.calibrate import calibrate as run_calibration
 
+    predictor = analysis_predictor(device)
     data = guarded(lambda: load_datasets(datasets))
     base = guarded(lambda: model_or_nominal(model, data[0].mesh_max_edge))
     chosen = guarded(lambda: _trajectory_choice(data, trajectory, indenter))
@@ -68,7 +70,7 @@ def calibrate(
 
         result = guarded(
             lambda: run_calibration(
-                chosen, base, settings=CalibrationSettings(max_iterations=max_iter), progress=advance
+                chosen, base, predictor, CalibrationSettings(max_iterations=max_iter), progress=advance
             )
         )
     if out is not None:
@@ -98,17 +100,21 @@ def validate(
     model: ModelOption = None,
     out: Annotated[Path | None, typer.Option(help="Folder for validation.json and the plots.")] = None,
     as_json: Annotated[bool, typer.Option("--json", help="Print the result as JSON.")] = False,
+    device: DeviceOption = "cpu",
 ) -> None:
     """The model on every trajectory: mean RMS force error per indenter, as in the paper."""
     from twin.analysis.validate import plot_validation
     from twin.analysis.validate import validate as run_validation
 
+    predictor = analysis_predictor(device)
     data = guarded(lambda: load_datasets(datasets))
     twin_model = guarded(lambda: model_or_nominal(model, data[0].mesh_max_edge))
     with progress_bar() as progress:
-        task = progress.add_task("predicting", total=sum(len(d.trajectories) for d in data))
+        task = progress.add_task(f"replaying on {device}", total=sum(len(d.trajectories) for d in data))
         result = guarded(
-            lambda: run_validation(data, twin_model, progress=lambda done, _: progress.update(task, completed=done))
+            lambda: run_validation(
+                data, twin_model, predictor, progress=lambda done, _: progress.update(task, completed=done)
+            )
         )
     summary = result.to_dict()
     if out is not None:

@@ -4,7 +4,10 @@ of the analysis commands."""
 
 from __future__ import annotations
 
+import os
 import signal
+import sys
+import tempfile
 from collections.abc import Callable, Iterator
 from contextlib import contextmanager
 from dataclasses import replace
@@ -129,14 +132,42 @@ def inflated_twin_model(
     return twin_model, model, inflation
 
 
+@contextmanager
+def native_stderr_captured() -> Iterator[list[str]]:
+    """Within the block, what is written to file descriptor 2 (native libraries print there, past sys.stderr)
+    is captured; the yielded list holds its lines after the block."""
+    lines: list[str] = []
+    sys.stderr.flush()
+    saved = os.dup(2)
+    with tempfile.TemporaryFile() as captured:
+        os.dup2(captured.fileno(), 2)
+        try:
+            yield lines
+        finally:
+            sys.stderr.flush()
+            os.dup2(saved, 2)
+            os.close(saved)
+            captured.seek(0)
+            lines.extend(captured.read().decode(errors="replace").splitlines(keepends=True))
+
+
 def check_device(device: str) -> None:
-    """A ValueError naming the device when warp cannot use it here."""
+    """A ValueError naming the device when warp cannot use it here. What warp's native library prints while
+    it finds out (e.g. "Warp CUDA error ..." lines for cuda on a machine without a usable GPU) is dropped
+    when the device is refused, so the refusal is one line."""
     import warp as wp
 
-    try:
-        wp.get_device(device)
-    except (RuntimeError, ValueError) as exc:
-        raise ValueError(f"warp device {device!r} is not available here: {exc}") from exc
+    import fe.wptypes  # noqa: F401  (warp initialised without the no-driver line)
+
+    with native_stderr_captured() as printed:
+        try:
+            wp.get_device(device)
+            refusal = None
+        except (RuntimeError, ValueError) as exc:
+            refusal = exc
+    if refusal is not None:
+        raise ValueError(f"warp device {device!r} is not available here: {refusal}") from refusal
+    sys.stderr.write("".join(printed))
 
 
 DeviceOption = Annotated[

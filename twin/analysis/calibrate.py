@@ -106,7 +106,9 @@ def default_trajectories(datasets: list[CampaignData], indenter: str = "sphere_m
 
 
 def force_residual(predictor: Predictor, model: TwinModel, trajectories: list[TrajectoryRecord]) -> np.ndarray:
-    """(rows, 3) predicted minus measured row force (N, biotac frame); unreached rows predict zero force."""
+    """(rows, 3) predicted minus measured row force (N, biotac frame); unreached rows predict zero force. The
+    replays of one model are solved as one batch (`Predictor.prefetch`)."""
+    predictor.prefetch(model, trajectories)
     parts = []
     for t in trajectories:
         predicted = np.nan_to_num(predictor.predict(model, t).rows.force, nan=0.0)

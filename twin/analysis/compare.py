@@ -11,6 +11,7 @@ offset per electrode (the model does not know a real sensor's read-out).
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -100,10 +101,18 @@ def noise_estimate(trajectories: list[TrajectoryRecord]) -> dict[str, float]:
     return out
 
 
-def compare(datasets: list[CampaignData], model: TwinModel, predictor: Predictor, move_s: float = 0.1) -> Comparison:
-    """Predict every trajectory of every dataset (incomplete ones up to their cut) and tabulate both."""
+def compare(
+    datasets: list[CampaignData],
+    model: TwinModel,
+    predictor: Predictor,
+    move_s: float = 0.1,
+    progress: Callable[[int, int], None] | None = None,
+) -> Comparison:
+    """Predict every trajectory of every dataset (incomplete ones up to their cut; the replays solved as one
+    batch, `Predictor.prefetch`) and tabulate both. progress(done, total) as the replays are solved."""
     rows, full = SampleTable(), SampleTable()
     predictions = {}
+    predictor.prefetch(model, [t for d in datasets for t in d.trajectories], progress)
     for data in datasets:
         for t in data.trajectories:
             prediction = predictor.predict(model, t)

@@ -97,11 +97,13 @@ def validate(
     predictor: Predictor | None = None,
     progress: Callable[[int, int], None] | None = None,
 ) -> Validation:
-    """Predict every trajectory and tabulate the errors; progress(done, total) after each trajectory."""
+    """Predict every trajectory (the replays solved as one batch, `Predictor.prefetch`) and tabulate the
+    errors; progress(done, total) as the replays are solved and after each prediction."""
     predictor = predictor or Predictor()
     trajectories = [t for d in datasets for t in d.trajectories]
     if not trajectories:
         raise ValueError("the datasets hold no trajectories")
+    predictor.prefetch(model, trajectories, progress)
     errors, predictions = [], {}
     for i, t in enumerate(trajectories):
         prediction = predictor.predict(model, t)

@@ -1,0 +1,128 @@
+"""Replays of many trajectories of one model as one batched run (`Predictor.prefetch`) equal the
+one-at-a-time replays, failures included; `--device` of the analysis commands (issue 18)."""
+
+import json
+import subprocess
+import sys
+from dataclasses import replace
+from pathlib import Path
+
+import numpy as np
+import pytest
+import warp as wp
+from typer.testing import CliRunner
+
+from fe.newton import NewtonSettings
+from fe.params import SkinParameters
+from fe.sensor import BioTacModel
+from twin.analysis.data import CampaignData, load_campaign
+from twin.analysis.predict import Prediction, Predictor, TwinModel
+from twin.cli import app
+
+FRICTIONLESS_TOLERANCE = 1e-6
+"""Largest force difference, as a fraction of the trajectory's largest force, without friction."""
+FRICTION_LAG_TOLERANCE = 1e-3
+"""The same with friction (the lagged friction is converged only to this)."""
+
+
+@pytest.fixture(scope="module")
+def tiny(tmp_path_factory: pytest.TempPathFactory, make_tiny_campaign) -> Path:
+    return make_tiny_campaign(tmp_path_factory.mktemp("batched_replay"))
+
+
+@pytest.fixture(scope="module")
+def data(tiny: Path) -> CampaignData:
+    return load_campaign(tiny)
+
+
+def _both_ways(model: TwinModel, data: CampaignData) -> tuple[list[Prediction], list[Prediction]]:
+    """Predictions of every trajectory replayed one at a time, and after one batched prefetch."""
+    single = [Predictor("cpu").predict(model, t) for t in data.trajectories]
+    batched = Predictor("cpu")
+    assert batched.prefetch(model, data.trajectories) == len(data.trajectories)
+    assert batched.prefetch(model, data.trajectories) == 0  # all cached: nothing left to solve
+    return single, [batched.predict(model, t) for t in data.trajectories]
+
+
+def _assert_same(single: list[Prediction], batched: list[Prediction], tolerance: float) -> None:
+    for one, many in zip(single, batched, strict=True):
+        np.testing.assert_array_equal(one.converged, many.converged)
+        scale = np.nanmax(np.linalg.norm(one.increment_force, axis=1))
+        assert scale > 0.1  # the path presses the skin
+        reached = one.converged
+        np.testing.assert_allclose(many.increment_force[reached], one.increment_force[reached], atol=tolerance * scale)
+        assert np.isnan(many.increment_force[~reached]).all() and np.isnan(many.increment_pressure[~reached]).all()
+        np.testing.assert_allclose(many.force_fullrate, one.force_fullrate, atol=tolerance * scale)
+
+
+@pytest.fixture(scope="module")
+def nominal(data: CampaignData) -> tuple[list[Prediction], list[Prediction]]:
+    """The nominal model (friction 0.186) both ways."""
+    return _both_ways(TwinModel(mesh_max_edge=data.mesh_max_edge), data)
+
+
+def test_a_batched_prefetch_replays_like_one_trajectory_at_a_time(
+    data: CampaignData, nominal: tuple[list[Prediction], list[Prediction]]
+) -> None:
+    frictionless = TwinModel(skin=replace(SkinParameters(), friction=0.0), mesh_max_edge=data.mesh_max_edge)
+    for (single, batched), tolerance in (
+        (_both_ways(frictionless, data), FRICTIONLESS_TOLERANCE),
+        (nominal, FRICTION_LAG_TOLERANCE),
+    ):
+        assert all(p.converged.all() for p in single)
+        _assert_same(single, batched, tolerance)
+
+
+def test_a_relaxing_skin_is_replayed_in_batch_at_the_recorded_times(
+    data: CampaignData, nominal: tuple[list[Prediction], list[Prediction]]
+) -> None:
+    model = TwinModel(effects={"skin_relaxation": {"fraction": 0.4, "time_s": 0.5}}, mesh_max_edge=data.mesh_max_edge)
+    single, batched = _both_ways(model, data)
+    _assert_same(single, batched, FRICTION_LAG_TOLERANCE)
+    elastic = nominal[0][0].increment_force
+    deepest = np.nanargmax(np.linalg.norm(elastic, axis=1))
+    relaxed = np.linalg.norm(batched[0].increment_force[deepest])
+    assert relaxed < np.linalg.norm(elastic[deepest])  # the relaxed skin pushes back less
+
+
+def test_a_batched_replay_stops_at_the_first_failure_like_the_single_one(
+    data: CampaignData, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """With Newton allowed only a few iterations the skin fails where the indenter first presses: both ways
+    keep the increments before it and nothing after."""
+    inflated_skin = BioTacModel.inflated_skin
+    impatient = NewtonSettings(max_iterations=8)
+    monkeypatch.setattr(BioTacModel, "inflated_skin", lambda self: replace(inflated_skin(self), newton=impatient))
+    single, batched = _both_ways(TwinModel(mesh_max_edge=data.mesh_max_edge), data)
+    for one in single:
+        failed = np.flatnonzero(~one.converged)
+        assert failed.size and failed[0] > 0 and (failed == np.arange(failed[0], len(one.converged))).all()
+    for one, many in zip(single, batched, strict=True):
+        np.testing.assert_array_equal(one.converged, many.converged)
+        np.testing.assert_allclose(many.increment_force[one.converged], one.increment_force[one.converged], atol=1e-9)
+
+
+@pytest.mark.parametrize("command", ["compare", "validate", "calibrate", "diagnose", "improve"])
+def test_an_unknown_device_is_one_line_and_exit_code_2(tiny: Path, tmp_path: Path, command: str) -> None:
+    extra = {"compare": ["--out", str(tmp_path / "r")], "improve": ["--add", "ft_gain"]}.get(command, [])
+    result = CliRunner().invoke(app, [command, str(tiny), *extra, "--device", "nodevice"])
+    assert result.exit_code == 2, result.output
+    assert "nodevice" in result.output and "Traceback" not in result.output
+
+
+def test_cuda_where_there_is_none_is_one_line_on_stderr(tiny: Path, tmp_path: Path) -> None:
+    """Warp's native library prints its CUDA errors past Python's stderr: the command's refusal is still one
+    line (a subprocess sees file descriptor 2)."""
+    device = "cuda" if not wp.is_cuda_available() else f"cuda:{wp.get_cuda_device_count()}"
+    command = [sys.executable, "-c", "from twin.cli import app; app()", "compare", str(tiny), "--out", str(tmp_path)]
+    result = subprocess.run([*command, "--device", device], capture_output=True, text=True, timeout=120)
+    assert result.returncode == 2, result.stderr
+    assert result.stderr.strip().splitlines() == [result.stderr.strip()] and device in result.stderr
+
+
+def test_validate_on_the_cpu_device_gives_its_table(tiny: Path) -> None:
+    result = CliRunner().invoke(app, ["validate", str(tiny), "--device", "cpu", "--json"])
+    assert result.exit_code == 0, result.output
+    summary = json.loads(result.output.strip().splitlines()[-1])
+    rows = [(t["rows_reached"], t["rows_total"]) for t in summary["trajectories"]]
+    assert len(rows) == 2 and all(reached == total > 0 for reached, total in rows)  # predicted to the end
