@@ -325,7 +325,9 @@ class BatchedShell:
             "origin": wp.vec3d(*skin.volume_origin),
         }
         self._core_mesh = None
-        if len(skin.core_triangles):
+        self.has_core = bool(len(skin.core_triangles))
+        """Whether the skin has a rigid core (the core gaps in `buf["core_gap"]` mean something)."""
+        if self.has_core:
             self._core_vertices = arr(skin.core_vertices, wp.vec3d)
             self._core_triangles = arr(skin.core_triangles.astype(np.int32), wp.vec3i)
             self._core_mesh = wp.Mesh(
@@ -481,7 +483,7 @@ class BatchedShell:
             {**common, "volume": buf["volume"], "gradient": buf["volume_gradient"], "hessian": buf["volume_hessian"]},
             dev,
         )
-        if self._core_mesh is not None:
+        if self.has_core:
             core = {
                 **common,
                 "core": self._core_mesh.id,

@@ -29,6 +29,12 @@ from fe.batched import BatchedShell, InflatedSkin, NewtonBatch, get_rows, put_ro
 from fe.results import IncrementResult
 from fe.viscoelastic import SkinRelaxation
 
+_BALANCE_TOLERANCE = 1e-4
+"""Largest relative force-balance error of an admissible increment (converged ones show 1e-12 ... 1e-8)."""
+_PULL_TOLERANCE = 0.1
+"""An increment whose indenter force along the press is below -0.1 |F| pulls the indenter in: inadmissible
+(friction tilts a pressing force, but never turns it around)."""
+
 
 def _check_poses(
     rotation: np.ndarray, translation: np.ndarray, batch: int, active: np.ndarray
@@ -338,11 +344,15 @@ class BatchedStepper:
         shell, state, now = self.shell, self.newton, time.perf_counter()
         x_rows = get_rows(shell.x, rows)
         gap_rows = get_rows(shell.buf["indenter_gap"], rows)
+        core_gap_rows = get_rows(shell.buf["core_gap"], rows)
         results = {}
         for k, i in enumerate(int(r) for r in rows):
             x, gap = x_rows[k], gap_rows[k]
             force, balance = self._force_balance(i, state.pressure[i])
             in_contact = gap < 0.0
+            refused = self._inadmissible(i, gap, core_gap_rows[k], force, balance) if state.converged[i] else ""
+            if refused:
+                state.converged[i], state.message[i] = False, f"inadmissible: {refused}"
             if state.converged[i]:
                 self._motion[i] = x - self.x[i]
                 self._has_motion[i] = True
@@ -357,6 +367,27 @@ class BatchedStepper:
                 self.failure[i] = state.message[i]
             results[i] = self._increment_result(i, x, gap, force, balance, now)
         return results
+
+    def _inadmissible(self, i: int, gap: np.ndarray, core_gap: np.ndarray, force: np.ndarray, balance: float) -> str:
+        """Why system i's converged state is not a solution of the skin ("" if it is): the indenter or the core
+        deeper in the skin than `ContactSettings.max_penetration` (gaps (V,) m, negative inside; clamped
+        vertices included: an indenter on the rim reaches the rigid base), forces out of balance, or the
+        indenter force pulling the indenter into the skin (it went through: force (3,) N on the skin, the
+        press direction being the indenter's -z axis)."""
+        limit = self.skin.contact.max_penetration * self.skins[i].params.thickness
+        deepest = float(min(gap.min(initial=0.0), core_gap.min(initial=0.0) if self.shell.has_core else 0.0))
+        if deepest < -limit:
+            on_indenter = gap.min(initial=0.0) <= deepest
+            where = "the indenter" if on_indenter else "the core"
+            vertex = int(np.argmin(gap if on_indenter else core_gap))
+            clamped = " at a clamped vertex (the rigid base)" if np.all(self.shell.fixed[vertex]) else ""
+            return f"{where} {-deepest * 1e6:.0f} um into the skin{clamped} (limit {limit * 1e6:.0f} um)"
+        if not balance <= _BALANCE_TOLERANCE:
+            return f"forces out of balance by {balance:.1e} of the load"
+        push = float(force @ -self.pose_rotation[i, :, 2])
+        if push < -_PULL_TOLERANCE * np.linalg.norm(force):
+            return f"the indenter force pulls into the skin ({push:.3g} N along the press)"
+        return ""
 
     def _increment_result(
         self, i: int, x: np.ndarray, gap: np.ndarray, force: np.ndarray, balance: float, now: float

@@ -89,13 +89,22 @@ class SkinParameters:
 
 @dataclass(frozen=True)
 class ContactSettings:
-    """Numerics of contact: penalty stiffness (Pa/m), friction slip smoothing length (m), lagging passes."""
+    """Numerics of contact: penalty stiffness (Pa/m), friction slip smoothing length (m), lagging passes, and
+    the admissible penetration (`fe.batched_stepper.BatchedStepper` refuses a converged increment beyond it)."""
 
     penalty_stiffness: float = 1e11
     slip_length: float = 1e-6
     friction_passes: int = 4
     friction_tolerance: float = 1e-3
+    max_penetration: float = 0.1
+    """Deepest penetration of the indenter or the core into the skin's outer or inner surface that a
+    converged increment may show, as a fraction of the skin thickness: the penalty stands in for the
+    rubber's through-thickness compression only for small closures (0.1 of 1.57 mm is a contact pressure of
+    15.7 MPa at the default penalty, far beyond rubber's); deeper, the indenter has gone through the skin
+    (a clamped rim vertex, a step that tunnels), and the forces are the penalty's, not the skin's."""
 
     def __post_init__(self) -> None:
         if self.penalty_stiffness <= 0 or self.slip_length <= 0 or self.friction_passes < 1:
             raise ValueError("contact settings must be positive (penalty, slip length, passes >= 1)")
+        if not self.max_penetration > 0.0:
+            raise ValueError(f"max_penetration={self.max_penetration} must be positive")

@@ -301,20 +301,31 @@ def test_an_indenter_on_the_clamped_rim_moves_no_fixed_vertex(
     fixture: str, force_rtol: float, displacement_atol: float, area_rtol: float, request: pytest.FixtureRequest
 ) -> None:
     """A cylinder pressed across the proximal rim, where the skin is clamped (x = -15 mm): the batched path
-    keeps the fixed vertices in place, so the indenter meets them as the CPU stepper does (the warm start
-    once pushed them out of the indenter, and the solve, which moves only free DOFs, left them there)."""
+    keeps the fixed vertices in place, so the indenter meets them as the one-trajectory stepper does (the warm
+    start once pushed them out of the indenter, and the solve, which moves only free DOFs, left them there);
+    once the indenter sinks into a clamped vertex's skin beyond the admissible penetration (the rigid base),
+    both report the increment not converged, naming the clamped vertex, instead of the penalty's force."""
     model: BioTacModel = request.getfixturevalue(fixture)
     name, point = "cylinder_short_small", np.array([-12.5e-3, 0.0, -8e-3])
+    travels = np.array([-0.2e-3, 0.0, 0.1e-3, 0.15e-3, 0.3e-3])  # admissible to ~0.2 mm here
     path = model.plan_trajectory(get_indenter(name), point, 0.0, 0.0, 1e-3, 1e-3)
-    cpu = _cpu_steps(model, name, path)
-    trajectory = _pose_trajectory(name, path)
+    tips = path.touch_point + travels[:, None] * path.direction
+    stepper, cpu = model.stepper(name), []
+    for tip in tips:
+        cpu.append(stepper.step(path.rotation, tip))
+        if not cpu[-1].converged:
+            break
+    trajectory = PoseTrajectory(name, np.repeat(path.rotation[None], len(tips), 0), tips)
     skin = InflatedSkin.from_model(model)
-    batched = run_trajectories(skin, [trajectory], "cpu", slots=1).results[0]
+    batched = run_trajectories(skin, [trajectory], "cpu", slots=1, max_cuts=0).results[0]
+    for run in (cpu, batched):
+        assert not run[-1].converged and "clamped vertex" in run[-1].message, run[-1].message
+    assert len(batched) == len(cpu) >= 4
     fixed = np.asarray(skin.fixed).reshape(len(skin.vertices), -1).all(axis=1)
-    depth = get_indenter(name).sdf((skin.reference[fixed] - trajectory.translations[-1]) @ path.rotation)
-    assert depth.min() < 0.5 * model.params.thickness  # the indenter reaches into the clamped vertices' skin
-    assert not np.any(batched[-1].displacement[fixed])
-    _assert_agree(cpu, batched, force_rtol, displacement_atol, area_rtol)
+    depth = get_indenter(name).sdf((skin.reference[fixed] - tips[len(batched) - 2]) @ path.rotation)
+    assert depth.min() < 0.5 * model.params.thickness  # an accepted increment reaches into the clamped skin
+    assert not np.any(batched[-2].displacement[fixed])
+    _assert_agree(cpu[:-1], batched[:-1], force_rtol, displacement_atol, area_rtol)
 
 
 def test_systems_of_one_batch_take_their_own_parameters(frictionless_biotac: BioTacModel) -> None:
