@@ -80,7 +80,7 @@ def test_diagnose_json_strict_refit_count_and_progress_per_candidate(
 ) -> None:
     calls: dict = {}
 
-    def fake_diagnose(data, model, top=3, on_progress=None):
+    def fake_diagnose(data, model, predictor=None, top=3, on_progress=None):
         calls["top"] = top
         for name in ("skin_modulus", "time_delay", "ft_gain"):
             on_progress("evidence", name)
@@ -104,7 +104,7 @@ def test_improve_keeps_the_history_beside_the_dataset_or_the_model(
 ) -> None:
     fitted = TwinModel().with_effects({"time_delay": {"seconds": 0.05}})
     fit = EffectFit("time_delay", {"seconds": 0.05}, 2.0, 1.0, 1.0, fitted)
-    monkeypatch.setattr(diagnose_module, "fit_effect", lambda data, model, name: fit)
+    monkeypatch.setattr(diagnose_module, "fit_effect", lambda data, model, name, predictor=None: fit)
     elsewhere = tmp_path / "elsewhere"
     elsewhere.mkdir()
     monkeypatch.chdir(elsewhere)
