@@ -63,7 +63,7 @@ def diagnose(
         task = progress.add_task("diagnosing", total=steps + min(refit_top, steps))
 
         def report(stage: str, name: str) -> None:
-            progress.update(task, description=f"{stage} {name}", completed=progress.tasks[task].completed + 1)
+            progress.update(task, description=f"{stage} {name}", advance=1)
 
         result = guarded(lambda: run_diagnosis(data, twin_model, predictor, top=refit_top, on_progress=report))
     if as_json:
