@@ -12,7 +12,7 @@ from __future__ import annotations
 
 import hashlib
 import json
-from collections.abc import Callable, Sequence
+from collections.abc import Callable, Iterable, Iterator, Sequence
 from dataclasses import asdict, dataclass, field, replace
 
 import numpy as np
@@ -220,7 +220,7 @@ class Predictor:
         if plan.key not in self._replays:
             fe = self._model_fe(model)
             stepper = fe.stepper(trajectory.indenter, self.device)
-            increments = _step_until_failure(stepper, trajectory.rotation, plan)
+            increments = _steps(stepper, trajectory.rotation, plan)
             self._replays[plan.key] = _replay_of(fe, self.electrode_model(fe), plan.events, increments)
         replay = self._replays[plan.key]
         tips, raw = plan.tips, trajectory.raw
@@ -311,24 +311,24 @@ def _pose_trajectory(trajectory: TrajectoryRecord, plan: _ReplayPlan) -> PoseTra
     return PoseTrajectory(trajectory.indenter, rotations, plan.tips[indices], times if plan.timed else None)
 
 
-def _step_until_failure(stepper: IndentationStepper, rotation: np.ndarray, plan: _ReplayPlan) -> list[IncrementResult]:
-    """Step one system through a replay's events, up to and including the first that does not converge."""
-    increments = []
+def _steps(stepper: IndentationStepper, rotation: np.ndarray, plan: _ReplayPlan) -> Iterator[IncrementResult]:
+    """Step one system through a replay's events, yielding each increment up to and including the first that
+    does not converge."""
     for t, k in zip(*plan.events, strict=True):
-        increments.append(stepper.step(rotation, plan.tips[k], float(t) if plan.timed else None))
-        if not increments[-1].converged:
-            break
-    return increments
+        result = stepper.step(rotation, plan.tips[k], float(t) if plan.timed else None)
+        yield result
+        if not result.converged:
+            return
 
 
 def _replay_of(
     fe: BioTacModel,
     electrode_model: ElectrodeModel,
     events: tuple[np.ndarray, np.ndarray],
-    increments: Sequence[IncrementResult],
+    increments: Iterable[IncrementResult],
 ) -> Replay:
-    """The replay of the events (see `solve_events`) from their increments in order, which end at the first
-    that did not converge: that event and the later ones are NaN and not converged."""
+    """The replay of the events (see `solve_events`) from their increments in order (read one by one), which
+    end at the first that did not converge: that event and the later ones are NaN and not converged."""
     times, indices = events
     n = len(times)
     replay = Replay(
