@@ -327,6 +327,9 @@ class BatchedShell:
         self._core_mesh = None
         self.has_core = bool(len(skin.core_triangles))
         """Whether the skin has a rigid core (the core gaps in `buf["core_gap"]` mean something)."""
+        self._core_queried_at = z((B, V), wp.vec3d)
+        clamped = np.broadcast_to(fixed.all(axis=1), (B, V))  # rigid on the rigid base: no core contact to find
+        self._core_queried_gap = arr(np.where(clamped, np.inf, -1.0), wp.float64)  # -1: not searched yet
         if self.has_core:
             self._core_vertices = arr(skin.core_vertices, wp.vec3d)
             self._core_triangles = arr(skin.core_triangles.astype(np.int32), wp.vec3i)
@@ -494,6 +497,8 @@ class BatchedShell:
                 "gradient": self.gradients[1],
                 "hessian": buf["core_hessian"],
                 "gap": buf["core_gap"],
+                "queried_at": self._core_queried_at,
+                "queried_gap": self._core_queried_gap,
             }
             launch(contact.core_contact_kernel, (B, V), core, dev)
         outputs = {

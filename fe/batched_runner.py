@@ -22,10 +22,9 @@ from collections.abc import Callable, Sequence
 from dataclasses import dataclass, replace
 
 import numpy as np
-from scipy.spatial.transform import Rotation, Slerp
 
 from fe.batched import InflatedSkin
-from fe.batched_stepper import BatchedStepper
+from fe.batched_stepper import MAX_CUTS, BatchedStepper, pose_midpoint
 from fe.indentation import IncrementResult
 
 
@@ -52,7 +51,6 @@ class PoseTrajectory:
             times = np.asarray(self.times, dtype=np.float64)
             if times.shape != (len(rotations),) or not np.all(np.isfinite(times)) or np.any(np.diff(times) < 0):
                 raise ValueError("a trajectory's times are one finite, non-decreasing time (s) per pose")
-
 
     def at_speed(self, speed: float) -> PoseTrajectory:
         """The same poses timed by a tip moving at `speed` (m/s) along them: t = cumulative tip travel / speed."""
@@ -88,7 +86,7 @@ def run_trajectories(
     on_trajectory: Callable[[int, list[IncrementResult]], None] | None = None,
     time_limit_s: float = np.inf,
     forcing: str = "adaptive",
-    max_cuts: int = 3,
+    max_cuts: int = MAX_CUTS,
     linear: str = "auto",
 ) -> BatchedRun:
     """Solve every trajectory's poses in order on `slots` continuously batched systems on the warp `device`;
@@ -228,12 +226,10 @@ class _Schedule:
     def _cut_back(self, slot: int) -> None:
         """After a failed increment, step again from the last accepted pose in two halves (the pose that
         failed is reached through its midpoint)."""
-        start_rotation, start_translation = self.stepper.retreat(slot)
+        start = self.stepper.retreat(slot)
         start_time = 0.0 if np.isnan(self.stepper.time_s[slot]) else float(self.stepper.time_s[slot])
         end_rotation, end_translation, end_time = self._next_pose(slot)
-        mid = Slerp([0.0, 1.0], Rotation.from_matrix(np.stack([start_rotation, end_rotation])))(0.5).as_matrix()
-        midpoint = (mid, 0.5 * (start_translation + end_translation), 0.5 * (start_time + end_time))
-        self.detours[slot].insert(0, midpoint)
+        self.detours[slot].insert(0, pose_midpoint(start, (end_rotation, end_translation), start_time, end_time))
         self.cuts[slot] += 1
         self.cut_backs += 1
         self.waiting[slot] = True

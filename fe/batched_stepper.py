@@ -23,14 +23,37 @@ from collections.abc import Sequence
 import numpy as np
 import scipy.sparse as sp
 import warp as wp
+from scipy.spatial.transform import Rotation, Slerp
 
 from assets.indenters import Indenter, get_indenter
 from fe.batched import BatchedShell, InflatedSkin, NewtonBatch, get_rows, put_rows
 from fe.results import IncrementResult
 from fe.viscoelastic import SkinRelaxation
 
+MAX_CUTS = 3
+"""How often a failed step is halved before it ends a trajectory (`fe.indentation.IndentationStepper`,
+`fe.batched_runner.run_trajectories`)."""
+
+
+def pose_midpoint(
+    start: tuple[np.ndarray, np.ndarray],
+    end: tuple[np.ndarray, np.ndarray],
+    start_time: float | None,
+    end_time: float | None,
+) -> tuple[np.ndarray, np.ndarray, float | None]:
+    """Halfway between two indenter poses (rotation (3,3), tip (3,) m): the rotations' geodesic midpoint, the
+    tips' mean, and the mean time (s; None when untimed)."""
+    rotations = Rotation.from_matrix(np.stack([start[0], end[0]]))
+    rotation = Slerp([0.0, 1.0], rotations)(0.5).as_matrix()
+    time_s = None if start_time is None or end_time is None else 0.5 * (start_time + end_time)
+    return rotation, 0.5 * (np.asarray(start[1]) + np.asarray(end[1])), time_s
+
+
 _BALANCE_TOLERANCE = 1e-4
 """Largest relative force-balance error of an admissible increment (converged ones show 1e-12 ... 1e-8)."""
+_LOAD_FLOOR = 1e-3
+"""Indenter force (N) below which the force balance is not judged (its relative error has no scale: a
+closed balloon's pressure forces sum to zero)."""
 _PULL_TOLERANCE = 0.1
 """An increment whose indenter force along the press is below -0.1 |F| pulls the indenter in: inadmissible
 (friction tilts a pressing force, but never turns it around)."""
@@ -371,18 +394,20 @@ class BatchedStepper:
     def _inadmissible(self, i: int, gap: np.ndarray, core_gap: np.ndarray, force: np.ndarray, balance: float) -> str:
         """Why system i's converged state is not a solution of the skin ("" if it is): the indenter or the core
         deeper in the skin than `ContactSettings.max_penetration` (gaps (V,) m, negative inside; clamped
-        vertices included: an indenter on the rim reaches the rigid base), forces out of balance, or the
+        vertices included for the indenter: on the rim it reaches the rigid base), forces out of balance
+        under a load, or the
         indenter force pulling the indenter into the skin (it went through: force (3,) N on the skin, the
         press direction being the indenter's -z axis)."""
         limit = self.skin.contact.max_penetration * self.skins[i].params.thickness
-        deepest = float(min(gap.min(initial=0.0), core_gap.min(initial=0.0) if self.shell.has_core else 0.0))
+        free = ~self.shell.fixed.all(axis=1)  # clamped vertices sit on the rigid base: no core contact there
+        deepest = float(min(gap.min(initial=0.0), core_gap[free].min(initial=0.0) if self.shell.has_core else 0.0))
         if deepest < -limit:
             on_indenter = gap.min(initial=0.0) <= deepest
             where = "the indenter" if on_indenter else "the core"
-            vertex = int(np.argmin(gap if on_indenter else core_gap))
+            vertex = int(np.argmin(gap if on_indenter else np.where(free, core_gap, np.inf)))
             clamped = " at a clamped vertex (the rigid base)" if np.all(self.shell.fixed[vertex]) else ""
             return f"{where} {-deepest * 1e6:.0f} um into the skin{clamped} (limit {limit * 1e6:.0f} um)"
-        if not balance <= _BALANCE_TOLERANCE:
+        if np.linalg.norm(force) > _LOAD_FLOOR and not balance <= _BALANCE_TOLERANCE:
             return f"forces out of balance by {balance:.1e} of the load"
         push = float(force @ -self.pose_rotation[i, :, 2])
         if push < -_PULL_TOLERANCE * np.linalg.norm(force):

@@ -89,13 +89,18 @@ def core_contact_kernel(
     gradient: wp.array2d(dtype=wp.vec3d),
     hessian: wp.array2d(dtype=wp.mat33d),
     gap: wp.array2d(dtype=wp.float64),
+    queried_at: wp.array2d(dtype=wp.vec3d),
+    queried_gap: wp.array2d(dtype=wp.float64),
     active: wp.array(dtype=wp.int32),
 ):
     """Frictionless one-sided contact of skin vertex v (mid-surface, `offset` m outside) with the core mesh.
 
     The closest-face search is limited to offset + 1 mm from the core (a vertex farther out is reported at
     1 m), a hundred times the penetration the penalty allows at 1 MPa; a smaller radius prunes the BVH
-    search (half the cost of 5 mm).
+    search (half the cost of 5 mm). The search is skipped where it cannot find contact: the signed distance
+    is 1-Lipschitz, so a vertex that has moved less than its gap at its last search (`queried_at`,
+    `queried_gap`, kept per vertex between evaluations) is still out of contact, and its gap is reported as
+    that lower bound (+inf for vertices never searched: the clamped ones).
     The Hessian includes the curvature of the distance field (non-zero where the closest point is on a
     mesh edge or vertex) by central differences of its gradient.
     """
@@ -106,9 +111,15 @@ def core_contact_kernel(
     zero = wp.float64(0.0)
     energy[b, v] = zero
     hessian[b, v] = wp.mat33d()
+    bound = queried_gap[b, v] - wp.length(p - queried_at[b, v])
+    if bound > zero:
+        gap[b, v] = bound
+        return
     reach = wp.float32(offset) + wp.float32(1.0e-3)
     dn = core_distance(core, core_vertices, core_triangles, p, reach)
     g = dn[0] - offset
+    queried_at[b, v] = p
+    queried_gap[b, v] = wp.min(g, wp.float64(1.0e-3))  # no face within reach: farther than 1 mm
     gap[b, v] = g
     if g >= zero:
         return

@@ -13,7 +13,7 @@ import numpy as np
 
 from assets.indenters import Indenter
 from fe.batched import InflatedSkin
-from fe.batched_stepper import BatchedStepper
+from fe.batched_stepper import MAX_CUTS, BatchedStepper, pose_midpoint
 from fe.results import IncrementResult, Trajectory
 
 __all__ = ["IncrementResult", "IndentationStepper", "Trajectory", "drive"]
@@ -25,17 +25,27 @@ class IndentationStepper:
     Poses are in the sensor frame: `rotation` (3,3) maps the indenter body frame (tip at the origin, body
     along +z, pressing along -z) to the sensor frame and `translation` (3,) is the tip position (m). A pose
     with no skin vertex inside the contact band while the skin is free and relaxed costs no Newton work.
-    After a step that does not converge the stepper refuses further steps until `reset()`. A viscoelastic
+    A step that fails is cut back (`max_cuts` halvings); after one that still does not converge the stepper
+    refuses further steps until `reset()`. A viscoelastic
     skin (relaxation_fraction > 0) needs the time of every step; trapped air makes the held volume the
     liquid's.
     """
 
     def __init__(
-        self, skin: InflatedSkin, indenter: str | Indenter, origin: np.ndarray | None = None, device: str = "cpu"
+        self,
+        skin: InflatedSkin,
+        indenter: str | Indenter,
+        origin: np.ndarray | None = None,
+        device: str = "cpu",
+        max_cuts: int = MAX_CUTS,
     ) -> None:
         """`skin`: the inflated model; `indenter`: one of `assets.indenters` or its name; `origin` (3,) m: tip position
-        of zero depth (None: the first pose stepped after each reset); `device`: a warp device."""
+        of zero depth (None: the first pose stepped after each reset); `device`: a warp device; `max_cuts`: how
+        often a failed step is halved (`step`)."""
+        if max_cuts < 0:
+            raise ValueError(f"max_cuts must be at least 0, got {max_cuts}")
         self.engine = BatchedStepper(skin, [indenter], device)
+        self.max_cuts = max_cuts
         self._fixed_origin = None if origin is None else np.array(origin, dtype=np.float64)
         self.reset()
 
@@ -78,8 +88,23 @@ class IndentationStepper:
         rotation, translation = np.asarray(rotation, dtype=np.float64), np.asarray(translation, dtype=np.float64)
         if rotation.shape != (3, 3) or translation.shape != (3,):
             raise ValueError("an indenter pose is a rotation (3,3) and a translation (3,)")
-        times = None if time_s is None else np.array([float(time_s)])
-        return self.engine.step(rotation[None], translation[None], None, times)[0]
+        # A failed step (not converged, or inadmissible) from an earlier pose is cut back as
+        # `fe.batched_runner.run_trajectories` does: taken again from there through the midpoint in pose and
+        # time (intermediate poses are visited first, their results not reported), up to `max_cuts` halvings.
+        target, detours, cuts = (rotation, translation, time_s), [], 0
+        while True:
+            pose = detours[0] if detours else target
+            times = None if pose[2] is None else np.array([float(pose[2])])
+            result = self.engine.step(pose[0][None], pose[1][None], None, times)[0]
+            if not result.converged and cuts < self.max_cuts and self.engine.can_retreat(0):
+                start = self.engine.retreat(0)
+                start_time = None if pose[2] is None else float(np.nan_to_num(self.engine.time_s[0]))
+                detours.insert(0, pose_midpoint(start, pose[:2], start_time, pose[2]))
+                cuts += 1
+            elif result.converged and detours:
+                detours.pop(0)
+            else:
+                return result
 
 
 def drive(stepper: IndentationStepper, trajectory: Trajectory) -> Iterator[IncrementResult]:

@@ -271,20 +271,12 @@ class BatchedDirectSolver:
         csr = blocks[self._free][:, self._free].tocsr()
         csr.sort_indices()
         self._indices, self._indptr = csr.indices.astype(np.int32), csr.indptr.astype(np.int32)
-        # Only the upper triangle is summed (half the work; PARDISO reads no more), then mirrored: CSR value
-        # (i, j) takes upper value (min(i, j), max(i, j)).
-        rows = np.repeat(np.arange(len(self._free)), np.diff(csr.indptr))
-        upper = rows <= csr.indices
-        upper_of = np.cumsum(upper) - 1  # CSR value -> its number among the upper values
-        transposed = csr.copy()
-        transposed.data = np.arange(csr.nnz, dtype=np.float64)
-        transposed = transposed.T.tocsr()
-        transposed.sort_indices()  # the pattern is symmetric: value k of it is the CSR position of (j, i)
-        self._source = np.where(upper, upper_of, upper_of[transposed.data.astype(np.int64)])
-        position = np.full(9 * len(pattern.columns), -1, dtype=np.int64)  # block entry -> upper value, -1: none
-        position[csr.data.astype(np.int64)[upper] - 1] = np.arange(int(upper.sum()))
-        self._diagonal = np.flatnonzero(rows == csr.indices)
-        self._scatter = [_family_scatter(pattern, f, position, int(upper.sum())) for f in range(len(pattern.block_of))]
+        position = np.full(9 * len(pattern.columns), -1, dtype=np.int64)  # block entry -> CSR value, -1: fixed
+        position[csr.data.astype(np.int64) - 1] = np.arange(csr.nnz)
+        self._diagonal = np.flatnonzero(np.repeat(np.arange(len(self._free)), np.diff(csr.indptr)) == csr.indices)
+        # Both triangles are summed: a Newton matrix with lagged friction is not exactly symmetric, and the
+        # refinement of the (symmetric, upper-triangle) factorisation's solves is against the whole matrix.
+        self._scatter = [_family_scatter(pattern, f, position, csr.nnz) for f in range(len(pattern.block_of))]
         self._trace = [_family_trace(pattern, f) for f in range(len(pattern.block_of))]
         self._node_of_free = self._free // 3
         self._matrices: dict[int, sp.csr_matrix] = {}
@@ -307,8 +299,7 @@ class BatchedDirectSolver:
             for f, values, scale in hessians:
                 term = values[b] if scale is None else float(scale[b]) * values[b]
                 summed[f] = term if f not in summed else summed[f] + term
-            upper = sum(self._scatter[f] @ values for f, values in summed.items())
-            data = upper[self._source]
+            data = sum(self._scatter[f] @ values for f, values in summed.items())
             trace = sum(self._trace[f] @ values for f, values in summed.items()) if shift[b] != 0.0 else None
             if trace is not None:
                 data[self._diagonal] += shift[b] * trace[self._node_of_free] / 3.0
@@ -372,8 +363,7 @@ class BatchedDirectSolver:
 
 def _family_scatter(pattern: BlockPattern, family: int, position: np.ndarray, nnz: int) -> sp.spmatrix:
     """(nnz, E k^2 9) 0/1 matrix taking the flattened element Hessians (E, 3k x 3k, row-major) of element family
-    `family` (k nodes each) to the `nnz` upper-triangle CSR values (`position`: block entry -> upper value, -1
-    for none: fixed or below the diagonal)."""
+    `family` (k nodes each) to the free-DOF CSR values (`position`: block entry -> CSR value, -1 for fixed)."""
     entries = _block_entries(pattern, family)
     keep = position[entries] >= 0
     columns = np.flatnonzero(keep)

@@ -238,9 +238,12 @@ def test_strict_forcing_reaches_the_same_equilibria(frictionless_biotac: BioTacM
     direct = run_trajectories(skin, trajectories, "cpu", slots=3)
     adaptive = run_trajectories(skin, trajectories, "cpu", slots=3, linear="cg")
     strict = run_trajectories(skin, trajectories, "cpu", slots=3, forcing="strict", linear="cg")
+    # Two states that each meet Newton's tolerance (a part per million of the largest nodal load, about 0.15 N
+    # here, at every node) differ by up to that residual summed over the contact nodes: ~1e-6 N, a few 1e-6 of
+    # these 0.5 N forces; the CG's float32 products leave its last Newton step that far from the direct one.
     for d, a, b in zip(direct.results, adaptive.results, strict.results, strict=True):
-        _assert_agree(d, a, 1e-6, 1e-9, 1e-6)
-        _assert_agree(a, b, 1e-6, 1e-9, 1e-6)
+        _assert_agree(d, a, 1e-5, 1e-8, 1e-5)
+        _assert_agree(a, b, 1e-5, 1e-8, 1e-5)
     assert strict.counters["cg_iterations_mean"] > adaptive.counters["cg_iterations_mean"]
     with pytest.raises(ValueError, match="forcing"):
         BatchedStepper(skin, ["sphere_medium"], "cpu", forcing="exact")

@@ -210,7 +210,6 @@ class Predictor:
             self.device,
             slots=min(len(poses), PREFETCH_SLOTS),
             on_trajectory=finished,
-            max_cuts=0,
         )
         return len(work)
 
