@@ -373,7 +373,7 @@ def _fe_rows(backend: SimBackend, times: np.ndarray, model: BioTacModel) -> dict
         "row_fe_force": np.array(force).reshape(-1, 3),
         "row_fe_pressure": np.array(pressure),
         "row_fe_converged": np.array(converged, dtype=bool),
-        "row_nodal_res": np.array(nodal, dtype=np.float32).reshape(len(times), -1, 3),
+        "row_nodal_res": np.array(nodal, dtype=np.float32).reshape(len(times), len(model.reference), 3),
     }
 
 

@@ -56,7 +56,9 @@ def increment_ends(increment: np.ndarray) -> np.ndarray:
 
 
 def loading_phase(depth: np.ndarray) -> np.ndarray:
-    """0 while the commanded depth has not yet passed its maximum, 1 afterwards (unloading)."""
+    """0 while the commanded depth has not yet passed its maximum, 1 afterwards (unloading); no rows, none."""
+    if len(depth) == 0:  # a press stopped before its first row (the FE refused its first step)
+        return np.zeros(0, dtype=np.int64)
     deepest = int(np.argmax(depth))
     phase = np.zeros(len(depth), dtype=np.int64)
     phase[deepest + 1 :] = 1
