@@ -55,7 +55,5 @@ def test_protocol_settings_validation() -> None:
 def test_a_press_refused_before_its_first_row_has_no_rows_and_no_phases() -> None:
     """The FE may refuse a press at its first step (an indenter on the clamped rim): the campaign then records a
     trajectory without rows, and processing gives none instead of failing on an empty argmax."""
-    from twin.processing import loading_phase
-
     assert loading_phase(np.zeros(0)).shape == (0,)
     np.testing.assert_array_equal(loading_phase(np.array([0.0, 1.0, 2.0, 1.0])), [0, 0, 0, 1])
