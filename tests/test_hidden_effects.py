@@ -39,8 +39,6 @@ def _loop(tmp_path: Path, hidden: str | None, predictor: Predictor) -> LoopResul
 
 
 CONFOUNDED = {
-    "fill_volume": "more fluid lifts the skin toward the indenter, which a 0.1 mm registration offset mimics "
-    "at the two contact points of this campaign: registration_offset ranks first",
     "trapped_air": "a bubble lowers the fluid's pressure rise by a near-constant factor, which the 5 % prior on "
     "the PDC gain absorbs; its force signature stays within the noise on this protocol: the verdict is 'nothing'",
     "registration_offset": "on the points drawn from seeds 5 and 6 the offset leaves 6.5-8x the noise and its "
