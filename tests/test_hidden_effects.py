@@ -44,6 +44,13 @@ CONFOUNDED = {
     "registration_offset": "on the points drawn from seeds 5 and 6 the offset leaves 6.5-8x the noise and its "
     "evidence, linearised at zero offset, ranks fill_volume or skin_thickness first (only the first is refitted "
     "here); the model with the true offset fits to 1.00x the noise, and on seed 7 it ranks first and is found",
+    "skin_modulus": "on seed 5's points (full suite, 2026-11-26) ft_gain and skin_modulus explain the force "
+    "residual equally well (evidence 127107.5 against 127103.3, 4.2 apart where 10 is needed): force alone "
+    "cannot tell a stiffer skin from a larger F/T gain, and the diagnosis says so; the electrodes and PDC in "
+    "the residual (issue 20) are what would separate them",
+    "ft_crosstalk": "on seed 5's points (full suite, 2026-11-26) the crosstalk refit brings the error down "
+    "but its parameters are not identifiable from these six trajectories, so the verdict is 'unexplained' "
+    "(base RMS 1.54x the noise) rather than a named cause that might not generalise",
 }
 """Library effects this small campaign cannot tell apart (seen in benchmarks/diagnose_bench.py): their
 cases run every time and report as expected failures with the reason; a fix shows as XPASS."""
