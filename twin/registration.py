@@ -37,10 +37,10 @@ spread over the joints."""
 SEAT_ATTEMPTS = 20
 """IK seeds tried per hole to find an arm configuration that reaches it without touching anything."""
 PAPER_JOINT_OFFSET_STD = 2e-3
-"""Spread (rad, 1 sigma per joint) of the real arm's joint zero offsets against the nominal URDF that
-reproduces the paper's observed 0.5-1.5 mm error. Not a YuMi specification: clearance and encoder noise
-alone give under 0.15 mm here, so the paper's band must come from unmodelled kinematic error of about
-this size (docs/testbed.md)."""
+"""RMS over the joints (rad) of the real arm's joint zero offsets against the nominal URDF that reproduces the
+paper's observed 0.5-1.5 mm error (`twin.plant.make_plant` draws offsets of this RMS in a random direction).
+Not a YuMi specification: clearance and encoder noise alone give under 0.15 mm here, so the paper's band
+must come from unmodelled kinematic error of about this size (docs/testbed.md)."""
 
 
 def frame_from_points(points: np.ndarray) -> np.ndarray:
