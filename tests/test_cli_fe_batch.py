@@ -76,6 +76,8 @@ def test_resume_runs_only_what_had_not_ended(tmp_path: Path) -> None:
     np.testing.assert_allclose(np.load(out)["force"], full["force"], rtol=1e-9, atol=1e-12)
     result = runner.invoke(app, [*args, "--resume", "--seed", "1"])
     assert result.exit_code == 2 and "holds other trajectories" in result.output
+    result = runner.invoke(app, [*args, "--resume", "--force-limit", "10", "--max-cuts", "1"])  # same poses
+    assert result.exit_code == 2 and "made with other force_limit_n, max_cuts" in result.output, result.output
 
 
 def test_batch_rejects_bad_input_with_a_message(tmp_path: Path) -> None:

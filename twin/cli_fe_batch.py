@@ -5,7 +5,8 @@ from a poses file; they run continuously batched on `--slots` systems (`fe.batch
 file (`twin.fe_batch_results`) holds per trajectory and pose the force, depth, pressure, contact area,
 Newton iterations and convergence, with the poses asked for (so a results file runs again with --poses).
 During a run it is rewritten every minute with the trajectories ended so far, so a crash loses at most a
-minute of work, and `--resume` keeps the trajectories that ended in an earlier file of the same options.
+minute of work, and `--resume` keeps the trajectories that ended in an earlier file of the same poses and
+options (model, mesh, force limit, cut-backs, speed; another is refused, naming what differs).
 """
 
 import json
@@ -82,7 +83,9 @@ def batch(
         runs = to_trajectories(paths, press_travels(depth_mm * 1e-3, step_mm * 1e-3))
     else:
         runs = [PoseTrajectory(str(n), r, t) for n, r, t in zip(*(asked[k] for k in POSES_FILE_KEYS), strict=True)]
-    results = BatchResults(out, runs)
+    made_with = {"model": twin_model.to_dict(), "vertices": len(model.reference), "force_limit_n": force_limit}
+    made_with |= {"max_cuts": max_cuts, "speed_mm_s": speed_mm_s}
+    results = BatchResults(out, runs, made_with)
     todo = _guarded(results.resume) if resume and out.exists() else np.ones(len(runs), dtype=bool)
     indices = np.flatnonzero(todo)
     start = time.perf_counter()

@@ -5,11 +5,14 @@ Arrays (M trajectories, K poses): names (M,); rotations (M,K,3,3) body -> sensor
 depth (M,K) m, pressure (M,K) Pa, contact_area (M,K) m^2, newton_iterations (M,K), converged (M,K),
 loaded (M,K) (in contact: solved, not a free pose); poses_done (M,) and ended (M,) (the trajectory ran
 to its end: last pose, force limit or failure). Per-pose values are NaN / 0 / False past poses_done.
-The file is written atomically, so a crash leaves the last complete version.
+options: what made the results beside the poses (the model with its effects and mesh, force limit,
+cut-backs, speed), as JSON, so a resume never mixes runs of another model. The file is written atomically,
+so a crash leaves the last complete version.
 """
 
 from __future__ import annotations
 
+import json
 from pathlib import Path
 
 import numpy as np
@@ -26,8 +29,9 @@ _PER_POSE = {"force": (3,), "depth": (), "pressure": (), "contact_area": ()}
 class BatchResults:
     """The results arrays of `runs`, filled trajectory by trajectory (`put`) and saved to `out` (`save`)."""
 
-    def __init__(self, out: Path, runs: list[PoseTrajectory]) -> None:
-        self.out = out
+    def __init__(self, out: Path, runs: list[PoseTrajectory], options: dict) -> None:
+        """`options`: what else made the results (JSON-ready), checked on `resume`."""
+        self.out, self.options = out, options
         m, k = len(runs), max(len(t.translations) for t in runs)
         self.arrays: dict[str, np.ndarray] = {
             "names": np.array([t.indenter for t in runs]),
@@ -55,6 +59,10 @@ class BatchResults:
             same = same and np.allclose(earlier[key], self.arrays[key], rtol=0.0, atol=1e-12, equal_nan=True)
         if not same:
             raise ValueError(f"{self.out} holds other trajectories; give another --out, or the same options")
+        stored = json.loads(str(earlier["options"])) if "options" in earlier else {}
+        differ = sorted(k for k in stored.keys() | self.options.keys() if stored.get(k) != self.options.get(k))
+        if differ:
+            raise ValueError(f"{self.out} was made with other {', '.join(differ)}; give another --out, or the same")
         ended = earlier["ended"]
         for key in self.arrays:
             self.arrays[key][ended] = earlier[key][ended]
@@ -74,7 +82,7 @@ class BatchResults:
         """Write the arrays to `out` atomically."""
         self.out.parent.mkdir(parents=True, exist_ok=True)
         partial = self.out.with_name(self.out.name + ".partial.npz")
-        np.savez(partial, **self.arrays)
+        np.savez(partial, **self.arrays, options=json.dumps(self.options, sort_keys=True))
         partial.replace(self.out)
 
     def summary(self) -> dict:
