@@ -395,9 +395,9 @@ class BatchedStepper:
         """Why system i's converged state is not a solution of the skin ("" if it is): the indenter or the core
         deeper in the skin than `ContactSettings.max_penetration` (gaps (V,) m, negative inside; clamped
         vertices included for the indenter: on the rim it reaches the rigid base), forces out of balance
-        under a load, or the
-        indenter force pulling the indenter into the skin (it went through: force (3,) N on the skin, the
-        press direction being the indenter's -z axis)."""
+        under a load, or the indenter force pulling the indenter into the skin (it went through: force (3,)
+        N on the skin, the press direction being the indenter's -z axis). Core gaps of vertices whose search
+        was skipped are lower bounds >= 0 (`fe.contact.core_contact_kernel`), so they never refuse."""
         limit = self.skin.contact.max_penetration * self.skins[i].params.thickness
         free = ~self.shell.fixed.all(axis=1)  # clamped vertices sit on the rigid base: no core contact there
         deepest = float(min(gap.min(initial=0.0), core_gap[free].min(initial=0.0) if self.shell.has_core else 0.0))
