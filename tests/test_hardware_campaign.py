@@ -24,6 +24,7 @@ that it has converged in the simulated run and not in the twin's (whose joints d
 having been through EGM's degrees).
 """
 
+import json
 from collections.abc import Callable, Iterator
 from dataclasses import dataclass, replace
 from multiprocessing import get_context
@@ -116,6 +117,14 @@ def test_the_same_trajectories_and_row_layout(runs: Runs) -> None:
     for tid in sim["raw"]:  # the controller took as many ticks, with the same commands, on both
         for name in ("increment", "depth_command"):
             np.testing.assert_array_equal(hw[f"raw/{tid}/{name}"][:], sim[f"raw/{tid}/{name}"][:])
+
+
+def test_the_file_keeps_the_estimated_registration_and_not_the_plants_error(runs: Runs) -> None:
+    """The plan's registration error is the simulated plant's truth: a robot's file never holds it."""
+    provenance = json.loads(runs.hw.attrs["provenance"])
+    assert "registration_error_m" not in provenance
+    for arm in ("left", "right"):
+        np.testing.assert_array_equal(provenance["registration"][arm], runs.plan.registration[(SENSOR, arm)])
 
 
 def test_joint_rows_are_the_plan_and_the_tip_follows(runs: Runs) -> None:

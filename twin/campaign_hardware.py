@@ -144,13 +144,14 @@ def _park(backend: Backend, scene: TestbedScene, tick: float) -> None:
 
 
 def _provenance(plan: CampaignPlan, backend: Backend, extra: dict | None) -> dict:
-    """The sensor file's provenance: code, backend, campaign config, registration used, and `extra`."""
+    """The sensor file's provenance: code, backend, campaign config, registration used, and `extra`.
+
+    The plan's registration error is the simulated plant's truth, not the testbed's: never recorded."""
     sid = mounted_sensor(plan.config)
     return {
         "code_version": code_version(),
         "backend": type(backend).__name__,
         "config": json.loads(json.dumps(asdict(plan.config), default=str)),
-        "registration_error_m": {f"{s}/{a}": v for (s, a), v in plan.registration_error.items()},
         "registration": {a: plan.registration[(sid, a)].tolist() for a in ARMS},
         **(extra or {}),
     }
