@@ -24,7 +24,7 @@ from dataclasses import dataclass, replace
 import numpy as np
 
 from fe.batched import InflatedSkin
-from fe.batched_stepper import MAX_CUTS, BatchedStepper, pose_midpoint
+from fe.batched_stepper import MAX_CUTS, BatchedStepper, CutBack, Pose
 from fe.indentation import IncrementResult
 
 
@@ -127,7 +127,7 @@ def run_trajectories(
         round_systems.append(int(stepper.newton.running.sum()))
         schedule.record(stepper.advance())
         round_end_s.append(time.perf_counter() - start)
-    counters = dict(stepper.shell.counters) | {"cut_backs": schedule.cut_backs}
+    counters = dict(stepper.shell.counters) | {"cut_backs": sum(plan.total for plan in schedule.cut_back)}
     wall = time.perf_counter() - start
     return BatchedRun(
         schedule.results,
@@ -154,7 +154,6 @@ class _Schedule:
     ) -> None:
         self.trajectories, self.queue = trajectories, deque(range(len(trajectories)))
         self.force_limit, self.on_trajectory, self.stepper = force_limit, on_trajectory, stepper
-        self.max_cuts, self.cut_backs = max_cuts, 0
         n = stepper.batch
         self.results: list[list[IncrementResult]] = [[] for _ in trajectories]
         self.current = np.full(n, -1)
@@ -162,10 +161,8 @@ class _Schedule:
         self.waiting = np.zeros(n, dtype=bool)
         """Slots whose next pose is to be admitted."""
         self.timed = trajectories[0].times is not None
-        self.detours: list[list[tuple[np.ndarray, np.ndarray, float]]] = [[] for _ in range(n)]
-        """Per slot, the intermediate poses still to visit before its trajectory's next pose (cut-backs)."""
-        self.cuts = np.zeros(n, dtype=int)
-        """Per slot, how often the step to its trajectory's next pose has been halved."""
+        self.cut_back = [CutBack(max_cuts) for _ in range(n)]
+        """Per slot, the way to its trajectory's next pose after failed steps."""
         for slot in range(n):
             self._take(slot)
 
@@ -177,8 +174,7 @@ class _Schedule:
             if self.stepper.indenters[slot] != name:
                 self.stepper.set_indenter(slot, name)
         self.pose[slot] = 0
-        self.cuts[slot] = 0
-        self.detours[slot] = []
+        self.cut_back[slot].restart()
         self.waiting[slot] = self.current[slot] >= 0
 
     def poses(self) -> tuple[np.ndarray, np.ndarray, np.ndarray | None]:
@@ -187,14 +183,11 @@ class _Schedule:
         n = self.stepper.batch
         rotation, translation, times = np.tile(np.eye(3), (n, 1, 1)), np.zeros((n, 3)), np.zeros(n)
         for slot in np.flatnonzero(self.waiting):
-            rotation[slot], translation[slot], times[slot] = self._next_pose(slot)
+            rotation[slot], translation[slot], times[slot] = self.cut_back[slot].pose(self._target(slot))
         return rotation, translation, times if self.timed else None
 
-    def _next_pose(self, slot: int) -> tuple[np.ndarray, np.ndarray, float]:
-        """The slot's next pose and its time (0 when untimed): its first intermediate pose, else its
-        trajectory's next one."""
-        if self.detours[slot]:
-            return self.detours[slot][0]
+    def _target(self, slot: int) -> Pose:
+        """The slot's trajectory's next pose and its time (0 when untimed)."""
         trajectory, k = self.trajectories[self.current[slot]], self.pose[slot]
         time_s = 0.0 if trajectory.times is None else float(trajectory.times[k])
         return trajectory.rotations[k], trajectory.translations[k], time_s
@@ -203,14 +196,9 @@ class _Schedule:
         """File the slots' finished increments; queue their next poses, cut failed steps back, or end their
         trajectories."""
         for slot, result in finished.items():
-            if not result.converged and self.cuts[slot] < self.max_cuts and self.stepper.can_retreat(slot):
-                self._cut_back(slot)
+            if not self.cut_back[slot].settle(self.stepper, slot, result.converged, self._target(slot)):
+                self.waiting[slot] = True  # an intermediate pose reached, or a failed step halved
                 continue
-            if result.converged and self.detours[slot]:  # an intermediate pose: not among the results
-                self.detours[slot].pop(0)
-                self.waiting[slot] = True
-                continue
-            self.cuts[slot] = 0  # a trajectory pose reached, or a failure that ends the trajectory
             index = int(self.current[slot])
             self.results[index].append(result)
             self.pose[slot] += 1
@@ -222,14 +210,3 @@ class _Schedule:
                 self.on_trajectory(index, self.results[index])
             self.stepper.reset(np.arange(self.stepper.batch) == slot)
             self._take(slot)
-
-    def _cut_back(self, slot: int) -> None:
-        """After a failed increment, step again from the last accepted pose in two halves (the pose that
-        failed is reached through its midpoint)."""
-        start = self.stepper.retreat(slot)
-        start_time = 0.0 if np.isnan(self.stepper.time_s[slot]) else float(self.stepper.time_s[slot])
-        end_rotation, end_translation, end_time = self._next_pose(slot)
-        self.detours[slot].insert(0, pose_midpoint(start, (end_rotation, end_translation), start_time, end_time))
-        self.cuts[slot] += 1
-        self.cut_backs += 1
-        self.waiting[slot] = True

@@ -8,7 +8,7 @@ friction slip is measured from the previous pose, and a system whose step fails 
 until `reset`. Poses: rotation (3,3) indenter body -> sensor frame, tip position (3,) m; results are
 `fe.results.IncrementResult`s (forces in N, sensor frame), `wall_s` being the whole batch step's time.
 
-The step is built from two calls that also serve continuous batching (`fe.batched_campaign`): `admit`
+The step is built from two calls that also serve continuous batching (`fe.batched_runner`): `admit`
 starts new increments for some systems while others are mid-solve, and `advance` runs one Newton
 iteration of every running system and reports those that finished, so a system never waits for the
 slowest one of the batch.
@@ -35,18 +35,59 @@ MAX_CUTS = 3
 `fe.batched_runner.run_trajectories`)."""
 
 
-def pose_midpoint(
-    start: tuple[np.ndarray, np.ndarray],
-    end: tuple[np.ndarray, np.ndarray],
-    start_time: float | None,
-    end_time: float | None,
-) -> tuple[np.ndarray, np.ndarray, float | None]:
-    """Halfway between two indenter poses (rotation (3,3), tip (3,) m): the rotations' geodesic midpoint, the
-    tips' mean, and the mean time (s; None when untimed)."""
+Pose = tuple[np.ndarray, np.ndarray, float | None]
+"""An indenter pose and its time: rotation (3,3) body -> sensor frame, tip position (3,) m, time (s; None: untimed)."""
+
+
+def pose_midpoint(start: Pose, end: Pose) -> Pose:
+    """Halfway between two timed indenter poses: the rotations' geodesic midpoint, the tips' mean, and the
+    mean time (None when either is untimed)."""
     rotations = Rotation.from_matrix(np.stack([start[0], end[0]]))
     rotation = Slerp([0.0, 1.0], rotations)(0.5).as_matrix()
-    time_s = None if start_time is None or end_time is None else 0.5 * (start_time + end_time)
+    time_s = None if start[2] is None or end[2] is None else 0.5 * (start[2] + end[2])
     return rotation, 0.5 * (np.asarray(start[1]) + np.asarray(end[1])), time_s
+
+
+@dataclasses.dataclass
+class CutBack:
+    """One system's way to its next target pose after failures: a failed increment is undone and taken again
+    from the last accepted pose through the midpoint (in pose and time), whose result is not the target's,
+    up to `max_cuts` halvings of the step to one target (`fe.indentation.IndentationStepper.step`,
+    `fe.batched_runner.run_trajectories`)."""
+
+    max_cuts: int = MAX_CUTS
+    detours: list[Pose] = dataclasses.field(default_factory=list)
+    """Intermediate poses still to reach, nearest first, before the target."""
+    cuts: int = 0
+    """Halvings of the step to the current target so far."""
+    total: int = 0
+    """Halvings over every target since this object was made."""
+
+    def pose(self, target: Pose) -> Pose:
+        """The pose to step to next on the way to `target`."""
+        return self.detours[0] if self.detours else target
+
+    def settle(self, stepper: BatchedStepper, system: int, converged: bool, target: Pose) -> bool:
+        """After `system` of `stepper` finished an increment to `self.pose(target)`: True when that was the
+        target's result (reached, or failed for good: the caller reports it); False when the system is to step
+        to `self.pose(target)` again (a detour reached, or the failed step undone and halved)."""
+        if not converged and self.cuts < self.max_cuts and stepper.can_retreat(system):
+            rotation, translation = stepper.retreat(system)
+            end = self.pose(target)
+            start_time = None if end[2] is None else float(np.nan_to_num(stepper.time_s[system]))
+            self.detours.insert(0, pose_midpoint((rotation, translation, start_time), end))
+            self.cuts += 1
+            self.total += 1
+            return False
+        if converged and self.detours:
+            self.detours.pop(0)
+            return False
+        self.cuts = 0
+        return True
+
+    def restart(self) -> None:
+        """Forget the detours and halvings of the current target (a new trajectory), keeping `total`."""
+        self.detours, self.cuts = [], 0
 
 
 _BALANCE_TOLERANCE = 1e-4

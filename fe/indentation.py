@@ -13,7 +13,7 @@ import numpy as np
 
 from assets.indenters import Indenter
 from fe.batched import InflatedSkin
-from fe.batched_stepper import MAX_CUTS, BatchedStepper, pose_midpoint
+from fe.batched_stepper import MAX_CUTS, BatchedStepper, CutBack
 from fe.results import IncrementResult, Trajectory
 
 __all__ = ["IncrementResult", "IndentationStepper", "Trajectory", "drive"]
@@ -88,22 +88,13 @@ class IndentationStepper:
         rotation, translation = np.asarray(rotation, dtype=np.float64), np.asarray(translation, dtype=np.float64)
         if rotation.shape != (3, 3) or translation.shape != (3,):
             raise ValueError("an indenter pose is a rotation (3,3) and a translation (3,)")
-        # A failed step (not converged, or inadmissible) from an earlier pose is cut back as
-        # `fe.batched_runner.run_trajectories` does: taken again from there through the midpoint in pose and
-        # time (intermediate poses are visited first, their results not reported), up to `max_cuts` halvings.
-        target, detours, cuts = (rotation, translation, time_s), [], 0
+        # A failed step (not converged, or inadmissible) is cut back as `fe.batched_runner.run_trajectories` does.
+        target, plan = (rotation, translation, time_s), CutBack(self.max_cuts)
         while True:
-            pose = detours[0] if detours else target
+            pose = plan.pose(target)
             times = None if pose[2] is None else np.array([float(pose[2])])
             result = self.engine.step(pose[0][None], pose[1][None], None, times)[0]
-            if not result.converged and cuts < self.max_cuts and self.engine.can_retreat(0):
-                start = self.engine.retreat(0)
-                start_time = None if pose[2] is None else float(np.nan_to_num(self.engine.time_s[0]))
-                detours.insert(0, pose_midpoint(start, pose[:2], start_time, pose[2]))
-                cuts += 1
-            elif result.converged and detours:
-                detours.pop(0)
-            else:
+            if plan.settle(self.engine, 0, result.converged, target):
                 return result
 
 
