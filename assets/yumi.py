@@ -80,6 +80,23 @@ ARM_CHAINS: dict[str, ArmChain] = {
 """Both YuMi arms from the public URDF (facts/testbed.md), robot frame, m and rad."""
 
 
+def arm_chain(arm: str) -> ArmChain:
+    """The chain of `arm` ("left" or "right"); ValueError for any other name."""
+    if arm not in ARM_CHAINS:
+        raise ValueError(f"unknown arm {arm!r}; expected one of ('left', 'right')")
+    return ARM_CHAINS[arm]
+
+
+def joint_limits(arm: str) -> np.ndarray:
+    """(7, 2) lower and upper joint position limits of `arm` (rad, chain order 1-2-7-3-4-5-6)."""
+    return np.array([(j.lower, j.upper) for j in arm_chain(arm).joints])
+
+
+def velocity_limits(arm: str) -> np.ndarray:
+    """(7,) joint speed limits of `arm` (rad/s, chain order 1-2-7-3-4-5-6)."""
+    return np.array([j.max_velocity for j in arm_chain(arm).joints])
+
+
 def rpy_matrix(rpy: tuple[float, float, float] | np.ndarray) -> np.ndarray:
     """(3, 3) rotation of URDF roll-pitch-yaw (rad): Rz(yaw) @ Ry(pitch) @ Rx(roll)."""
     r, p, y = rpy

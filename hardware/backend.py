@@ -5,7 +5,7 @@ listens for EGM on one UDP port per arm, starts RAPID over RWS (whose program ru
 both tasks) and waits for every stream's first message. From then on the device threads stream on
 their own; this object only steers and checks:
 
-- `command_joints` refuses targets outside the joint limits (twin.kinematics) and sets the EGM goal,
+- `command_joints` refuses targets outside the joint limits (assets.yumi) and sets the EGM goal,
   which the arm approaches at `egm.max_speed` (rad/s).
 - `advance(dt)` waits `dt` seconds in real time, checking every `safety.poll_s` that each stream is
   fresh (watchdogs), that EGM still runs on the controller, and that the F/T force has not changed by
@@ -22,6 +22,7 @@ from pathlib import Path
 
 import numpy as np
 
+from assets.yumi import joint_limits, velocity_limits
 from hardware.biotac_reader import BioTacError, BioTacReader
 from hardware.biotac_spi import Frame, slots
 from hardware.biotac_transport import open_transport
@@ -32,7 +33,6 @@ from hardware.kms40_protocol import Kms40Error
 from hardware.rws_client import RwsClient, RwsError
 from hardware.stamped import Latest, StaleDataError, wait_for
 from twin.backend import ARMS, BackendError, Sample, check_arm
-from twin.kinematics import joint_limits, velocity_limits
 
 KMS40_FAULTS = {"CALIB_FAULT", "TEMP_FAULT", "POWER_FAULT", "CMD_FAILURE"}
 PORT_CHECK_RAD = 0.01  # EGM and RWS joints of one arm at rest agree to better than this (rad)

@@ -7,7 +7,8 @@ the KMS40 and a BioTac on an SPI bus behind a TCP bridge. The sensors read two p
 - `electrode_source() -> ((19,), pdc)`: raw electrode and PDC counts;
 
 and the arms' joints are `testbed.arms[arm].joints` (rad, chain order). By default the sources are
-constants (`rest_wrench`, `rest_electrodes`); `hardware.twin_sources` drives them from the twin.
+constants (`rest_wrench`, `rest_electrodes`); `driven_testbed` hands them and the arms to a
+`TestbedDriver` (the twin: `twin.loopback_rig.TwinSources`).
 `hardware_config()` is the HardwareConfig that points `HardwareBackend` at these devices, and
 tells its EGM links which ports the arms send from (the only senders they hear). On a wildcard
 `host` (0.0.0.0) the devices listen on every interface, but the arms stream to, and the config
@@ -17,10 +18,12 @@ points at, this machine's loopback address.
 from __future__ import annotations
 
 import socket
-from collections.abc import Callable
+from collections.abc import Callable, Mapping
+from typing import Protocol
 
 import numpy as np
 
+from assets.yumi import joint_limits, velocity_limits
 from hardware.biotac_bridge import SpiBridgeServer
 from hardware.biotac_sim import ElectrodeSource, SimBioTac, SimBioTacBus
 from hardware.biotac_spi import SELECT_MASKS
@@ -31,7 +34,6 @@ from hardware.kms40_sim import SimKms40, WrenchSource
 from hardware.rws_client import MECHUNITS
 from hardware.rws_sim import SimRwsServer
 from twin.backend import ARMS
-from twin.kinematics import joint_limits, velocity_limits
 
 DEFAULT_BIOTAC_BRIDGE_PORT = 6540
 WILDCARD, LOOPBACK = "0.0.0.0", "127.0.0.1"
@@ -55,6 +57,30 @@ def free_udp_port(host: str) -> int:
     with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as sock:
         sock.bind((host, 0))
         return sock.getsockname()[1]
+
+
+class TestbedDriver(Protocol):
+    """What drives the simulated sensors from the simulated arms (e.g. `twin.loopback_rig.TwinSources`)."""
+
+    def wrench(self) -> np.ndarray:
+        """(6,) F/T reading (N, N·m), sensor frame, untared."""
+        ...
+
+    def electrodes(self) -> tuple[np.ndarray, float]:
+        """((19,) electrode counts, PDC counts)."""
+        ...
+
+    def home_joints(self) -> dict[str, np.ndarray]:
+        """arm -> (7,) rad, chain order: where the arms start."""
+        ...
+
+    def follow(self, arms: Mapping[str, SimEgmArm]) -> None:
+        """Start following the arms' `.joints` (rad) in a thread of its own."""
+        ...
+
+    def close(self) -> None:
+        """Stop following."""
+        ...
 
 
 class SimulatedTestbed:
@@ -132,11 +158,18 @@ class SimulatedTestbed:
         for arm in self.arms.values():
             arm.stop_streaming()
 
-    def hardware_config(self, base: HardwareConfig | None = None) -> HardwareConfig:
-        """`base` (default: the real testbed's config) with every address and port pointing here."""
+    def hardware_config(self, base: HardwareConfig | None = None, watchdog_s: float | None = None) -> HardwareConfig:
+        """`base` (default: the real testbed's config) with every address and port pointing here.
+
+        watchdog_s: if given, the stale-data limit (s) of every stream (EGM, F/T, BioTac).
+        """
         host = self.local_host
+        config = base or HardwareConfig()
+        if watchdog_s is not None:
+            wide = {"watchdog_s": watchdog_s}
+            config = with_changes(config, egm=wide, kms40=wide, biotac=wide)
         return with_changes(
-            base or HardwareConfig(),
+            config,
             rws={"host": host, "port": self.rws.port},
             egm={
                 "bind_host": host,
@@ -171,3 +204,19 @@ class SimulatedTestbed:
 
     def __exit__(self, *exc: object) -> None:
         self.close()
+
+
+def driven_testbed(driver: TestbedDriver, **testbed_options: object) -> SimulatedTestbed:
+    """A `SimulatedTestbed` whose arms start at `driver.home_joints()` and whose sensors stream `driver`'s readings.
+
+    The driver follows the arms at once; closing the testbed stops it too. `testbed_options` are
+    `SimulatedTestbed`'s (host, ports, EGM faults).
+    """
+    testbed = SimulatedTestbed(driver.wrench, driver.electrodes, joints0=driver.home_joints(), **testbed_options)
+    testbed.add_closer(driver.close)
+    try:
+        driver.follow(testbed.arms)
+    except BaseException:
+        testbed.close()
+        raise
+    return testbed

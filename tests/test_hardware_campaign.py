@@ -37,11 +37,12 @@ import pytest
 from fe.params import SkinParameters
 from hardware.backend import HardwareBackend
 from hardware.config import with_changes
-from hardware.twin_sources import TwinSources, twin_hardware_config, twin_testbed
+from hardware.testbed import driven_testbed
 from twin.backend import Backend, BackendError
 from twin.campaign import QUICK_CONFIG, CampaignPlan, plan_campaign, run_campaign
 from twin.campaign_hardware import HardwareCampaignResult, campaign_jobs, run_hardware_campaign
 from twin.dataset import TRAJECTORY_FIELDS
+from twin.loopback_rig import TWIN_WATCHDOG_S, TwinSources
 from twin.plant import Plant, make_plant
 from twin.processing import increment_ends, lowpass
 from twin.protocol import QUICK_SETTINGS
@@ -73,8 +74,9 @@ class Runs:
 
 
 def _run_hardware(plan: CampaignPlan, twin: TwinSources, out: Path) -> HardwareCampaignResult:
-    with twin_testbed(twin, rws_port=0, kms40_port=0, egm_ports=(0, 0), biotac_port=0) as testbed:
-        config = with_changes(twin_hardware_config(testbed), egm={"startup_timeout_s": 5.0, "max_speed": 2.0})
+    with driven_testbed(twin, rws_port=0, kms40_port=0, egm_ports=(0, 0), biotac_port=0) as testbed:
+        config = testbed.hardware_config(watchdog_s=TWIN_WATCHDOG_S)
+        config = with_changes(config, egm={"startup_timeout_s": 5.0, "max_speed": 2.0})
         backend = HardwareBackend(config)
         try:
             return run_hardware_campaign(plan, out, backend)

@@ -8,8 +8,9 @@ from dataclasses import replace
 import numpy as np
 import pytest
 
-from hardware.twin_sources import TwinSources, twin_testbed
+from hardware.testbed import driven_testbed
 from twin.campaign import QUICK_CONFIG, plan_campaign
+from twin.loopback_rig import TwinSources
 from twin.planning import PlannedTrajectory
 from twin.plant import make_plant
 
@@ -83,7 +84,7 @@ def test_sources_return_copies_and_the_clock_follows_wall_time(twin: TwinSources
     wrench = twin.wrench()
     wrench[:] = 1e9
     assert np.all(np.abs(twin.wrench()) < 100)
-    with twin_testbed(twin, rws_port=0, kms40_port=0, egm_ports=(0, 0), biotac_port=0) as testbed:
+    with driven_testbed(twin, rws_port=0, kms40_port=0, egm_ports=(0, 0), biotac_port=0) as testbed:
         assert np.array_equal(testbed.arms["left"].joints, twin.home_joints()["left"])
         time.sleep(0.5)
         assert twin.stats["polls"] > 10

@@ -11,13 +11,13 @@ import torch
 from typer.testing import CliRunner
 
 from learn.checkpoint import Checkpoint
-from learn.cli import learn_app
 from learn.data import load
 from learn.experiment import SplitSpec, evaluate_checkpoint, train
 from learn.metrics import paper_metrics
 from learn.splits import split
 from learn.synthetic import write_synthetic_campaign
 from learn.train import NeuralEstimator, TrainConfig
+from twin.cli_learn import learn_app
 
 torch.set_num_threads(1)
 FAST = TrainConfig(max_epochs=30, batch_size=32, threads=1, patience=30)

@@ -1,12 +1,13 @@
 """Campaigns on one robot: the simulated campaign's plan, controller and dataset, run on any `Backend`.
 
 `run_hardware_campaign` executes a `CampaignPlan` (from `twin.campaign.plan_campaign`) trajectory by
-trajectory with `twin.controller.execute`, on an open backend: `hardware.backend.HardwareBackend` for
-the real testbed or its simulated devices. Before each trajectory both arms go to the scene's home
-pose, the state every simulated trajectory starts from and the one the planner checked collisions
-against. Rows, raw recordings and metadata are written as the same part files and HDF5 sensor file
-(`docs/dataset.md`) as a simulated campaign, without the fe features (there is no fe model to read
-on a robot). Time is the backend's clock: wall time on hardware.
+trajectory with `twin.controller.execute`, on an open backend (any `twin.backend.Backend`; the CLI
+layer opens `hardware.backend.HardwareBackend` for the real testbed or its simulated devices).
+Before each trajectory both arms go to the scene's home pose, the state every simulated trajectory
+starts from and the one the planner checked collisions against. Rows, raw recordings and metadata
+are written as the same part files and HDF5 sensor file (`docs/dataset.md`) as a simulated
+campaign, without the fe features (there is no fe model to read on a robot). Time is the backend's
+clock: wall time on hardware.
 
 One sensor is mounted at a time, so a plan must hold exactly one. Indenters are mounted by a person:
 `on_tool_change(arm, indenter)` is called before the first trajectory that needs a different one on
@@ -33,7 +34,6 @@ from twin.campaign import (
     CampaignPlan,
     CampaignResult,
     code_version,
-    plan_campaign,
     trajectory_arrays,
 )
 from twin.controller import Recording, execute, move_to
@@ -164,21 +164,11 @@ def run_from_config(
     on_tool_change: Callable[[str, str], None] | None = None,
     on_progress: Callable[[int, int], None] | None = None,
 ) -> HardwareCampaignResult:
-    """Plan `config`, open `HardwareBackend` on the config file `hardware_file`, run the plan, close.
+    """`twin.cli_devices.run_from_config`, where opening `HardwareBackend` belongs (the CLI layer).
 
-    Bad input (config file, several sensors) raises ValueError before anything is opened; a device
-    that cannot be opened raises BackendError.
+    Kept only while `twin.cli_campaign` imports it from here; goes when that import names
+    `twin.cli_devices` (tests/test_import_edges.py lists this edge as a temporary allowance).
     """
-    from hardware.backend import HardwareBackend
-    from hardware.config import load_config
+    from twin.cli_devices import run_from_config as run
 
-    mounted_sensor(config)
-    hardware = load_config(hardware_file)
-    plan = plan_campaign(config)
-    backend = HardwareBackend(hardware)
-    try:
-        return run_hardware_campaign(
-            plan, out_dir, backend, {"hardware_config": asdict(hardware)}, on_tool_change, on_progress
-        )
-    finally:
-        backend.close()
+    return run(config, hardware_file, out_dir, on_tool_change, on_progress)

@@ -2,13 +2,13 @@
 
 import typer
 
-from hardware.cli import devices_app
-from learn.cli import learn_app
 from twin.cli_analysis import analysis_app
 from twin.cli_calibrate import calibrate_app
 from twin.cli_campaign import campaign_app, dataset_app
+from twin.cli_devices import devices_app
 from twin.cli_export import export_app
 from twin.cli_fe import fe_app
+from twin.cli_learn import learn_app
 from twin.cli_loop import loop_app
 from twin.cli_view import view_app
 

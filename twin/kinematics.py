@@ -20,7 +20,15 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from assets.yumi import ARM_CHAINS, ArmChain, JointSpec, origin_transform, rpy_matrix
+from assets.yumi import (
+    ARM_CHAINS,
+    ArmChain,
+    JointSpec,
+    joint_limits,
+    origin_transform,
+    rpy_matrix,
+    velocity_limits,
+)
 from twin.backend import N_JOINTS, check_arm
 
 __all__ = [
@@ -58,16 +66,6 @@ def _origins(arm: str) -> tuple[np.ndarray, np.ndarray]:
 
 
 _ORIGINS = {arm: _origins(arm) for arm in ARM_CHAINS}
-
-
-def joint_limits(arm: str) -> np.ndarray:
-    """(7, 2) lower and upper joint position limits of `arm` (rad, chain order)."""
-    return np.array([(j.lower, j.upper) for j in ARM_CHAINS[check_arm(arm)].joints])
-
-
-def velocity_limits(arm: str) -> np.ndarray:
-    """(7,) joint speed limits of `arm` (rad/s, chain order)."""
-    return np.array([j.max_velocity for j in ARM_CHAINS[check_arm(arm)].joints])
 
 
 def within_limits(arm: str, q: np.ndarray, tol: float = 0.0) -> bool:

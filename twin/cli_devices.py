@@ -1,4 +1,8 @@
-"""`twin devices ...`: simulated YuMi (EGM + RWS), KMS40 and BioTac devices on loopback, and preflight checks."""
+"""`twin devices ...`: simulated YuMi (EGM + RWS), KMS40 and BioTac devices on loopback, and preflight checks.
+
+Also where a hardware campaign opens `hardware.backend.HardwareBackend` (`run_from_config`): the CLI
+layer is the one place that joins `twin` and `hardware`.
+"""
 
 from __future__ import annotations
 
@@ -6,6 +10,8 @@ import ipaddress
 import json
 import socket
 import time
+from collections.abc import Callable
+from dataclasses import asdict
 from pathlib import Path
 from typing import TYPE_CHECKING, Annotated
 
@@ -16,7 +22,9 @@ from twin.cli_campaign import MeshMm, Quick, Seed, Sensors, _config
 from twin.cli_common import err_console, guarded
 
 if TYPE_CHECKING:
-    from hardware.twin_sources import TwinSources
+    from twin.campaign import CampaignConfig
+    from twin.campaign_hardware import HardwareCampaignResult
+    from twin.loopback_rig import TwinSources
 
 devices_app = typer.Typer(help="Simulated devices that speak the real wire protocols.", no_args_is_help=True)
 
@@ -83,7 +91,7 @@ def serve(
     0.5 s watchdogs (the twin's solves can hold up the streams for a few hundred ms).
     """
     from hardware.config import config_to_toml
-    from hardware.testbed import SimulatedTestbed
+    from hardware.testbed import SimulatedTestbed, driven_testbed
 
     left, right = _ports(egm_ports)
     options = {
@@ -102,9 +110,7 @@ def serve(
     def start() -> SimulatedTestbed:
         try:
             if twin_sources is not None:
-                from hardware.twin_sources import twin_testbed
-
-                return twin_testbed(twin_sources, **options)
+                return driven_testbed(twin_sources, **options)
             return SimulatedTestbed(**options)
         except PermissionError as exc:
             raise ValueError(
@@ -116,9 +122,9 @@ def serve(
     testbed = guarded(start)
     try:
         if twin_sources is not None:
-            from hardware.twin_sources import twin_hardware_config
+            from twin.loopback_rig import TWIN_WATCHDOG_S
 
-            text = config_to_toml(twin_hardware_config(testbed))
+            text = config_to_toml(testbed.hardware_config(watchdog_s=TWIN_WATCHDOG_S))
         else:
             text = config_to_toml(testbed.hardware_config())
         if config_out is not None:
@@ -152,7 +158,7 @@ def _twin(
     quick: bool, sensors: str | None, seed: int, mesh_mm: float | None, sensor: int | None, indenter: str | None
 ) -> TwinSources:
     """The twin of the `twin campaign run` plant sensor (`--quick/--sensors/--seed/--mesh-mm`) `sensor`."""
-    from hardware.twin_sources import TwinSources
+    from twin.loopback_rig import TwinSources
 
     if indenter is None:
         raise ValueError("--twin needs --indenter NAME: the indenter mounted on the arms")
@@ -209,3 +215,32 @@ def config_template() -> None:
     from hardware.config import HardwareConfig, config_to_toml
 
     print(config_to_toml(HardwareConfig()))
+
+
+def run_from_config(
+    config: CampaignConfig,
+    hardware_file: Path,
+    out_dir: Path,
+    on_tool_change: Callable[[str, str], None] | None = None,
+    on_progress: Callable[[int, int], None] | None = None,
+) -> HardwareCampaignResult:
+    """Plan `config`, open `HardwareBackend` on the config file `hardware_file`, run the plan, close.
+
+    Bad input (config file, several sensors) raises ValueError before anything is opened; a device
+    that cannot be opened raises BackendError.
+    """
+    from hardware.backend import HardwareBackend
+    from hardware.config import load_config
+    from twin.campaign import plan_campaign
+    from twin.campaign_hardware import mounted_sensor, run_hardware_campaign
+
+    mounted_sensor(config)
+    hardware = load_config(hardware_file)
+    plan = plan_campaign(config)
+    backend = HardwareBackend(hardware)
+    try:
+        return run_hardware_campaign(
+            plan, out_dir, backend, {"hardware_config": asdict(hardware)}, on_tool_change, on_progress
+        )
+    finally:
+        backend.close()

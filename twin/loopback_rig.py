@@ -1,8 +1,9 @@
-"""Twin-driven simulated devices: the KMS40 and the BioTac stream what the MuJoCo + fe twin computes.
+"""The loopback rig: the twin drives simulated devices; the F/T sensor and the BioTac stream what it computes.
 
 `TwinSources` owns a `twin.sim_backend.SimBackend` of one plant sensor (the same plant, skin model,
-electrode model and noise a simulated campaign uses) and keeps it in step with the simulated EGM
-arms of a `SimulatedTestbed`. A thread, every `poll_s`:
+electrode model and noise a simulated campaign uses) and keeps it in step with simulated arms (the
+EGM arms of `hardware.testbed.SimulatedTestbed`, which `hardware.testbed.driven_testbed` hands it;
+this module imports nothing of `hardware`). A thread, every `poll_s`:
 
 - reads both arms' joints (rad, chain order: what the encoders read; the plant's joint zero offsets
   put the true arm elsewhere, as in a simulated campaign) and makes them the SimBackend's targets,
@@ -31,14 +32,11 @@ import threading
 import time
 from collections import Counter, deque
 from collections.abc import Mapping
-from typing import NamedTuple
+from typing import NamedTuple, Protocol
 
 import numpy as np
 
 from assets.biotac import make_biotac
-from hardware.config import HardwareConfig, with_changes
-from hardware.egm_sim import SimEgmArm
-from hardware.testbed import SimulatedTestbed
 from learn.electrode_physics import ElectrodeModel
 from twin.backend import ARMS, BackendError
 from twin.campaign import CampaignConfig, inflated_model, true_biotac_pose
@@ -61,6 +59,13 @@ TWIN_WATCHDOG_S = 0.5
 """Stale-data limit (s) for rehearsing against twin-driven devices: the twin solves in the devices'
 process, whose streams then wait on Python's GIL now and then (273 ms seen on a busy 2-core machine,
 where the bench's 0.1 s stops the arms)."""
+
+
+class Arm(Protocol):
+    """A simulated arm the twin follows: its joints (7,) rad, chain order, as its encoders read them."""
+
+    @property
+    def joints(self) -> np.ndarray: ...
 
 
 class Solve(NamedTuple):
@@ -147,7 +152,7 @@ class TwinSources:
         """arm -> (7,) rad: the scene's parking pose, where the simulated arms should start."""
         return {arm: self.backend.scene.home_joints(arm) for arm in ARMS}
 
-    def follow(self, arms: Mapping[str, SimEgmArm]) -> None:
+    def follow(self, arms: Mapping[str, Arm]) -> None:
         """Start the thread that keeps the twin in step with `arms` (their `.joints`, rad)."""
         if self._thread is not None:
             raise RuntimeError("the twin already follows arms")
@@ -161,7 +166,7 @@ class TwinSources:
         if self._thread is not None:
             self._thread.join(timeout=30.0)
 
-    def _run(self, arms: Mapping[str, SimEgmArm]) -> None:
+    def _run(self, arms: Mapping[str, Arm]) -> None:
         last = self.clock_origin
         while not self._stop.wait(self.poll_s):
             now = time.monotonic()
@@ -202,25 +207,3 @@ class TwinSources:
         """Distance (m) from `arm`'s indenter tip at joints `q` to the BioTac frame's origin."""
         tip = forward(arm, q, self._tool_tip)[:3, 3]
         return float(np.linalg.norm(tip - self.backend.true_biotac_pose[:3, 3]))
-
-
-def twin_hardware_config(testbed: SimulatedTestbed) -> HardwareConfig:
-    """The config that reaches `testbed`, with watchdogs of TWIN_WATCHDOG_S for its twin-driven streams."""
-    wide = {"watchdog_s": TWIN_WATCHDOG_S}
-    return with_changes(testbed.hardware_config(), egm=wide, kms40=wide, biotac=wide)
-
-
-def twin_testbed(twin: TwinSources, **testbed_options: object) -> SimulatedTestbed:
-    """A `SimulatedTestbed` whose arms start at home and whose sensors stream `twin`'s readings.
-
-    The twin follows the arms at once; closing the testbed stops it too. `testbed_options` are
-    `SimulatedTestbed`'s (host, ports, EGM faults).
-    """
-    testbed = SimulatedTestbed(twin.wrench, twin.electrodes, joints0=twin.home_joints(), **testbed_options)
-    testbed.add_closer(twin.close)
-    try:
-        twin.follow(testbed.arms)
-    except BaseException:
-        testbed.close()
-        raise
-    return testbed
