@@ -36,7 +36,7 @@ from twin.processing import process
 from twin.protocol import QUICK_SETTINGS, ProtocolSettings, TrajectorySpec, plan_specs
 from twin.registration import simulate_registration
 from twin.scene import SceneParameters, TestbedScene
-from twin.sim_backend import SimBackend
+from twin.sim_backend import SimBackend, SkinSolver
 
 SPHERES = ("sphere_small", "sphere_medium", "sphere_large")
 INDENTER_ADAPTER_LENGTH = 0.10
@@ -167,7 +167,7 @@ def _uncovered(config: CampaignConfig, planned: list[PlannedTrajectory]) -> set[
 
 # -- execution ---------------------------------------------------------------------------------------
 @dataclass
-class _Worker:
+class CampaignWorker:
     """Per-process state: the geometry, the plant's inflated fe models and scenes, built on first use."""
 
     config: CampaignConfig
@@ -187,12 +187,20 @@ class _Worker:
         return self.models[sid]
 
 
-_WORKER: _Worker | None = None
+_WORKER: CampaignWorker | None = None
 
 
-def _init_worker(config: CampaignConfig, plant: Plant) -> None:
+def init_worker(config: CampaignConfig, plant: Plant) -> None:
+    """Executor setup: this process's `CampaignWorker` (models built on first use)."""
     global _WORKER
-    _WORKER = _Worker(config, plant)
+    _WORKER = CampaignWorker(config, plant)
+
+
+def process_worker() -> CampaignWorker:
+    """This executor process's `CampaignWorker` (after `init_worker`)."""
+    if _WORKER is None:
+        raise RuntimeError("init_worker() has not run in this process")
+    return _WORKER
 
 
 def trajectory_arrays(
@@ -324,8 +332,17 @@ def _shown(key: str, value: object) -> str:
     return str(value)
 
 
-def _run_one(job: PlannedTrajectory, slot: int, registration: np.ndarray, parts_dir: str) -> tuple[int, int, bool]:
-    worker = _WORKER
+TrajectoryTask = tuple[PlannedTrajectory, int, np.ndarray, str]
+"""A trajectory to run: its plan, its slot (its clock starts at slot * TRAJECTORY_SLOT_S), the estimated
+robot<-biotac 4x4 of its arm, and the parts folder."""
+
+
+def simulate_trajectory(
+    worker: CampaignWorker, job: PlannedTrajectory, slot: int, solver: Callable[[str], SkinSolver] | None = None
+) -> tuple[SimBackend, Recording]:
+    """Run one trajectory's protocol on a fresh simulated testbed (its own noise stream and clock); the skin
+    solved by `solver` (default: the sensor's fe stepper, one solve at a time). Returns the backend (its
+    `solve_log`) and the recording."""
     config, sid, spec = worker.config, job.sensor_id, job.spec
     model, electrodes = worker.sensor(sid)
     scene = TestbedScene(config.scene)
@@ -341,14 +358,46 @@ def _run_one(job: PlannedTrajectory, slot: int, registration: np.ndarray, parts_
         slot * TRAJECTORY_SLOT_S,
         effects=worker.plant.effects,
         joint_offsets={arm: worker.plant.joint_offset(arm) for arm in ARMS},
+        solver=solver,
     )
-    recording = execute(backend, spec, job.arm, job.joint_path, config.settings)
-    arrays = trajectory_arrays(job, recording, registration, scene, config.settings.sample_rate_hz)
+    return backend, execute(backend, spec, job.arm, job.joint_path, config.settings)
+
+
+def write_trajectory_part(
+    worker: CampaignWorker, task: TrajectoryTask, backend: SimBackend, recording: Recording
+) -> tuple[int, int, bool]:
+    """Write a simulated trajectory's part file (atomically); returns (sensor id, trajectory id, complete)."""
+    job, _, registration, parts_dir = task
+    config, sid = worker.config, job.sensor_id
+    model = worker.sensor(sid)[0]
+    arrays = trajectory_arrays(job, recording, registration, backend.scene, config.settings.sample_rate_hz)
     arrays.update(_fe_rows(backend, arrays["row_time"], model))
     arrays["mesh_reference"] = model.reference
     arrays["meta_options_digest"] = np.asarray(options_digest(campaign_options(config, worker.plant)))
-    write_part(part_path(Path(parts_dir), sid, spec.trajectory_id), arrays)
-    return sid, spec.trajectory_id, recording.complete
+    write_part(part_path(Path(parts_dir), sid, job.spec.trajectory_id), arrays)
+    return sid, job.spec.trajectory_id, recording.complete
+
+
+def _run_one(job: PlannedTrajectory, slot: int, registration: np.ndarray, parts_dir: str) -> tuple[int, int, bool]:
+    """Executor task: one trajectory, its fe solved one increment at a time, to its part file."""
+    worker = process_worker()
+    backend, recording = simulate_trajectory(worker, job, slot)
+    return write_trajectory_part(worker, (job, slot, registration, parts_dir), backend, recording)
+
+
+Finished = Callable[[int, int, bool], None]
+"""Called with (sensor id, trajectory id, complete) as each trajectory's part file is written."""
+TrajectoryRunner = Callable[[list[TrajectoryTask], CampaignConfig, Plant, Executor, Finished], None]
+"""Runs a campaign's trajectory tasks to their part files, calling `Finished` after each (in any order)."""
+
+
+def one_at_a_time(
+    tasks: list[TrajectoryTask], config: CampaignConfig, plant: Plant, executor: Executor, finished: Finished
+) -> None:
+    """The default `TrajectoryRunner`: each trajectory simulated on an executor worker, its fe solved one
+    increment at a time as the controller reaches each pose."""
+    for result in executor.map_unordered(_run_one, tasks, init_worker, (config, plant)):
+        finished(*result)
 
 
 def _fe_rows(backend: SimBackend, times: np.ndarray, model: BioTacModel) -> dict[str, np.ndarray]:
@@ -397,10 +446,13 @@ def run_campaign(
     executor: Executor | None = None,
     on_trajectory: Callable[[int, dict[str, np.ndarray]], None] | None = None,
     restart: bool = False,
+    runner: TrajectoryRunner = one_at_a_time,
 ) -> CampaignResult:
     """Plan and run the campaign into `out_dir` (one HDF5 per sensor); resumes from existing parts.
 
-    Trajectories run on `executor` (default: `workers` local processes); the files do not depend on it.
+    Trajectories run on `executor` (default: `workers` local processes) through `runner` (default
+    `one_at_a_time`; `twin.campaign_batched.BatchedRunner` solves the fe of all of them as one batch); the
+    files do not depend on the executor, and on the runner only within the fe engine's tolerance.
     on_progress(done, total) is called after each trajectory; on_trajectory(sensor id, part arrays as
     `twin.dataset.read_part` returns them) after each one that ran now (a live view). Parts live in
     `out_dir/parts` until the sensor files are assembled; they are kept so that a later run can resume
@@ -428,13 +480,17 @@ def run_campaign(
         (j, slots[(j.sensor_id, j.spec.trajectory_id)], plan.registration[(j.sensor_id, j.arm)], str(parts_dir))
         for j in todo
     ]
-    for sensor_id, trajectory_id, complete in executor.map_unordered(_run_one, tasks, _init_worker, (config, plant)):
+
+    def finished(sensor_id: int, trajectory_id: int, complete: bool) -> None:
+        nonlocal done, incomplete
         incomplete += not complete
         if on_trajectory:
             on_trajectory(sensor_id, read_part(part_path(parts_dir, sensor_id, trajectory_id)))
         done += 1
         if on_progress:
             on_progress(done, len(jobs))
+
+    runner(tasks, config, plant, executor, finished)
     provenance = {
         "code_version": code_version(),
         "config": json.loads(json.dumps(asdict(config), default=str)),

@@ -6,11 +6,17 @@ the plant really mounted this sensor, not where registration thinks it is) drive
 The F/T reading is the load the BioTac transmits to the mount, expressed in the sensor frame, plus
 the plant's bias and noise; electrodes and PDC come from the electrode physics model of the plant's
 sensor. Between solves every channel holds its last value.
+
+What solves the skin is pluggable (`SkinSolver`): by default the fe model's own stepper, one solve at a
+time; the batched campaign (`twin.campaign_batched`) instead records the solves the protocol asks for, then
+replays their batched results through the same backend.
 """
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from dataclasses import dataclass
+from typing import Protocol
 
 import numpy as np
 
@@ -45,11 +51,27 @@ RELAXATION_SOLVE_INTERVAL_S = 0.1
 and in the model's replay (twin.analysis.predict) alike."""
 
 
+class SkinSolver(Protocol):
+    """What drives the skin for one indenter: `fe.indentation.IndentationStepper` (`BioTacModel.stepper`) or a
+    stand-in with the same contract (records or replays solves, `twin.campaign_batched`)."""
+
+    @property
+    def relaxes(self) -> bool:
+        """Whether the skin is viscoelastic (then a held pose is re-solved as time passes)."""
+        ...
+
+    def step(self, rotation: np.ndarray, translation: np.ndarray, time_s: float | None = None) -> IncrementResult:
+        """Solve at the pose (rotation (3,3) indenter body -> biotac, tip (3,) m) at time `time_s` (s); a
+        RuntimeError when it refuses to go on (after a failed step)."""
+        ...
+
+
 class SimBackend:
     """The `Backend` of the simulated testbed for one plant sensor; `time_s` starts at `start_time_s`.
 
     joint_offsets: arm -> (7,) real joint zero offsets (rad): joints are commanded and read in the
     nominal model, while the arm's true shape (MuJoCo, the tool pose) is the model at joints + offset.
+    solver: indenter name -> the `SkinSolver` of a newly attached indenter (default `fe_model.stepper`).
     """
 
     def __init__(
@@ -65,12 +87,14 @@ class SimBackend:
         settings: SimSettings = SimSettings(),
         effects: EffectValues | None = None,
         joint_offsets: dict[str, np.ndarray] | None = None,
+        solver: Callable[[str], SkinSolver] | None = None,
     ) -> None:
         if fe_model.reference is None:
             raise ValueError("the fe model must be inflated before it drives a SimBackend")
         self.scene = scene
         self.sensor = sensor
         self.fe_model = fe_model
+        self._solver = solver if solver is not None else fe_model.stepper
         self.electrodes = electrodes
         self.noise = noise
         self.rng = rng
@@ -82,7 +106,7 @@ class SimBackend:
         self._joints = {arm: scene.joints(arm) for arm in ARMS}
         self._targets = {arm: self._joints[arm].copy() for arm in ARMS}
         self._tools: dict[str, str | None] = dict.fromkeys(ARMS)
-        self._stepper = None
+        self._stepper: SkinSolver | None = None
         self._stepper_arm: str | None = None
         self._last_tip: np.ndarray | None = None
         self._state: IncrementResult | None = None
@@ -99,7 +123,7 @@ class SimBackend:
         self.scene.attach_tool(arm, tool)
         self._tools[arm] = tool
         if tool is not None and tool != "pin":
-            self._stepper = self.fe_model.stepper(tool)
+            self._stepper = self._solver(tool)
             self._stepper_arm = arm
             self._last_tip = None
             self._state = None

@@ -1,0 +1,248 @@
+"""The campaign with the fe of all its trajectories solved on the batched engine (`twin campaign run --device`).
+
+The protocol is open loop but for the controller's force-limit stop, so what the fe has to solve is known
+before anything is solved. `BatchedRunner` works in three passes:
+
+1. schedules (on the executor's workers): each trajectory's protocol runs on the simulated testbed with a
+   `ScheduleRecorder` as its skin, which notes the pose (indenter body -> biotac frame, m) and the time (s)
+   of every solve the backend asks for (each increment's pose once the arm rests; with a viscoelastic skin
+   the held pose every `twin.sim_backend.RELAXATION_SOLVE_INTERVAL_S` as well) and answers with the rest
+   state;
+2. fe (in this process, on the warp device): per sensor, every schedule is a timed `PoseTrajectory` of one
+   batched run (`fe.batched_runner.run_trajectories`: each system on its own clock, failed steps cut back as
+   the one-at-a-time stepper does), which ends a trajectory at its first increment that fails or whose
+   indenter force exceeds `FE_FORCE_LIMIT_FACTOR` times the protocol's force limit;
+3. synthesis (in this process, as each trajectory's solves come back): the protocol runs again on a fresh
+   testbed with the same noise stream and clock, a `ScheduleReplay` answering each solve with its batched
+   result, so the controller (its force-limit stop included), noise, measurement effects, processing and
+   part file are those of the one-at-a-time campaign (`twin.campaign.one_at_a_time`); they agree within the
+   engine's tolerance (bit for bit on warp's CPU device, tests/test_campaign_batched.py).
+
+A trajectory whose controller goes on past where the batch stopped it (a measurement effect that hides more
+than a third of the force) is solved again, without a force limit, in a second batch.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+from dataclasses import dataclass
+
+import numpy as np
+
+from fe.batched_runner import PoseTrajectory, run_trajectories
+from fe.results import IncrementResult
+from fe.sensor import BioTacModel
+from twin.campaign import (
+    CampaignConfig,
+    CampaignWorker,
+    Finished,
+    TrajectoryTask,
+    init_worker,
+    process_worker,
+    simulate_trajectory,
+    write_trajectory_part,
+)
+from twin.executors import Executor
+from twin.planning import PlannedTrajectory
+from twin.plant import Plant
+
+FE_FORCE_LIMIT_FACTOR = 1.5
+"""The batch ends a trajectory once its fe force exceeds this many times the protocol's force limit (the
+controller stops on the measured, noisy force; the margin keeps the solves it may still need)."""
+OFF_SCHEDULE = "asked for a solve off the planned schedule"
+"""What a `ScheduleReplay` says when the replayed protocol leaves the recorded one."""
+
+
+@dataclass(frozen=True)
+class SolveSchedule:
+    """The fe solves one trajectory's protocol asks for, in order: indenter, times (S,) s on the trajectory's
+    clock, rotations (S,3,3) indenter body -> biotac frame, tip positions (S,3) m (biotac frame)."""
+
+    indenter: str
+    times: np.ndarray
+    rotations: np.ndarray
+    translations: np.ndarray
+
+    def poses(self) -> PoseTrajectory:
+        """The schedule as a timed trajectory of the batched runner."""
+        return PoseTrajectory(self.indenter, self.rotations, self.translations, self.times)
+
+
+def _relaxes(model: BioTacModel) -> bool:
+    """Whether the model's skin is viscoelastic (as `fe.indentation.IndentationStepper.relaxes`)."""
+    return model.params.relaxation_fraction > 0.0
+
+
+class ScheduleRecorder:
+    """A `twin.sim_backend.SkinSolver` that solves nothing: it records each pose and time it is asked to solve
+    and answers with the model's rest state (converged, no force), which the schedule does not depend on."""
+
+    def __init__(self, model: BioTacModel, indenter: str) -> None:
+        self.indenter = indenter
+        self.relaxes = _relaxes(model)
+        self._rest = IncrementResult(
+            0.0, np.zeros(3), model.pressure, 0.0, 0.0, 0.0, np.zeros_like(model.reference), 0, 0.0, 0.0, True, "", 0.0
+        )
+        self._poses: list[tuple[float, np.ndarray, np.ndarray]] = []
+
+    def step(self, rotation: np.ndarray, translation: np.ndarray, time_s: float | None = None) -> IncrementResult:
+        """Record the pose (rotation (3,3), tip (3,) m) and time (s); return the rest state."""
+        if time_s is None:
+            raise ValueError("a campaign's solves are timed")
+        self._poses.append((float(time_s), np.array(rotation, dtype=float), np.array(translation, dtype=float)))
+        return self._rest
+
+    def schedule(self) -> SolveSchedule:
+        """The recorded solves."""
+        times = np.array([p[0] for p in self._poses], dtype=float)
+        rotations = np.array([p[1] for p in self._poses], dtype=float).reshape(-1, 3, 3)
+        translations = np.array([p[2] for p in self._poses], dtype=float).reshape(-1, 3)
+        return SolveSchedule(self.indenter, times, rotations, translations)
+
+
+class ScheduleExhausted(Exception):
+    """The replayed protocol asked for a solve past the one at which the batch stopped the trajectory at its
+    fe force limit (not a RuntimeError: it must not pass for a skin fault)."""
+
+
+class ScheduleReplay:
+    """A `twin.sim_backend.SkinSolver` answering the k-th solve of a `SolveSchedule` with the k-th batched
+    result. A solve off the schedule (a pose or time that differs) is refused with a RuntimeError saying
+    `OFF_SCHEDULE` (the backend then reports a skin fault, which ends a retreat after a stop quietly and
+    marks a bug otherwise); past the batch's end: after a failed increment the refusal of a stopped stepper,
+    after a force-limit stop `ScheduleExhausted`."""
+
+    def __init__(self, schedule: SolveSchedule, increments: list[IncrementResult], relaxes: bool) -> None:
+        self.schedule, self.increments, self.relaxes = schedule, increments, relaxes
+        self.solved = 0
+
+    def step(self, rotation: np.ndarray, translation: np.ndarray, time_s: float | None = None) -> IncrementResult:
+        """The batched result of the next scheduled solve, which must be at this pose and time."""
+        k, schedule = self.solved, self.schedule
+        if not (
+            k < len(schedule.times)
+            and time_s == schedule.times[k]
+            and np.array_equal(rotation, schedule.rotations[k])
+            and np.array_equal(translation, schedule.translations[k])
+        ):
+            raise RuntimeError(f"{OFF_SCHEDULE} (solve {k} at t = {time_s} s)")
+        if k >= len(self.increments):
+            if self.increments and not self.increments[-1].converged:
+                raise RuntimeError(f"the last step did not converge ({self.increments[-1].message})")
+            raise ScheduleExhausted(f"solve {k} of {len(schedule.times)} is past the batch's force-limit stop")
+        self.solved += 1
+        return self.increments[k]
+
+
+def plan_schedule(
+    job: PlannedTrajectory, slot: int, registration: np.ndarray, parts_dir: str
+) -> tuple[tuple[int, int], SolveSchedule]:
+    """Executor task (after `twin.campaign.init_worker`): the trajectory's (sensor id, trajectory id) and the
+    fe solves its protocol asks for."""
+    worker = process_worker()
+    model = worker.sensor(job.sensor_id)[0]
+    recorders: list[ScheduleRecorder] = []
+
+    def recorder(indenter: str) -> ScheduleRecorder:
+        recorders.append(ScheduleRecorder(model, indenter))
+        return recorders[-1]
+
+    simulate_trajectory(worker, job, slot, recorder)
+    if len(recorders) > 1:
+        raise RuntimeError(f"trajectory {job.spec.trajectory_id} attached {len(recorders)} indenters, not one")
+    schedule = recorders[0].schedule() if recorders else ScheduleRecorder(model, job.spec.indenter).schedule()
+    return (job.sensor_id, job.spec.trajectory_id), schedule
+
+
+def synthesise(
+    worker: CampaignWorker, task: TrajectoryTask, schedule: SolveSchedule, increments: list[IncrementResult]
+) -> tuple[int, int, bool]:
+    """Run the task's protocol with its solves answered from `increments` (the batched results of `schedule`)
+    and write its part file; returns (sensor id, trajectory id, complete). ScheduleExhausted when the
+    protocol needs solves the batch did not make; RuntimeError when it leaves the schedule while recording."""
+    job, slot = task[0], task[1]
+    replay = ScheduleReplay(schedule, increments, _relaxes(worker.sensor(job.sensor_id)[0]))
+
+    def solver(indenter: str) -> ScheduleReplay:
+        if indenter != schedule.indenter:
+            raise RuntimeError(f"the schedule is for {schedule.indenter}, the protocol attached {indenter}")
+        return replay
+
+    backend, recording = simulate_trajectory(worker, job, slot, solver)
+    if OFF_SCHEDULE in recording.message:
+        raise RuntimeError(
+            f"sensor {job.sensor_id} trajectory {job.spec.trajectory_id}: the replayed protocol left its recorded "
+            f"schedule ({recording.message})"
+        )
+    return write_trajectory_part(worker, task, backend, recording)
+
+
+@dataclass(frozen=True)
+class BatchedRunner:
+    """A `twin.campaign.TrajectoryRunner` that solves the fe of every trajectory of a sensor as the systems of
+    one batched run on the warp `device` (`slots` systems at once); see the module docstring. `on_stage`
+    is told what it is doing ("schedules", "fe"), e.g. for a progress bar."""
+
+    device: str = "cpu"
+    slots: int = 256
+    on_stage: Callable[[str], None] | None = None
+
+    def __call__(
+        self,
+        tasks: list[TrajectoryTask],
+        config: CampaignConfig,
+        plant: Plant,
+        executor: Executor,
+        finished: Finished,
+    ) -> None:
+        if not tasks:
+            return
+        self._stage("schedules")
+        schedules = dict(executor.map_unordered(plan_schedule, tasks, init_worker, (config, plant)))
+        self._stage("fe")
+        worker = CampaignWorker(config, plant)
+        limit = FE_FORCE_LIMIT_FACTOR * config.settings.force_limit
+        for sid in sorted({task[0].sensor_id for task in tasks}):
+            pending = [task for task in tasks if task[0].sensor_id == sid]
+            for task in [t for t in pending if not len(schedules[_key(t)].times)]:  # the protocol asked for none
+                finished(*synthesise(worker, task, schedules[_key(task)], []))
+            pending = [t for t in pending if len(schedules[_key(t)].times)]
+            pending = self._solve(worker, pending, schedules, limit, finished)
+            if pending and self._solve(worker, pending, schedules, np.inf, finished):
+                raise RuntimeError("a trajectory solved without a force limit still ran out of solves")
+
+    def _solve(
+        self,
+        worker: CampaignWorker,
+        tasks: list[TrajectoryTask],
+        schedules: dict[tuple[int, int], SolveSchedule],
+        force_limit: float,
+        finished: Finished,
+    ) -> list[TrajectoryTask]:
+        """Solve the tasks' schedules (one sensor's) as one batch ending trajectories above `force_limit` (N),
+        synthesising and writing each trajectory as it ends; returns those that needed more solves."""
+        if not tasks:
+            return []
+        exhausted: list[TrajectoryTask] = []
+
+        def ended(index: int, increments: list[IncrementResult]) -> None:
+            task = tasks[index]
+            try:
+                finished(*synthesise(worker, task, schedules[_key(task)], increments))
+            except ScheduleExhausted:
+                exhausted.append(task)
+            increments.clear()  # the displacement fields are written: free them as the run goes on
+
+        model = worker.sensor(tasks[0][0].sensor_id)[0]
+        poses = [schedules[_key(task)].poses() for task in tasks]
+        run_trajectories(model.inflated_skin(), poses, self.device, self.slots, force_limit, on_trajectory=ended)
+        return exhausted
+
+    def _stage(self, name: str) -> None:
+        if self.on_stage is not None:
+            self.on_stage(name)
+
+
+def _key(task: TrajectoryTask) -> tuple[int, int]:
+    """(sensor id, trajectory id) of a task."""
+    return task[0].sensor_id, task[0].spec.trajectory_id
