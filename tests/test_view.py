@@ -51,6 +51,63 @@ def _entities(path: Path) -> dict[str, dict[str, list]]:
     return out
 
 
+def _chunks(path: Path, entity: str) -> list[tuple[bool, dict[str, list]]]:
+    """(static?, column name -> values) of every chunk of `entity` in the recording at `path`: components,
+    `row`, `time` in s; other timelines (log_tick, log_time) by name only (None)."""
+    out = []
+    for chunk in RrdReader(path).stream():
+        if chunk.entity_path.lstrip("/") == entity:
+            batch = chunk.to_record_batch()
+            columns: dict[str, list | None] = {n: None for n in batch.schema.names}
+            columns |= {n: batch.column(n).to_pylist() for n in columns if ":" in n or n == "row"}
+            if "time" in columns:
+                columns["time"] = (np.array(batch.column("time").cast("int64").to_pylist()) * 1e-9).tolist()
+            out.append((chunk.is_static, columns))
+    return out
+
+
+def _temporal(path: Path, entity: str, component: str) -> tuple[np.ndarray, list]:
+    """`row` indices and values of `component` over the temporal chunks of `entity`, ordered by row."""
+    rows, values = [], []
+    for static, columns in _chunks(path, entity):
+        if not static and component in columns:
+            rows += columns["row"]
+            values += columns[component]
+    order = np.argsort(rows, kind="stable")
+    return np.array(rows)[order], [values[i] for i in order]
+
+
+def _layouts(path: Path) -> list[tuple[set[tuple[str, str, str]], list[int]]]:
+    """The recording's blueprints (`_layout` of each)."""
+    reader = RrdReader(path)
+    assert reader.blueprints(), f"{path} carries no blueprint"
+    return [_layout(reader, store) for store in reader.blueprints()]
+
+
+def _layout(reader: RrdReader, store) -> tuple[set[tuple[str, str, str]], list[int]]:
+    """A blueprint: its views as (class, origin, contents query) and the kinds of its containers (rerun's
+    ContainerKind: 1 tabs, 2 horizontal, 3 vertical, 4 grid), root first."""
+    fields: dict[str, dict[str, object]] = defaultdict(dict)
+    for chunk in reader.stream(store=store):
+        batch = chunk.to_record_batch()
+        for name in batch.schema.names:
+            if ":" in name:
+                fields[chunk.entity_path.strip("/")][name] = np.ravel(batch.column(name).to_pylist()[-1]).tolist()
+    views = {
+        (f["ViewBlueprint:class_identifier"][0], f["ViewBlueprint:space_origin"][0], query)
+        for path_, f in fields.items()
+        if "ViewBlueprint:class_identifier" in f
+        for query in fields[f"{path_}/ViewContents"]["ViewContents:query"]
+    }
+    containers = {p: f for p, f in fields.items() if "ContainerBlueprint:container_kind" in f}
+    children = {c for f in containers.values() for c in f.get("ContainerBlueprint:contents", [])}
+    roots = [p for p in containers if p not in children]
+    assert len(roots) == 1
+    kinds = [containers[roots[0]]["ContainerBlueprint:container_kind"][0]]
+    kinds += [f["ContainerBlueprint:container_kind"][0] for p, f in containers.items() if p != roots[0]]
+    return views, kinds
+
+
 def _packed(rgba: np.ndarray) -> int:
     r, g, b, a = (int(c) for c in rgba)
     return (r << 24) | (g << 16) | (b << 8) | a
@@ -142,6 +199,43 @@ def test_view_dataset_logs_every_field_of_the_chosen_trajectory(model, tmp_path:
     assert len(shape) == 1 and len(shape[0]) == len(get_indenter("sphere_medium").mesh(1e-3).vertices)
 
 
+def test_view_logs_the_topology_once_and_each_trajectory_as_whole_columns(model, tmp_path: Path) -> None:
+    """Triangles, electrode positions and the arrow colour are static and sent once; positions and colours
+    come per row, each trajectory's rows as columns (rr.send_columns: only the `row` and `time` timelines,
+    no log_tick) equal to the file's arrays; the default layout travels with the file."""
+    rows = _write_dataset(tmp_path / "two.hdf5", model, [4, 9], stored=True)
+    out = tmp_path / "two.rrd"
+    args = ["view", str(tmp_path / "two.hdf5"), "--save", str(out), "--trajectory", "4", "--trajectory", "9"]
+    assert runner.invoke(app, args).exit_code == 0
+    n, triangles = len(DEPTHS), model.geometry.skin.triangles
+    skin = _chunks(out, "biotac/skin")
+    topology = [columns["Mesh3D:triangle_indices"] for static, columns in skin if "Mesh3D:triangle_indices" in columns]
+    assert len(topology) == 1 and all(static for static, columns in skin if "Mesh3D:triangle_indices" in columns)
+    assert np.array_equal(np.array(topology[0][0]), triangles)
+    for entity in ("biotac/skin", "biotac/indenter", "biotac/force", "biotac/electrodes", "series/biotac/force"):
+        timelines = {k for static, c in _chunks(out, entity) if not static for k in c if ":" not in k}
+        assert timelines == {"rerun.controls.RowId", "row", "time"}, (entity, timelines)
+    row, positions = _temporal(out, "biotac/skin", "Mesh3D:vertex_positions")
+    assert row.tolist() == list(range(2 * n))
+    expected = model.reference + np.concatenate([rows["nodal_res"]] * 2)
+    assert np.allclose(np.array(positions), expected, atol=1e-7)
+    assert len(_temporal(out, "biotac/skin", "Mesh3D:vertex_colors")[1]) == 2 * n
+    times = [t for static, c in _chunks(out, "biotac/skin") if not static for t in c["time"]]
+    assert sorted(times) == sorted(np.concatenate([rows["time"]] * 2).tolist())
+    electrodes = _chunks(out, "biotac/electrodes")
+    assert [static for static, c in electrodes if "Points3D:positions" in c] == [True]
+    assert len(_temporal(out, "biotac/electrodes", "Points3D:colors")[1]) == 2 * n
+    for series, name in (("force", "force"), ("electrodes", "electrode_vals"), ("pressure", "fe_pressure")):
+        logged = np.array(_temporal(out, f"series/biotac/{series}", "Scalars:scalars")[1]).reshape(2 * n, -1)
+        assert np.allclose(logged, np.concatenate([rows[name]] * 2).reshape(2 * n, -1)), series
+    logged = np.ravel(_temporal(out, "series/biotac/pdc", "Scalars:scalars")[1])
+    assert np.allclose(logged, np.concatenate([rows["pdc"]] * 2))
+    [(views, kinds)] = _layouts(out)
+    assert kinds[0] == 2  # side by side
+    assert {("3D", "/biotac", "$origin/**"), ("3D", "/report", "$origin/**")} <= views
+    assert {("TimeSeries", "/series", f"/series/biotac/{s}") for s in SERIES} <= views
+
+
 def test_view_dataset_draws_each_trajectorys_indenter_in_turn(model, tmp_path: Path) -> None:
     _write_dataset(tmp_path / "two.hdf5", model, [4, 9], stored=True, indenters=("cube", "sphere_medium"))
     out = tmp_path / "two.rrd"
@@ -188,6 +282,8 @@ def test_view_report_logs_the_residual_field_on_the_skin(model, tmp_path: Path) 
     assert unknown.any() and np.all(colours[unknown] == _packed(NAN_COLOUR))
     assert len(set(colours[~unknown])) > 3
     assert "| force | 0.32 | 0.3 | 2 |" in np.ravel(logged["report/summary"]["TextDocument:text"])[0]
+    [(views, _)] = _layouts(out)  # the field opens in the same layout as the datasets
+    assert {("3D", "/report", "$origin/**"), ("3D", "/biotac", "$origin/**")} <= views
 
 
 def test_env_logs_every_step_live(tmp_path: Path) -> None:
@@ -202,6 +298,9 @@ def test_env_logs_every_step_live(tmp_path: Path) -> None:
     assert np.allclose(arrows[1:], np.array(forces) * FORCE_ARROW_M_PER_N, atol=1e-7)
     assert np.array(logged["series/biotac/electrodes"]["Scalars:scalars"]).shape == (4, 19)
     assert len(logged["biotac/indenter/shape"]["Mesh3D:triangle_indices"]) == 1
+    topology = [static for static, c in _chunks(out, "biotac/skin") if "Mesh3D:triangle_indices" in c]
+    assert topology == [True]  # sent once, not with each step
+    assert ("3D", "/biotac", "$origin/**") in _layouts(out)[0][0]
 
 
 def test_campaign_viewer_logs_finished_trajectories_in_turn(model, tmp_path: Path) -> None:
@@ -213,10 +312,14 @@ def test_campaign_viewer_logs_finished_trajectories_in_turn(model, tmp_path: Pat
     viewer = CampaignViewer(recording, model.geometry.skin.triangles)
     viewer.log_trajectory(2, arrays)
     viewer.log_trajectory(2, arrays)
+    viewer.log_trajectory(5, arrays)
     viewer.close()
     logged = _entities(out)
     assert len(logged["biotac2/skin"]["Mesh3D:vertex_positions"]) == 2 * len(DEPTHS)
     assert np.array(logged["series/biotac2/force"]["Scalars:scalars"]).shape == (2 * len(DEPTHS), 3)
+    skins = {("3D", "/biotac2", "$origin/**"), ("3D", "/biotac5", "$origin/**")}
+    tabbed = [views for views, kinds in _layouts(out) if skins <= views and 1 in kinds]  # re-sent: a tab per sensor
+    assert len(tabbed) == 1 and ("TimeSeries", "/series", "/series/biotac5/force") in tabbed[0]
     with pytest.raises(ValueError, match="row_nodal_res"):
         viewer.log_trajectory(2, {k: v for k, v in arrays.items() if k != "row_nodal_res"})
 

@@ -4,7 +4,16 @@
 trajectories; the gymnasium environments log every step with `render_mode="rerun"`. docs/view.md.
 """
 
+from twin.view.layout import default_blueprint
 from twin.view.scene import SkinScene, open_recording
 from twin.view.sources import CampaignViewer, log_dataset, log_path, log_report
 
-__all__ = ["CampaignViewer", "SkinScene", "log_dataset", "log_path", "log_report", "open_recording"]
+__all__ = [
+    "CampaignViewer",
+    "SkinScene",
+    "default_blueprint",
+    "log_dataset",
+    "log_path",
+    "log_report",
+    "open_recording",
+]

@@ -1,7 +1,8 @@
 """What `twin view` logs: campaign datasets (HDF5), `twin compare` reports, trajectories of a live campaign.
 
-A trajectory is logged row by row (the dataset's subsampled rows: one per depth increment) on the
-timelines `row` (sequence, running on across trajectories) and `time` (the backend clock, s). The skin
+A trajectory is logged as whole columns (rr.send_columns; the dataset's subsampled rows: one per depth
+increment) on the timelines `row` (sequence, running on across trajectories) and `time` (the backend
+clock, s). The skin
 displacement is the file's `nodal_res` where it has it (simulated campaigns); otherwise the trajectory's
 planned path (touch point + depth * direction) is replayed through the nominal FE model of the file's
 mesh size (nominal skin parameters, as `twin compare`'s default model).
@@ -19,6 +20,7 @@ from assets.biotac import electrode_table
 from assets.indenters import INDENTERS
 from twin.dataset import open_dataset
 from twin.envs.fe_batch import shared_model
+from twin.view.layout import default_blueprint
 from twin.view.scene import SkinScene, log_residual_field
 
 ROW_FEATURES = ("time", "depth", "contact_loc", "force", "electrode_vals", "pdc", "fe_pressure", "nodal_res")
@@ -28,25 +30,24 @@ REPORT_FIELD = "residual_field.npz"
 
 def log_rows(scene: SkinScene, rows: dict[str, np.ndarray], rotation: np.ndarray, indenter: str, first_row: int) -> int:
     """Log one trajectory's rows (features as in docs/dataset.md, `nodal_res` (N, V, 3) m required) with
-    the indenter's rotation (3, 3) body->biotac; returns the next free `row` index. Rows without a finite
-    displacement (after an FE failure in a replay) are skipped."""
+    the indenter's rotation (3, 3) body->biotac as whole columns at `row` first_row.. (and `time`);
+    returns the next free `row` index. Rows without a finite displacement (after an FE failure in a
+    replay) are left out."""
     displacement = rows["nodal_res"]
     scene.set_indenter(indenter)
-    rec = scene.recording
-    for k in range(len(displacement)):
-        if not np.all(np.isfinite(displacement[k])):
-            continue
-        rec.set_time("row", sequence=first_row + k)
-        if "time" in rows:
-            rec.set_time("time", duration=float(rows["time"][k]))
-        scene.log_state(
-            displacement[k],
+    kept = np.flatnonzero(np.all(np.isfinite(displacement.reshape(len(displacement), -1)), axis=1))
+    if len(kept):
+        column = {name: rows[name][kept] if name in rows else None for name in ROW_FEATURES}
+        scene.log_states(
+            first_row + kept,
+            column["time"],
+            column["nodal_res"],
             rotation=rotation,
-            tip=rows["contact_loc"][k] if "contact_loc" in rows else None,
-            force=rows["force"][k] if "force" in rows else None,
-            electrodes=rows["electrode_vals"][k] if "electrode_vals" in rows else None,
-            pressure=float(rows["fe_pressure"][k]) if "fe_pressure" in rows else None,
-            pdc=float(rows["pdc"][k]) if "pdc" in rows else None,
+            tip=column["contact_loc"],
+            force=column["force"],
+            electrodes=column["electrode_vals"],
+            pressure=column["fe_pressure"],
+            pdc=column["pdc"],
         )
     return first_row + len(displacement)
 
@@ -135,8 +136,9 @@ def log_path(recording: rr.RecordingStream, path: Path, trajectory_ids: list[int
 
 
 class CampaignViewer:
-    """Live view of a running campaign: one skin scene per sensor (`biotac<id>`), each finished trajectory
-    logged from its part-file arrays (`twin.campaign.trajectory_arrays` plus the FE rows and
+    """Live view of a running campaign: one skin scene per sensor (`biotac<id>`; the default layout is
+    re-sent with a tab per sensor when a new one appears), each finished trajectory logged from its
+    part-file arrays (`twin.campaign.trajectory_arrays` plus the FE rows and
     `mesh_reference`, as `twin.dataset.read_part` returns them).
 
     triangles: (T, 3) the campaign's skin mesh (`make_biotac(config.mesh_max_edge).skin.triangles`).
@@ -169,6 +171,7 @@ class CampaignViewer:
                 f"biotac{sensor_id}",
             )
             self._next_row[sensor_id] = 0
+            self.recording.send_blueprint(default_blueprint([f"biotac{s}" for s in sorted(self._scenes)]))
         rows = {k[4:]: v for k, v in arrays.items() if k.startswith("row_") and k[4:] in ROW_FEATURES}
         indenter = list(INDENTERS)[int(arrays["meta_indenter_type"])]
         self._next_row[sensor_id] = log_rows(
