@@ -50,6 +50,12 @@ class Effect:
     probe: dict[str, float] = field(default_factory=dict)
     """Values at which to linearise while the effect is off, for parameters that do nothing at the off
     point (a relaxation time while the relaxing fraction is zero); empty: linearise at the off point."""
+    starts: tuple[dict[str, float], ...] = ()
+    """Values across the range at which a search also tries the effect (each a prediction), for effects
+    whose slope at the off value misjudges a large size (a registration offset of a millimetre)."""
+    linear: bool = False
+    """The measurement is linear in the parameters (an F/T calibration matrix, a drift rate): a linear
+    least-squares fit is exact and needs no nonlinear polish."""
 
     def values(self, given: dict[str, float] | None = None) -> dict[str, float]:
         """Every parameter's value: `given` where present, the off value otherwise (bounds checked)."""
@@ -125,6 +131,17 @@ def _crosstalk(times: np.ndarray, clean: CleanWrench, v: dict[str, float]) -> np
     return wrench
 
 
+_CALIBRATION_TERMS = tuple(row + column for row in "xyz" for column in "xyz")
+"""Entries of the F/T force calibration map: "xy" is the reading on x per newton on y."""
+
+
+def _calibration(times: np.ndarray, clean: CleanWrench, v: dict[str, float]) -> np.ndarray:
+    mapping = np.array([[v[row + column] for column in "xyz"] for row in "xyz"])
+    wrench = np.array(clean(times), dtype=float)
+    wrench[:, :3] = wrench[:, :3] @ mapping.T
+    return wrench
+
+
 def _gain(times: np.ndarray, clean: CleanWrench, v: dict[str, float]) -> np.ndarray:
     wrench = np.array(clean(times), dtype=float)
     wrench[:, :3] *= v["scale"]
@@ -140,6 +157,17 @@ def _quadratic(times: np.ndarray, clean: CleanWrench, v: dict[str, float]) -> np
 
 def _mm(name: str) -> EffectParameter:
     return EffectParameter(name, 0.0, -3e-3, 3e-3, 2e-4, "m")
+
+
+def _calibration_parameter(term: str) -> EffectParameter:
+    """A calibration-map entry: a gain (diagonal, 1 off) or a cross-axis term (0 off)."""
+    if term[0] == term[1]:
+        return EffectParameter(term, 1.0, 0.5, 1.5, 0.02, "1")
+    return EffectParameter(term, 0.0, -0.2, 0.2, 0.01, "1")
+
+
+_REGISTRATION_STARTS = tuple({axis: sign * 1e-3} for axis in ("dx", "dy", "dz") for sign in (-1.0, 1.0))
+"""A millimetre along each axis, both ways: where a registration search also looks (paper: 0.5-1.5 mm)."""
 
 
 EFFECTS: dict[str, Effect] = {
@@ -212,6 +240,7 @@ EFFECTS: dict[str, Effect] = {
             (_mm("dx"), _mm("dy"), _mm("dz")),
             ("force", "pdc", "electrodes"),
             path=_registration,
+            starts=_REGISTRATION_STARTS,
         ),
         Effect(
             "time_delay",
@@ -220,6 +249,7 @@ EFFECTS: dict[str, Effect] = {
             (EffectParameter("seconds", 0.0, 0.0, 0.5, 0.02, "s"),),
             ("force",),
             wrench=_delay,
+            starts=({"seconds": 0.1}, {"seconds": 0.25}),
         ),
         Effect(
             "ft_drift",
@@ -228,6 +258,7 @@ EFFECTS: dict[str, Effect] = {
             tuple(EffectParameter(f"f{a}_rate", 0.0, -0.02, 0.02, 2e-4, "N/s") for a in "xyz"),
             ("force",),
             wrench=_drift,
+            linear=True,
         ),
         Effect(
             "ft_crosstalk",
@@ -236,6 +267,7 @@ EFFECTS: dict[str, Effect] = {
             tuple(EffectParameter(t, 0.0, -0.2, 0.2, 0.01, "1") for t in _CROSSTALK_TERMS),
             ("force",),
             wrench=_crosstalk,
+            linear=True,
         ),
         Effect(
             "ft_gain",
@@ -244,6 +276,17 @@ EFFECTS: dict[str, Effect] = {
             (EffectParameter("scale", 1.0, 0.5, 1.5, 0.02, "1"),),
             ("force",),
             wrench=_gain,
+            linear=True,
+        ),
+        Effect(
+            "ft_calibration",
+            "F/T force calibration error as one 3x3 map (sensor frame): per-axis gains and cross-axis terms "
+            "together; ft_gain (equal gains) and ft_crosstalk (cross terms only) are its sub-cases.",
+            "measurement",
+            tuple(_calibration_parameter(t) for t in _CALIBRATION_TERMS),
+            ("force",),
+            wrench=_calibration,
+            linear=True,
         ),
     )
 }
@@ -262,7 +305,7 @@ UNLISTED_EFFECTS: dict[str, Effect] = {
 """Effects a plant can carry but the library (what diagnosis tries) does not list: tests and benchmarks
 use them to check that an effect outside the library comes out "unexplained"."""
 
-MEASUREMENT_ORDER = ("time_delay", "ft_crosstalk", "ft_gain", "ft_nonlinearity", "ft_drift")
+MEASUREMENT_ORDER = ("time_delay", "ft_crosstalk", "ft_calibration", "ft_gain", "ft_nonlinearity", "ft_drift")
 """Order of the F/T signal chain: the sensor sees a delayed load, mixes and scales it, then drifts."""
 
 

@@ -38,6 +38,13 @@ def _crosstalk(rng: np.random.Generator) -> dict[str, float]:
     return {str(t): _signed(rng, 0.08, 0.15) for t in terms}
 
 
+def _calibration(rng: np.random.Generator) -> dict[str, float]:
+    """One axis's gain off by 8-15 % and one cross-axis term of 5-10 % (a sensor calibrated per axis)."""
+    axis = str(rng.choice(list("xyz")))
+    cross = str(rng.choice([a + b for a in "xyz" for b in "xyz" if a != b]))
+    return {axis + axis: _either(rng, 0.08, 0.15), cross: _signed(rng, 0.05, 0.1)}
+
+
 HIDDEN_DRAWS: dict[str, Callable[[np.random.Generator], dict[str, float]]] = {
     "skin_thickness": lambda rng: {"scale": _either(rng, 0.12, 0.25)},
     "skin_modulus": lambda rng: {"scale": _either(rng, 0.15, 0.3)},
@@ -51,6 +58,7 @@ HIDDEN_DRAWS: dict[str, Callable[[np.random.Generator], dict[str, float]]] = {
     "ft_drift": lambda rng: {f"f{a}_rate": _signed(rng, 0.002, 0.006) for a in "xyz"},
     "ft_crosstalk": _crosstalk,
     "ft_gain": lambda rng: {"scale": _either(rng, 0.08, 0.15)},
+    "ft_calibration": _calibration,
     "ft_nonlinearity": lambda rng: {"coefficient": _signed(rng, 0.08, 0.15)},
 }
 """How each effect's hidden size is drawn (the library's and the unlisted ones)."""

@@ -12,14 +12,19 @@ has unit variance.
 
 Evidence without refitting: for each candidate effect (off in the model), the sensitivity J of the
 whitened prediction to the effect's parameters is taken by finite differences at the model (cheap for
-measurement effects: fe replays are cached; one replay per parameter for physics effects). The
-bounded linear least-squares fit of the residual on J gives the chi-square drop an effect can explain
-(a score test, evaluated to second order); candidates are ranked by it minus a BIC penalty.
+measurement effects: fe replays are cached; one replay per parameter for physics effects). An effect
+that declares starts across its range (a registration offset of a millimetre, a long delay) is
+linearised again at the start that predicts the data best, so a large effect is not judged by its
+slope at zero. The bounded linear least-squares fit of the residual on J gives the chi-square drop an
+effect can explain (a score test, evaluated to second order); candidates are ranked by it minus a BIC
+penalty.
 
 The top few are then refitted with chord iterations (the same J, re-predicting nonlinearly after
-each step) and judged on held-out data: each indenter in turn is left out of the linearised fit and
-predicted. The verdict names the effect only when it is clearly best, explains the excess residual
-down to 1.3 times the noise, and is identifiable; otherwise it says "unexplained" or "nothing".
+each step) and judged held out about their refit: each indenter in turn is left out of the fit
+(linearised at the refitted values) and predicted. The verdict (`twin.analysis.verdict`) names an
+effect only when that held-out residual passes the noise test (`twin.analysis.significance`, a
+chi-square test whose threshold shrinks as the data grow), its parameters are identifiable and no
+other comes close; "nothing" when the base residual passes the test; "unexplained" otherwise.
 """
 
 from __future__ import annotations
@@ -35,13 +40,13 @@ from assets.indenters import get_indenter
 from twin.analysis.compare import FORCE_CHANNELS, noise_estimate, time_in_increment
 from twin.analysis.data import CampaignData, TrajectoryRecord
 from twin.analysis.predict import Predictor, TwinModel, measured_force_fullrate, measured_pdc_fullrate
+from twin.analysis.significance import NoiseTest, noise_test
+from twin.analysis.verdict import Candidate, order_candidates, parameters_at_bound, verdict
 from twin.effects import EFFECTS, Effect
 
 NOISE_TOLERANCE = 1.3
-"""An explanation must bring the whitened residual RMS to at most this multiple of the noise."""
-EVIDENCE_MARGIN = 10.0
-"""The best candidate's evidence (2 ln Bayes factor, BIC approximation) must exceed the runner-up's by
-this much to be named alone: "very strong" on the Kass-Raftery scale. Below it the two are tied."""
+"""Screen before refits: candidates whose linearised held-out RMS is within this multiple of the noise
+rank ahead of those that are not. Naming uses the noise test (`twin.analysis.significance`) instead."""
 CHANNELS = (*FORCE_CHANNELS, "pdc")
 """Residual channels, in the order of the last axis of every signal array."""
 PDC_GAIN_PRIOR = 0.05
@@ -60,24 +65,6 @@ class Residual:
 
 
 @dataclass
-class Candidate:
-    """Evidence for one effect."""
-
-    name: str
-    kind: str
-    parameters: dict[str, float]  # linearised best fit
-    chi2_drop: float
-    evidence: float  # chi2_drop - k log N
-    explained_fraction: float  # of the excess chi2 over the noise
-    heldout_rms: float | None = None  # whitened RMS on left-out indenters (linearised)
-    refit_rms: float | None = None  # whitened RMS after the nonlinear refit on all data
-    refit_parameters: dict[str, float] = field(default_factory=dict)
-    correlation: list[list[float]] = field(default_factory=list)
-    condition: float = float("nan")
-    identifiable: bool = True
-
-
-@dataclass
 class Diagnosis:
     """The outcome: ranked candidates, residual signatures and a verdict."""
 
@@ -87,16 +74,18 @@ class Diagnosis:
     verdict: str  # "nothing", an effect name, "ambiguous" or "unexplained"
     reason: str
     tied: list[str] = field(default_factory=list)  # with "ambiguous": the effects that explain it equally
+    rms_threshold: float = float("nan")  # the noise test's whitened RMS threshold on these data
 
     def to_dict(self) -> dict:
         """JSON-ready form (the `twin diagnose --json` shape)."""
         return {
             "base_rms_over_noise": self.base_rms,
+            "noise_rms_threshold": self.rms_threshold,
             "verdict": self.verdict,
             "reason": self.reason,
             "tied": self.tied,
             "signatures": self.signatures,
-            "candidates": [c.__dict__ for c in self.candidates],
+            "candidates": [dict(c.__dict__) for c in self.candidates],
         }
 
     def to_json(self) -> str:
@@ -244,6 +233,19 @@ class _Base:
         predicted = _whitened(_fullrate_prediction(predictor, model, self.trajectories), self.masks, self.sigma)
         return self.nuisance.project(predicted - self.prediction)
 
+    def noise_test(self, values: np.ndarray) -> NoiseTest:
+        """The noise test (`twin.analysis.significance`) of a whitened residual on this residual's samples
+        (NaN skipped): the nuisances are each trajectory's channel offsets and each sensor's PDC gain,
+        and each channel's noise was estimated from every trajectory's successive differences."""
+        axis = self.residual.covariates["axis"]
+        finite = np.isfinite(values)
+        channels = range(len(CHANNELS))
+        squares = [float(np.sum(values[finite & (axis == c)] ** 2)) for c in channels]
+        counts = [int(np.sum(finite & (axis == c))) for c in channels]
+        differences = sum(len(t.raw.time) - 1 for t in self.trajectories)
+        nuisances = len(CHANNELS) * len(self.trajectories) + len(np.unique(self.residual.covariates["sensor"]))
+        return noise_test(squares, counts, [differences] * len(CHANNELS), nuisances)
+
 
 def _base_residual(datasets: list[CampaignData], model: TwinModel, predictor: Predictor) -> _Base:
     trajectories = [t for d in datasets for t in d.trajectories]
@@ -306,12 +308,32 @@ def linearise(
 
 
 def sensitivity(effect: Effect, model: TwinModel, predictor: Predictor, base: _Base) -> Linearisation:
-    """Linearise the effect at the model's values, or, when the effect is off there and declares a probe
-    (parameters that act only once it is on), at the probe."""
+    """Linearise the effect where its fit is best begun: at the model's values, or, when the effect is
+    off there and declares a probe (parameters that act only once it is on), at the probe; and when it is
+    off and declares starts (values across its range), at the start or the first linearisation's fit,
+    whichever leaves the least profiled chi-square when predicted nonlinearly (one prediction each), so
+    an effect far from its off value is fitted about a point near it."""
     point = effect.values(model.effects.get(effect.name))
-    if effect.probe and effect.is_off(point):
+    off = effect.is_off(point)
+    if effect.probe and off:
         point = {**point, **effect.probe}
-    return linearise(effect, model, point, predictor, base)
+    lin = linearise(effect, model, point, predictor, base)
+    if not (off and effect.starts):
+        return lin
+    r = base.residual.values
+    fitted = _clipped(effect, point, _linear_fit(effect, point, lin.jac, r - lin.offset))
+    trials = [fitted, *(effect.values({**point, **start}) for start in effect.starts)]
+    costs = [base.nuisance.chi2(r - base.shifted(predictor, model.with_effects({effect.name: t}))) for t in trials]
+    best = int(np.nanargmin(costs))
+    return lin if best == 0 else linearise(effect, model, trials[best], predictor, base)
+
+
+def _clipped(effect: Effect, point: dict[str, float], delta: np.ndarray) -> dict[str, float]:
+    """`point` moved by `delta` (one entry per parameter), clipped to each parameter's bounds."""
+    return {
+        p.name: float(np.clip(point[p.name] + d, p.lower, p.upper))
+        for p, d in zip(effect.parameters, delta, strict=True)
+    }
 
 
 def _linear_fit(effect: Effect, current: dict[str, float], jac: np.ndarray, r: np.ndarray) -> np.ndarray:
@@ -333,8 +355,9 @@ def diagnose(
     on_progress: Callable[[str, str], None] | None = None,
 ) -> Diagnosis:
     """Rank the library's effects (off in `model`) by how well each explains the residual; the first
-    `top` of the ranking are refitted. on_progress(stage, effect) is called before each candidate's
-    sensitivity ("evidence") and refit ("refit")."""
+    `top` of the ranking are refitted and judged held out about their refit (`twin.analysis.verdict`).
+    on_progress(stage, effect) is called before each candidate's sensitivity ("evidence") and refit
+    ("refit")."""
     if top < 0:
         raise ValueError(f"the number of candidates to refit must be >= 0, got {top}")
     report = on_progress or (lambda stage, name: None)
@@ -362,7 +385,7 @@ def diagnose(
             evidence=drop - len(delta) * np.log(n),
             explained_fraction=drop / excess if excess > 0 else 0.0,
         )
-        _heldout(candidate, lin, r, residual.indenter)
+        candidate.heldout_rms = _heldout(effect, lin, r, residual.indenter)[0]
         ranked.append((candidate, lin))
     # Evidence can be fooled by a flexible effect that fits every indenter its own way: those that
     # also predict left-out indenters to within the tolerance rank ahead of those that do not.
@@ -371,32 +394,47 @@ def diagnose(
         report("refit", candidate.name)
         _identifiability(candidate, lin.jac)
         _refit(candidate, model, predictor, base, lin)
-    ordered = [c for c, _ in ranked]
-    verdict, reason, tied = _verdict(base_rms, ordered)
-    return Diagnosis(base_rms, signatures(residual), ordered, verdict, reason, tied)
+        _judge_heldout(candidate, model, predictor, base)
+    ordered = order_candidates([c for c, _ in ranked])
+    base_test = base.noise_test(r)
+    threshold = base_test.rms_threshold
+    outcome, reason, tied = verdict(base_rms, base_test.is_noise, threshold, ordered)
+    return Diagnosis(base_rms, signatures(residual), ordered, outcome, reason, tied, threshold)
 
 
 def generalises(candidate: Candidate) -> bool:
-    """Whether the candidate's held-out RMS (when there is one) is within the noise tolerance."""
+    """Whether the candidate's held-out RMS (when there is one) is within the screening tolerance."""
     return candidate.heldout_rms is None or candidate.heldout_rms <= NOISE_TOLERANCE
 
 
-def _heldout(candidate: Candidate, lin: Linearisation, r: np.ndarray, indenter: np.ndarray) -> None:
-    """Leave-one-indenter-out: fit the linearised effect on the rest, score the whitened RMS on the left-out."""
-    effect = EFFECTS[candidate.name]
+def _heldout(
+    effect: Effect, lin: Linearisation, r: np.ndarray, indenter: np.ndarray
+) -> tuple[float | None, np.ndarray]:
+    """Leave-one-indenter-out about `lin`: the effect fitted (linearised) on the other indenters predicts
+    each left-out one. (whitened RMS of the left-out residuals, those residuals (N,), NaN where no
+    prediction); (None, r - offset) with fewer than two indenters."""
+    target = r - lin.offset
     groups = np.unique(indenter)
     if len(groups) < 2:
-        candidate.heldout_rms = None
-        return
-    target = r - lin.offset
-    squared, count = 0.0, 0
+        return None, target
+    left_out = np.full_like(target, np.nan)
     for g in groups:
         train, test = indenter != g, indenter == g
         delta = _linear_fit(effect, lin.point, lin.jac[train], target[train])
-        misfit = (target[test] - lin.jac[test] @ delta) ** 2
-        squared += float(np.nansum(misfit))
-        count += int(np.isfinite(misfit).sum())
-    candidate.heldout_rms = float(np.sqrt(squared / count))
+        left_out[test] = target[test] - lin.jac[test] @ delta
+    return _rms(left_out), left_out
+
+
+def _judge_heldout(candidate: Candidate, model: TwinModel, predictor: Predictor, base: _Base) -> None:
+    """Held-out RMS about the refitted values (the effect linearised again there: one fe replay per
+    parameter for a physics effect) and whether that held-out residual passes the noise test; and which
+    refitted parameters sit at a bound."""
+    effect = EFFECTS[candidate.name]
+    at_fit = linearise(effect, model, candidate.refit_parameters, predictor, base)
+    rms, left_out = _heldout(effect, at_fit, base.residual.values, base.residual.indenter)
+    candidate.heldout_rms = rms
+    candidate.heldout_is_noise = base.noise_test(left_out).is_noise
+    candidate.at_bound = parameters_at_bound(candidate.name, candidate.refit_parameters)
 
 
 def _identifiability(candidate: Candidate, jac: np.ndarray) -> None:
@@ -432,16 +470,12 @@ def _refit(
     best = (_rms(misfit(start)), start)
     residual = base.residual.values - lin.offset
     for iteration in range(iterations):
-        delta = _linear_fit(effect, values, lin.jac, residual)
-        values = {
-            p.name: float(np.clip(values[p.name] + d, p.lower, p.upper))
-            for p, d in zip(effect.parameters, delta, strict=True)
-        }
+        values = _clipped(effect, values, _linear_fit(effect, values, lin.jac, residual))
         residual = misfit(values)
         more = iteration + 1 < iterations
-        if more and effect.kind == "physics" and _rms(residual) > NOISE_TOLERANCE:
+        if more and effect.kind == "physics" and not base.noise_test(residual).is_noise:
             lin = linearise(effect, model, values, predictor, base)
-    if effect.kind == "measurement":
+    if effect.kind == "measurement" and not effect.linear:
         values, residual = _polish(effect, values, misfit)
     # Never end above the starting point (the model as given): a step the linearisation misjudged is undone.
     candidate.refit_rms, candidate.refit_parameters = min(best, (_rms(residual), values), key=lambda b: b[0])
@@ -477,47 +511,6 @@ def _polish(effect: Effect, start: dict[str, float], misfit) -> tuple[dict[str, 
     return values, misfit(values)
 
 
-def _verdict(base_rms: float, candidates: list[Candidate]) -> tuple[str, str, list[str]]:
-    """(verdict, reason, tied): "nothing", an effect's name, "ambiguous" (the first few explain the data
-    equally well: `tied` names them, best first) or "unexplained"."""
-    if base_rms <= NOISE_TOLERANCE:
-        return "nothing", f"the residual is already within {NOISE_TOLERANCE}x the noise ({base_rms:.2f}x)", []
-    if not candidates or candidates[0].evidence <= 0:
-        return "unexplained", "no candidate effect explains a significant part of the residual", []
-    best = candidates[0]
-    if best.refit_rms is None or best.refit_rms > NOISE_TOLERANCE:
-        return (
-            "unexplained",
-            f"the best candidate ({best.name}) leaves {best.refit_rms:.2f}x the noise after refitting",
-            [],
-        )
-    if not best.identifiable:
-        return "unexplained", f"{best.name} fits, but its parameters are not identifiable from these data", []
-    tied = [
-        c.name
-        for c in candidates
-        if generalises(c) == generalises(best) and best.evidence - c.evidence < EVIDENCE_MARGIN
-    ]
-    if len(tied) > 1:
-        margins = ", ".join(f"{c.name} {best.evidence - c.evidence:.1f}" for c in candidates[1 : len(tied)])
-        return (
-            "ambiguous",
-            (
-                f"{' and '.join(tied)} explain the residual about equally well (evidence behind {best.name}: "
-                f"{margins}; {EVIDENCE_MARGIN:g} is needed); {best.name} ranks first"
-            ),
-            tied,
-        )
-    return (
-        best.name,
-        (
-            f"{best.name} explains {best.explained_fraction:.0%} of the excess residual; "
-            f"refitted RMS {best.refit_rms:.2f}x noise (held-out {best.heldout_rms or float('nan'):.2f}x)"
-        ),
-        [],
-    )
-
-
 @dataclass(frozen=True)
 class EffectFit:
     """An effect fitted to data: its values, and whitened RMS (1 = noise) before, after and held out."""
@@ -528,6 +521,8 @@ class EffectFit:
     rms_after: float
     heldout_rms: float | None
     model: TwinModel
+    heldout_is_noise: bool | None = None  # the held-out residual passes the noise test
+    at_bound: list[str] = field(default_factory=list)  # fitted parameters at a bound of their range
 
 
 def fit_effect(
@@ -545,7 +540,14 @@ def fit_effect(
     _refit(candidate, model, predictor, base, lin, iterations=4)
     rms_before = float(np.sqrt(np.mean(residual.values**2)))
     improved = model.with_effects({name: candidate.refit_parameters})
-    # Held out: linearised again at the fit, refitted without each indenter in turn, scored on it.
-    at_fit = linearise(effect, model, candidate.refit_parameters, predictor, base)
-    _heldout(candidate, at_fit, residual.values, residual.indenter)
-    return EffectFit(name, candidate.refit_parameters, rms_before, candidate.refit_rms, candidate.heldout_rms, improved)
+    _judge_heldout(candidate, model, predictor, base)
+    return EffectFit(
+        name,
+        candidate.refit_parameters,
+        rms_before,
+        candidate.refit_rms,
+        candidate.heldout_rms,
+        improved,
+        candidate.heldout_is_noise,
+        candidate.at_bound,
+    )

@@ -1,0 +1,61 @@
+"""An independent generator of measurement effects: applied to a campaign file's raw F/T streams.
+
+Written apart from `twin.plant`, `twin.effects` and `twin.analysis` (it imports none of them): it reads
+the file with h5py, changes each trajectory's full-rate F/T force reading (`raw/<id>/wrench`, sensor
+frame, untared) and recomputes the subsampled `force` rows the way the testbed's processing documents
+it (docs/dataset.md, Narang et al.): tare at the first sample, rotate into the biotac frame with the
+trajectory's `sensor_in_biotac`, first-order 5 Hz zero-phase Butterworth low-pass, the last sample of
+each increment. Before changing anything it checks that this recomputation reproduces the file's own
+rows, so a file it writes is what the testbed would have written had the sensor carried the effect.
+"""
+
+from __future__ import annotations
+
+import shutil
+from pathlib import Path
+
+import h5py
+import numpy as np
+from scipy.signal import butter, filtfilt
+
+CUTOFF_HZ = 5.0
+"""The paper's force filter: first order, 5 Hz, forward and backward."""
+ROWS_AGREE_N = 1e-9
+"""How closely the recomputed rows must match the file's before any change (N)."""
+
+
+def _rows_force(
+    time: np.ndarray, wrench: np.ndarray, increment: np.ndarray, sensor_in_biotac: np.ndarray
+) -> np.ndarray:
+    """(R, 3) row forces (N, biotac frame) of one trajectory from its raw stream (see module docstring)."""
+    force = (wrench[:, :3] - wrench[0, :3]) @ sensor_in_biotac[:3, :3].T
+    rate = 1.0 / np.median(np.diff(time))
+    b, a = butter(1, CUTOFF_HZ / (0.5 * rate))
+    smooth = filtfilt(b, a, force, axis=0) if len(force) > 3 * max(len(a), len(b)) else force
+    last = np.flatnonzero(np.diff(increment, append=increment[-1] + 1) != 0)
+    return smooth[last[increment[last] >= 0]]
+
+
+def apply_ft_map(source: Path, out: Path, mapping: np.ndarray) -> Path:
+    """Copy `source` to `out` with every trajectory's F/T force reading mapped by the 3x3 `mapping`
+    (sensor frame: reading = mapping @ true force, the bias included, as a miscalibrated sensor reads)
+    and its force rows recomputed. Raises when the recomputation does not reproduce the source rows."""
+    mapping = np.asarray(mapping, dtype=float)
+    shutil.copyfile(source, out)
+    with h5py.File(out, "r+") as f:
+        meta = f["trajectories"]
+        rows = f["force/data"]
+        forces = rows[()]
+        for i, tid in enumerate(meta["trajectory_id"][()]):
+            raw = f[f"raw/{int(tid)}"]
+            time, wrench, increment = raw["time"][()], raw["wrench"][()], raw["increment"][()]
+            rotation = meta["sensor_in_biotac"][i]
+            first, n = int(meta["first_row"][i]), int(meta["n_rows"][i])
+            again = _rows_force(time, wrench, increment, rotation)
+            if again.shape != (n, 3) or np.abs(again - forces[first : first + n]).max() > ROWS_AGREE_N:
+                raise RuntimeError(f"trajectory {tid}: the recomputed rows do not match the file's")
+            wrench[:, :3] = wrench[:, :3] @ mapping.T
+            raw["wrench"][...] = wrench
+            forces[first : first + n] = _rows_force(time, wrench, increment, rotation)
+        rows[...] = forces
+    return out

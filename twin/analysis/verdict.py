@@ -1,0 +1,114 @@
+"""The diagnosis's verdict: name an effect only when its fit generalises to data it was not fitted on.
+
+A candidate is named when its held-out residual (each indenter predicted by the effect fitted without
+it, about the refitted values) passes the noise test of `twin.analysis.significance`, its parameters
+are identifiable, and no other such candidate comes within `EVIDENCE_MARGIN` of its evidence.
+Otherwise the verdict is "unexplained" and the reason lists the closest candidates with their held-out
+and refitted figures. A fitted parameter at a bound of its range is reported in the reason and in the
+candidate's `at_bound`.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+from twin.effects import EFFECTS
+
+EVIDENCE_MARGIN = 10.0
+"""The best candidate's evidence (2 ln Bayes factor, BIC approximation) must exceed the runner-up's by
+this much to be named alone: "very strong" on the Kass-Raftery scale. Below it the two are tied."""
+CLOSEST_SHOWN = 3
+"""How many candidates an "unexplained" verdict lists."""
+
+
+@dataclass
+class Candidate:
+    """Evidence for one effect. RMS figures are whitened (1 = the noise)."""
+
+    name: str
+    kind: str
+    parameters: dict[str, float]  # linearised best fit
+    chi2_drop: float
+    evidence: float  # chi2_drop - k log N
+    explained_fraction: float  # of the excess chi2 over the noise
+    heldout_rms: float | None = None  # on left-out indenters; about the refit once refitted, else linearised
+    refit_rms: float | None = None  # after the nonlinear refit on all data
+    refit_parameters: dict[str, float] = field(default_factory=dict)
+    correlation: list[list[float]] = field(default_factory=list)
+    condition: float = float("nan")
+    identifiable: bool = True
+    at_bound: list[str] = field(default_factory=list)  # refitted parameters at a bound of their range
+    heldout_is_noise: bool | None = None  # the held-out residual passes the noise test (None: not judged)
+
+    @property
+    def refitted(self) -> bool:
+        """Whether the candidate was refitted (and its held-out figure judged about the refit)."""
+        return self.refit_rms is not None
+
+
+def parameters_at_bound(name: str, values: dict[str, float], tolerance: float = 1e-6) -> list[str]:
+    """The parameters of effect `name` whose `values` sit at a bound (within `tolerance` of its range)."""
+    out = []
+    for p in EFFECTS[name].parameters:
+        span = p.upper - p.lower
+        if p.name in values and min(values[p.name] - p.lower, p.upper - values[p.name]) <= tolerance * span:
+            out.append(p.name)
+    return out
+
+
+def _figures(c: Candidate) -> str:
+    held = "-" if c.heldout_rms is None else f"{c.heldout_rms:.2f}x"
+    refit = "-" if c.refit_rms is None else f"{c.refit_rms:.2f}x"
+    bound = (
+        f"; {', '.join(c.at_bound)} at {'its bound' if len(c.at_bound) == 1 else 'their bounds'}" if c.at_bound else ""
+    )
+    return f"{c.name} (held out {held}, refit {refit}{bound})"
+
+
+def order_candidates(candidates: list[Candidate]) -> list[Candidate]:
+    """Refitted candidates whose held-out residual is noise first, then the other refitted ones, each by
+    evidence; then the rest in their given order."""
+    refitted = [c for c in candidates if c.refitted]
+    rest = [c for c in candidates if not c.refitted]
+    refitted.sort(key=lambda c: (not c.heldout_is_noise, -c.evidence))
+    return refitted + rest
+
+
+def verdict(base_rms: float, base_is_noise: bool, rms_threshold: float, candidates: list[Candidate]) -> tuple:
+    """(verdict, reason, tied) for candidates ordered by `order_candidates`: "nothing" (the base residual
+    passes the noise test), an effect's name, "ambiguous" (`tied` names those that explain the data
+    equally well, best first) or "unexplained"."""
+    if base_is_noise:
+        return "nothing", f"the residual ({base_rms:.2f}x the noise) passes the noise test ({rms_threshold:.3f}x)", []
+    if not candidates or max(c.evidence for c in candidates) <= 0:
+        return "unexplained", "no candidate effect explains a significant part of the residual", []
+    named = [c for c in candidates if c.refitted and c.heldout_is_noise and c.identifiable]
+    if not named:
+        closest = sorted((c for c in candidates if c.refitted), key=lambda c: c.heldout_rms or float("inf"))
+        shown = "; ".join(_figures(c) for c in closest[:CLOSEST_SHOWN]) or "none refitted"
+        why = [f"no refitted candidate brings the held-out residual to the noise ({rms_threshold:.3f}x)"]
+        if any(c.heldout_is_noise and not c.identifiable for c in closest):
+            why.append("or those that do have parameters these data cannot identify")
+        return "unexplained", f"{' '.join(why)}; closest: {shown}", []
+    best = named[0]
+    tied = [best.name] + [
+        c.name
+        for c in candidates
+        if c is not best
+        and (c.heldout_is_noise or not c.refitted)
+        and abs(best.evidence - c.evidence) < EVIDENCE_MARGIN
+    ]
+    if len(tied) > 1:
+        margins = ", ".join(f"{c.name} {best.evidence - c.evidence:.1f}" for c in candidates if c.name in tied[1:])
+        return (
+            "ambiguous",
+            f"{' and '.join(tied)} explain the residual about equally well (evidence behind {best.name}: {margins}; "
+            f"{EVIDENCE_MARGIN:g} is needed); {_figures(best)} ranks first",
+            tied,
+        )
+    return (
+        best.name,
+        f"{best.name} explains {best.explained_fraction:.0%} of the excess residual; {_figures(best)}, "
+        f"within the noise test's {rms_threshold:.3f}x",
+        [],
+    )
