@@ -1,5 +1,8 @@
 """The MuJoCo testbed: FK agreement, frames of the mount, collision checks, tools, the left/right rule."""
 
+import gzip
+from pathlib import Path
+
 import mujoco
 import numpy as np
 import pytest
@@ -7,7 +10,19 @@ import pytest
 from assets.biotac import make_biotac, outer_surface
 from assets.tools import TOOLS
 from twin.kinematics import forward, inverse, inverse_axis, joint_limits
-from twin.scene import BIOTAC_SKIN, TestbedScene
+from twin.scene import BIOTAC_SKIN, SceneParameters, TestbedScene, build_spec
+
+XML_BEFORE_SPEC = Path(__file__).parent / "data" / "testbed_scene_mjcf.xml.gz"
+"""The default scene's MJCF as the ElementTree builder wrote it (twin/scene.py of d735c53), before the
+scene was built as an MjSpec; generated once, never from the code under test."""
+ELEMENTS = {
+    "body": ("parentid", "pos", "quat", "mass", "inertia", "ipos", "iquat", "jntnum", "geomnum"),
+    "jnt": ("type", "bodyid", "pos", "axis", "range", "limited", "qposadr"),
+    "geom": ("type", "bodyid", "size", "pos", "quat", "rgba", "contype", "conaffinity", "group", "dataid", "rbound"),
+    "site": ("bodyid", "size", "pos", "quat", "rgba"),
+    "mesh": ("vertnum", "facenum", "pos", "quat"),
+}
+"""Per-element arrays of the compiled model compared between the two builds (MjModel `<prefix>_<name>`)."""
 
 
 @pytest.fixture(scope="module")
@@ -133,3 +148,23 @@ def test_mjcf_is_generated_and_recompiles(scene):
     model = mujoco.MjModel.from_xml_string(xml)
     assert model.njnt == 14 and model.ngeom == scene.model.ngeom
     assert "joint_7_r" in xml and "biotac_skin" in xml
+
+
+def test_spec_compiles_to_the_model_the_xml_builder_made():
+    """Same names in the same order and every body/joint/geom/site/mesh array within 1e-12 (the old XML
+    rounded numbers to 12 significant digits), mesh vertices and faces and contact exclusions exactly."""
+    before = mujoco.MjModel.from_xml_string(gzip.decompress(XML_BEFORE_SPEC.read_bytes()).decode())
+    after = build_spec(SceneParameters()).compile()
+    kinds = {"body": mujoco.mjtObj.mjOBJ_BODY, "jnt": mujoco.mjtObj.mjOBJ_JOINT, "geom": mujoco.mjtObj.mjOBJ_GEOM}
+    kinds |= {"site": mujoco.mjtObj.mjOBJ_SITE, "mesh": mujoco.mjtObj.mjOBJ_MESH}
+    for prefix, fields in ELEMENTS.items():
+        count = getattr(before, f"n{prefix}")
+        assert count == getattr(after, f"n{prefix}") > 0, prefix
+        names = [[mujoco.mj_id2name(m, kinds[prefix], i) for i in range(count)] for m in (before, after)]
+        assert names[0] == names[1], prefix
+        for name in fields:
+            old, new = getattr(before, f"{prefix}_{name}"), getattr(after, f"{prefix}_{name}")
+            assert old.shape == new.shape and np.allclose(old, new, rtol=0.0, atol=1e-12), f"{prefix}_{name}"
+    for name in ("mesh_vert", "mesh_face", "exclude_signature"):
+        assert np.array_equal(getattr(before, name), getattr(after, name)), name
+    assert before.nexclude == after.nexclude == 26

@@ -1,6 +1,6 @@
 """The BioTac on its mount (optionally the whole testbed) for other simulators: MJCF and URDF.
 
-One source: the scene's MJCF (``twin.scene.build_mjcf``) read into a ``mujoco.MjSpec``, trimmed to the mount
+One source: the scene's ``mujoco.MjSpec`` (``twin.scene.build_spec``), trimmed to the mount
 and the BioTac (or, with the testbed, kept whole with no tool on the flanges), plus one site per electrode
 (``electrode_1`` ... ``electrode_19``, z axis along the electrode's outward normal, product-manual order).
 The BioTac is its skin's outer surface (unpressurised), its rigid core, its base and the mount with the
@@ -22,7 +22,7 @@ import numpy as np
 import trimesh
 
 from assets.biotac import electrode_table
-from twin.scene import SceneParameters, build_mjcf
+from twin.scene import SceneParameters, build_spec
 
 FORMATS = ("mjcf", "urdf")
 ELECTRODE_SITE_RADIUS = 0.5e-3
@@ -33,7 +33,7 @@ BENCH_SLAB = 1e-3
 
 def export_spec(params: SceneParameters, testbed: bool = False) -> mujoco.MjSpec:
     """MjSpec of the BioTac on its mount at the world origin, or of the testbed (`testbed`), with electrode sites."""
-    spec = mujoco.MjSpec.from_string(build_mjcf(params))
+    spec = build_spec(params)
     spec.modelname = "biotac_testbed" if testbed else "biotac"
     for geom in [g for g in spec.geoms if "_tool_" in g.name]:
         spec.delete(geom)

@@ -1,8 +1,9 @@
 """The testbed in MuJoCo: both YuMi arms, the mount with its F/T sensor, the BioTac and the flange tools.
 
-The MJCF is generated from parameters (``SceneParameters``): arm chains from ``assets.yumi``, mount from
-``assets.mount``, skin and core meshes from ``assets.biotac``, indenter meshes from ``assets.indenters``,
-tool placement from ``assets.tools``. Nothing is hand-typed XML.
+The model is built as a ``mujoco.MjSpec`` (``build_spec``) from parameters (``SceneParameters``): arm
+chains from ``assets.yumi``, mount from ``assets.mount``, skin and core meshes from ``assets.biotac``,
+indenter meshes from ``assets.indenters``, tool placement from ``assets.tools``. No XML is written to
+build it; ``TestbedScene.mjcf()`` and ``twin export`` write the spec's MJCF.
 
 Frames: MuJoCo's world frame *is* the robot frame (``twin.kinematics``): the YuMi body sits at the
 origin, the bench top is z = 0. The mount stands on the bench in front of the robot; the BioTac lies
@@ -16,7 +17,6 @@ by its collision bits, so attaching a tool is cheap and the model never needs re
 
 from __future__ import annotations
 
-import xml.etree.ElementTree as ET
 from dataclasses import dataclass, field
 
 import mujoco
@@ -74,127 +74,141 @@ def arm_for_point(point_biotac: np.ndarray, biotac_pose: np.ndarray) -> str:
     return "right" if -lateral[1] > 0.0 else "left"
 
 
-def _vec(v) -> str:
-    return " ".join(f"{float(x):.12g}" for x in np.ravel(v))
+GEOM_TYPES = {
+    "box": mujoco.mjtGeom.mjGEOM_BOX,
+    "capsule": mujoco.mjtGeom.mjGEOM_CAPSULE,
+    "cylinder": mujoco.mjtGeom.mjGEOM_CYLINDER,
+}
+"""MuJoCo geom type of each ``assets.yumi.Shape`` kind."""
+
+Placed = mujoco.MjsBody | mujoco.MjsGeom | mujoco.MjsSite
 
 
-def _quat(rot: np.ndarray) -> str:
-    q = np.empty(4)
-    mujoco.mju_mat2Quat(q, np.ascontiguousarray(rot, dtype=float).ravel())
-    return _vec(q)
+def _place(element: Placed, transform: np.ndarray) -> None:
+    """Set pos (m) and quat (w, x, y, z) of a spec element from a (4, 4) parent <- element transform."""
+    quat = np.empty(4)
+    mujoco.mju_mat2Quat(quat, np.ascontiguousarray(transform[:3, :3], dtype=float).ravel())
+    element.pos, element.quat = transform[:3, 3], quat
 
 
-def _place(element: ET.Element, transform: np.ndarray) -> None:
-    """Set pos and quat of an MJCF element from a (4, 4) parent <- element transform."""
-    element.set("pos", _vec(transform[:3, 3]))
-    element.set("quat", _quat(transform[:3, :3]))
+def _site(body: mujoco.MjsBody, name: str, radius: float, transform: np.ndarray | None = None) -> mujoco.MjsSite:
+    """A sphere site of `radius` (m) on `body`, placed by `transform` (4, 4) body <- site (origin if None)."""
+    site = body.add_site(name=name)
+    site.size[0] = radius  # the other two sizes keep MuJoCo's defaults (unused by a sphere)
+    if transform is not None:
+        _place(site, transform)
+    return site
 
 
-def _shape_geom(parent: ET.Element, shape: Shape, prefix: str = "") -> ET.Element:
-    """Append the MJCF geom of `shape` (assets.yumi.Shape) to `parent`."""
-    geom = ET.SubElement(parent, "geom", name=prefix + shape.name, type=shape.kind)
+def _shape_geom(body: mujoco.MjsBody, shape: Shape, rgba: tuple[float, ...], prefix: str = "") -> mujoco.MjsGeom:
+    """Add the geom of `shape` (assets.yumi.Shape, body frame) to `body`: visual ones in group 1 without
+    collision bits, colliding ones in group 3."""
+    geom = body.add_geom(name=prefix + shape.name, type=GEOM_TYPES[shape.kind], rgba=rgba)
     if shape.kind == "box":
-        geom.set("size", _vec(shape.size))
-        geom.set("pos", _vec(shape.a))
+        geom.size, geom.pos = shape.size, shape.a
     else:
-        geom.set("size", _vec(shape.size[:1]))
-        geom.set("fromto", _vec((*shape.a, *shape.b)))
-    geom.set("group", "3" if shape.collide else "1")
+        geom.size[0] = shape.size[0]
+        geom.fromto = (*shape.a, *shape.b)
+    geom.group = 3 if shape.collide else 1
     if not shape.collide:
-        geom.set("contype", "0")
-        geom.set("conaffinity", "0")
+        geom.contype = geom.conaffinity = 0
     return geom
 
 
-def _mesh_asset(asset: ET.Element, name: str, vertices: np.ndarray, faces: np.ndarray | None = None) -> None:
-    mesh = ET.SubElement(asset, "mesh", name=name, vertex=_vec(vertices))
-    if faces is not None:
-        mesh.set("face", " ".join(str(int(i)) for i in np.ravel(faces)))
+def _mesh_asset(spec: mujoco.MjSpec, name: str, vertices: np.ndarray, faces: np.ndarray) -> None:
+    """A mesh asset `name` of vertices (V, 3) m and triangles (T, 3)."""
+    spec.add_mesh(name=name, uservert=np.ravel(vertices).tolist(), userface=np.ravel(faces).astype(int).tolist())
 
 
-def _tool_geoms(link7: ET.Element, arm: str, params: SceneParameters, flange: np.ndarray) -> None:
+def _tool_geoms(link7: mujoco.MjsBody, arm: str, params: SceneParameters, flange: np.ndarray) -> None:
     """Every tool on `arm`'s flange. They compile as colliding (so MuJoCo builds their convex hulls);
     ``TestbedScene`` switches them off (collision bits 0, transparent) until attached."""
+    colour = (0.8, 0.6, 0.2, 1.0)
     for tool in TOOLS:
         tip = flange @ tool_tip_transform(tool, params.adapter_length, params.pin)
         if tool == PIN:
-            pin = params.pin
-            shaft = ET.SubElement(link7, "geom", name=f"{arm}_tool_pin_shaft", type="cylinder")
-            shaft.set("size", _vec([pin.shaft_radius, 0.5 * (pin.shaft_length - 5e-4)]))
+            pin, cylinder = params.pin, mujoco.mjtGeom.mjGEOM_CYLINDER
+            shaft_size = [pin.shaft_radius, 0.5 * (pin.shaft_length - 5e-4), 0.0]
+            shaft = link7.add_geom(name=f"{arm}_tool_pin_shaft", type=cylinder, size=shaft_size, rgba=colour)
             _place(shaft, tip @ origin_transform((0, 0, 0.5 * (pin.shaft_length + 5e-4)), (0, 0, 0)))
-            nose = ET.SubElement(link7, "geom", name=f"{arm}_tool_pin_nose", type="cylinder")
-            nose.set("size", _vec([pin.nose_radius, 0.5 * pin.nose_length]))
+            nose_size = [pin.nose_radius, 0.5 * pin.nose_length, 0.0]
+            nose = link7.add_geom(name=f"{arm}_tool_pin_nose", type=cylinder, size=nose_size, rgba=colour)
             _place(nose, tip @ origin_transform((0, 0, -0.5 * pin.nose_length), (0, 0, 0)))
             geoms = (shaft, nose)
         else:
-            geom = ET.SubElement(link7, "geom", name=f"{arm}_tool_{tool}", type="mesh", mesh=f"tool_{tool}")
+            geom = link7.add_geom(
+                name=f"{arm}_tool_{tool}", type=mujoco.mjtGeom.mjGEOM_MESH, meshname=f"tool_{tool}", rgba=colour
+            )
             _place(geom, tip)
             geoms = (geom,)
         for geom in geoms:
-            geom.set("rgba", "0.8 0.6 0.2 1")
-            geom.set("group", "1")
+            geom.group = 1
 
 
-def _arm_bodies(parent: ET.Element, arm: str, params: SceneParameters) -> None:
+def _arm_bodies(parent: mujoco.MjsBody, arm: str, params: SceneParameters) -> None:
+    """`arm`'s chain of links (one hinge each, about the link's z axis, with its limits in rad), its flange
+    and tool-tip sites, and every tool, below `parent`."""
     chain = ARM_CHAINS[arm]
     body = parent
     for i, (joint, shapes) in enumerate(zip(chain.joints, link_shapes(arm), strict=True)):
-        body = ET.SubElement(body, "body", name=f"{arm}_link_{i + 1}")
+        body = body.add_body(name=f"{arm}_link_{i + 1}")
         _place(body, origin_transform(joint.xyz, joint.rpy))
-        ET.SubElement(body, "joint", name=joint.name, axis="0 0 1", range=_vec([joint.lower, joint.upper]))
+        body.add_joint(name=joint.name, axis=[0.0, 0.0, 1.0], range=[joint.lower, joint.upper])
         for shape in shapes:
-            _shape_geom(body, shape).set("rgba", "0.85 0.85 0.85 1")
+            _shape_geom(body, shape, (0.85, 0.85, 0.85, 1.0))
     flange = origin_transform(chain.flange_xyz, chain.flange_rpy)
-    _place(ET.SubElement(body, "site", name=f"{arm}_flange", size="0.004"), flange)
-    _place(ET.SubElement(body, "site", name=f"{arm}_tip", size="0.002", rgba="1 0 0 1"), flange)
+    _site(body, f"{arm}_flange", 0.004, flange)
+    _site(body, f"{arm}_tip", 0.002, flange).rgba = (1.0, 0.0, 0.0, 1.0)
     _tool_geoms(body, arm, params, flange)
 
 
-def build_mjcf(params: SceneParameters) -> str:
-    """The MJCF text of the whole testbed described by `params`."""
-    root = ET.Element("mujoco", model="biotac_testbed")
-    ET.SubElement(root, "compiler", angle="radian", autolimits="true")
-    asset = ET.SubElement(root, "asset")
+def build_spec(params: SceneParameters) -> mujoco.MjSpec:
+    """The MuJoCo spec of the whole testbed described by `params` (world = robot frame, m, rad)."""
+    spec = mujoco.MjSpec()
+    spec.modelname = "biotac_testbed"
+    spec.compiler.degree = False
+    spec.compiler.autolimits = True
     biotac = make_biotac(params.biotac_max_edge)
-    _mesh_asset(asset, BIOTAC_SKIN, outer_surface(biotac.skin, 2.0 * biotac.core_gap), biotac.skin.triangles)
+    _mesh_asset(spec, BIOTAC_SKIN, outer_surface(biotac.skin, 2.0 * biotac.core_gap), biotac.skin.triangles)
     core = make_core(params.biotac_max_edge, biotac.dims)
-    _mesh_asset(asset, "biotac_core", core.vertices, core.triangles)
+    _mesh_asset(spec, "biotac_core", core.vertices, core.triangles)
     for name, indenter in INDENTERS.items():
         hull = get_indenter(indenter.name).mesh(params.tool_max_edge).convex_hull
-        _mesh_asset(asset, f"tool_{name}", hull.vertices, hull.faces)
+        _mesh_asset(spec, f"tool_{name}", hull.vertices, hull.faces)
 
-    world = ET.SubElement(root, "worldbody")
-    ET.SubElement(world, "geom", name="bench", type="plane", size="1 1 0.01", rgba="0.6 0.5 0.4 1")
-    torso = ET.SubElement(world, "body", name="yumi_body")
+    world = spec.worldbody
+    world.add_geom(name="bench", type=mujoco.mjtGeom.mjGEOM_PLANE, size=[1.0, 1.0, 0.01], rgba=[0.6, 0.5, 0.4, 1.0])
+    torso = world.add_body(name="yumi_body")
     for shape in TORSO_SHAPES:
-        _shape_geom(torso, shape).set("rgba", "0.7 0.7 0.75 1")
+        _shape_geom(torso, shape, (0.7, 0.7, 0.75, 1.0))
     for arm in ARMS:
         _arm_bodies(torso, arm, params)
 
-    mount = ET.SubElement(world, "body", name="mount")
+    mount = world.add_body(name="mount")
     _place(mount, mount_pose(params))
     for shape in params.mount.shapes():
-        _shape_geom(mount, shape, "mount_").set("rgba", "0.3 0.3 0.35 1")
-    _place(ET.SubElement(mount, "site", name="ft_sensor", size="0.005"), params.mount.ft_sensor_in_mount())
+        _shape_geom(mount, shape, (0.3, 0.3, 0.35, 1.0), "mount_")
+    _site(mount, "ft_sensor", 0.005, params.mount.ft_sensor_in_mount())
     for k, hole in enumerate(params.mount.holes_in_mount()):
-        ET.SubElement(mount, "site", name=f"hole_{k}", pos=_vec(hole), size="0.002")
-    body = ET.SubElement(mount, "body", name="biotac")
+        _site(mount, f"hole_{k}", 0.002).pos = hole
+    body = mount.add_body(name="biotac")
     _place(body, params.mount.biotac_in_mount())
-    ET.SubElement(body, "site", name="biotac", size="0.003")
-    ET.SubElement(body, "geom", name=BIOTAC_SKIN, type="mesh", mesh=BIOTAC_SKIN, rgba="0.9 0.75 0.6 0.8")
-    core_geom = ET.SubElement(body, "geom", name="biotac_core", type="mesh", mesh="biotac_core")
-    core_geom.attrib.update(contype="0", conaffinity="0", group="1", rgba="0.2 0.2 0.2 1")
-    _shape_geom(body, params.mount.biotac_base_shape()).set("rgba", "0.2 0.2 0.2 1")
+    _site(body, "biotac", 0.003)
+    mesh = mujoco.mjtGeom.mjGEOM_MESH
+    body.add_geom(name=BIOTAC_SKIN, type=mesh, meshname=BIOTAC_SKIN, rgba=[0.9, 0.75, 0.6, 0.8])
+    core_rgba = [0.2, 0.2, 0.2, 1.0]
+    body.add_geom(
+        name="biotac_core", type=mesh, meshname="biotac_core", contype=0, conaffinity=0, group=1, rgba=core_rgba
+    )
+    _shape_geom(body, params.mount.biotac_base_shape(), (0.2, 0.2, 0.2, 1.0))
 
-    contact = ET.SubElement(root, "contact")
     for arm in ARMS:
         for link in (1, 2):
-            ET.SubElement(contact, "exclude", body1="yumi_body", body2=f"{arm}_link_{link}")
+            spec.add_exclude(bodyname1="yumi_body", bodyname2=f"{arm}_link_{link}")
         for i in range(1, N_JOINTS + 1):
             for j in range(i + 1, min(i + NEIGHBOUR_EXCLUDE, N_JOINTS) + 1):
-                ET.SubElement(contact, "exclude", body1=f"{arm}_link_{i}", body2=f"{arm}_link_{j}")
-    ET.indent(root)
-    return ET.tostring(root, encoding="unicode")
+                spec.add_exclude(bodyname1=f"{arm}_link_{i}", bodyname2=f"{arm}_link_{j}")
+    return spec
 
 
 class TestbedScene:
@@ -207,8 +221,8 @@ class TestbedScene:
 
     def __init__(self, params: SceneParameters | None = None) -> None:
         self.params = params if params is not None else SceneParameters()
-        self._xml = build_mjcf(self.params)
-        self.model = mujoco.MjModel.from_xml_string(self._xml)
+        self.spec = build_spec(self.params)
+        self.model = self.spec.compile()
         self.data = mujoco.MjData(self.model)
         self._qpos = {
             arm: np.array([self.model.jnt_qposadr[self.model.joint(j.name).id] for j in ARM_CHAINS[arm].joints])
@@ -236,8 +250,8 @@ class TestbedScene:
             self.set_joints(arm, self.home_joints(arm))
 
     def mjcf(self) -> str:
-        """The generated MJCF text of this scene."""
-        return self._xml
+        """The MJCF text of this scene's spec (meshes inline)."""
+        return self.spec.to_xml()
 
     @property
     def biotac_pose(self) -> np.ndarray:
