@@ -1,6 +1,7 @@
 """HardwareBackend: the `twin.backend.Backend` of the real testbed (YuMi EGM + RWS, KMS40, BioTac).
 
-Opening it connects the KMS40 (untared, streaming), identifies and starts sampling the BioTac,
+Opening it connects the F/T sensor that `[ft] sensor` names (through `hardware.ft_sensor`: checked,
+untared, streaming; the KMS40 on the testbed), identifies and starts sampling the BioTac,
 listens for EGM on one UDP port per arm, starts RAPID over RWS (whose program runs EGMRunJoint on
 both tasks) and waits for every stream's first message. From then on the device threads stream on
 their own; this object only steers and checks:
@@ -23,18 +24,16 @@ from pathlib import Path
 import numpy as np
 
 from assets.yumi import joint_limits, velocity_limits
-from hardware.biotac_reader import BioTacError, BioTacReader
-from hardware.biotac_spi import Frame, slots
-from hardware.biotac_transport import open_transport
+from hardware.biotac.client import BioTacError, BioTacReader
+from hardware.biotac.protocol import Frame, slots
+from hardware.biotac.transport import open_transport
 from hardware.config import HardwareConfig, load_config
-from hardware.egm_client import EgmArmLink
-from hardware.kms40_client import Kms40Client
-from hardware.kms40_protocol import Kms40Error
-from hardware.rws_client import RwsClient, RwsError
+from hardware.egm.client import EgmArmLink
+from hardware.ft_sensor import ForceTorqueSensor, FtSensorConfig, FtSensorError
+from hardware.rws.client import RwsClient, RwsError
 from hardware.stamped import Latest, StaleDataError, wait_for
 from twin.backend import ARMS, BackendError, Sample, check_arm
 
-KMS40_FAULTS = {"CALIB_FAULT", "TEMP_FAULT", "POWER_FAULT", "CMD_FAILURE"}
 PORT_CHECK_RAD = 0.01  # EGM and RWS joints of one arm at rest agree to better than this (rad)
 ARRIVED_RAD = 1e-3  # a retract counts as done when every joint is this close (rad) to its goal
 CHAIN_AXES = (1, 2, 7, 3, 4, 5, 6)  # ABB axis number of each chain index, for messages
@@ -48,16 +47,14 @@ class HardwareBackend:
         self.config = config
         self.tools: dict[str, str | None] = dict.fromkeys(ARMS)
         self._links: dict[str, EgmArmLink] = {}
-        self._kms: Kms40Client | None = None
+        self._ft: ForceTorqueSensor | None = None
         self._biotac: BioTacReader | None = None
         self._rws: RwsClient | None = None
         self._rapid_started = False
         self._closed = False
-        self.kms40_info: dict[str, object] = {}
-        """Serial number and status flags of the F/T sensor, read when opening."""
         try:
             self._open()
-        except (Kms40Error, BioTacError, RwsError, StaleDataError, OSError) as exc:
+        except (FtSensorError, BioTacError, RwsError, StaleDataError, OSError) as exc:
             self.close()
             raise BackendError(f"cannot open the hardware backend: {exc}") from exc
         except BaseException:
@@ -71,16 +68,7 @@ class HardwareBackend:
 
     def _open(self) -> None:
         c = self.config
-        self._kms = Kms40Client(c.kms40.host, c.kms40.port, c.kms40.timeout_s, c.kms40.reconnect_s)
-        flags = self._kms.flags()
-        self.kms40_info = {"serial": self._kms.serial(), "flags": sorted(flags)}
-        problems = sorted(flags & KMS40_FAULTS) + ([] if "CALIB_VALID" in flags else ["no CALIB_VALID"])
-        if problems:
-            raise Kms40Error(None, f"the sensor reports {', '.join(problems)} (flags: {sorted(flags)})")
-        self._kms.tare(False)
-        self._kms.set_rate_divider(c.kms40.rate_divider)
-        self._kms.set_filter(c.kms40.filter_id)
-        self._kms.start_stream()
+        self._ft = self._ft_config.open()
         self._biotac = BioTacReader(
             lambda: open_transport(c.biotac.transport, c.biotac.bitrate_khz),
             c.biotac.select_mask,
@@ -111,9 +99,9 @@ class HardwareBackend:
                     f"port?{dropped if foreign else ''}"
                 ) from exc
         self._check_arm_ports()
-        self._kms.wrench.wait(c.kms40.timeout_s)
+        self._ft.wrench.wait(self._ft_config.timeout_s)
         self._frames().wait(1.0)
-        self._baseline = self._kms.wrench.get(c.kms40.watchdog_s)[:3].copy()
+        self._baseline = self._ft.wrench.get(self._ft_config.watchdog_s)[:3].copy()
         self._safe = {arm: self._measured(arm) for arm in ARMS}
 
     def _check_arm_ports(self) -> None:
@@ -171,7 +159,7 @@ class HardwareBackend:
         c = self.config
         try:
             joints = {arm: self._measured(arm) for arm in ARMS}
-            wrench = self._kms.wrench.get(c.kms40.watchdog_s).copy()
+            wrench = self._ft.wrench.get(self._ft_config.watchdog_s).copy()
             frame = self._frames().get(c.biotac.watchdog_s)
         except StaleDataError as exc:
             self._halt()
@@ -189,8 +177,8 @@ class HardwareBackend:
                 self._rws.stop_rapid()
             except RwsError:
                 pass
-        if self._kms is not None:
-            self._kms.close()
+        if self._ft is not None:
+            self._ft.close()
         if self._biotac is not None:
             self._biotac.close()
         for link in self._links.values():
@@ -198,11 +186,15 @@ class HardwareBackend:
 
     # -- diagnostics -----------------------------------------------------------------------------
     def status(self) -> dict:
-        """Counters and identities of every device link (for `twin devices check` and logs)."""
+        """Counters and identities of every device link (for `twin devices check` and logs).
+
+        The F/T sensor's entries are named after its section: "kms40" and "kms40_info" on the testbed.
+        """
+        ft = self.config.ft.sensor
         return {
             "egm": {arm: dict(link.stats) for arm, link in self._links.items()},
-            "kms40": dict(self._kms.stats) if self._kms else {},
-            "kms40_info": self.kms40_info,
+            ft: dict(self._ft.stats) if self._ft else {},
+            f"{ft}_info": dict(self._ft.info) if self._ft else {},
             "biotac": dict(self._biotac.stats) if self._biotac else {},
             "biotac_info": {slot: vars(info) for slot, info in self._biotac.info.items()} if self._biotac else {},
             "tools": dict(self.tools),
@@ -212,6 +204,10 @@ class HardwareBackend:
     def _check_open(self) -> None:
         if self._closed:
             raise BackendError("the hardware backend is closed")
+
+    @property
+    def _ft_config(self) -> FtSensorConfig:
+        return self.config.ft_sensor
 
     def _frames(self) -> Latest[Frame]:
         return self._biotac.frames[slots(self.config.biotac.select_mask)[0]]
@@ -226,7 +222,7 @@ class HardwareBackend:
     def _force_change(self) -> float:
         """|F - F_open| (N): how far the force moved from its value when the backend opened."""
         try:
-            wrench = self._kms.wrench.get(self.config.kms40.watchdog_s)
+            wrench = self._ft.wrench.get(self._ft_config.watchdog_s)
         except StaleDataError as exc:
             self._halt()
             raise BackendError(f"{exc}; {INCOMPLETE}") from exc

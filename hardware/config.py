@@ -14,6 +14,9 @@ from dataclasses import asdict, dataclass, field, fields, replace
 from pathlib import Path
 from typing import Any
 
+from hardware.ft_sensor import FtSensorConfig
+from hardware.kms40.config import Kms40Config
+
 TRANSPORT_SPEC = re.compile(r"cheetah(:\d+)?|tcp://[^:/\s]+:\d+")
 AUTO_BIND = "auto"
 
@@ -54,17 +57,10 @@ class EgmConfig:
 
 
 @dataclass(frozen=True)
-class Kms40Config:
-    """Weiss KMS40 F/T sensor on TCP."""
+class FtConfig:
+    """Which F/T sensor the backend opens: the name of its config section (e.g. "kms40")."""
 
-    host: str = "192.168.1.30"
-    port: int = 1000
-    rate_divider: int = 2
-    """Stream at 500 / rate_divider Hz (2 -> 250 Hz, above the protocol's 100 Hz)."""
-    filter_id: int = 0
-    timeout_s: float = 1.0
-    reconnect_s: float = 0.5
-    watchdog_s: float = 0.1
+    sensor: str = "kms40"
 
 
 @dataclass(frozen=True)
@@ -99,6 +95,7 @@ class HardwareConfig:
 
     rws: RwsConfig = field(default_factory=RwsConfig)
     egm: EgmConfig = field(default_factory=EgmConfig)
+    ft: FtConfig = field(default_factory=FtConfig)
     kms40: Kms40Config = field(default_factory=Kms40Config)
     biotac: BioTacConfig = field(default_factory=BioTacConfig)
     safety: SafetyConfig = field(default_factory=SafetyConfig)
@@ -116,14 +113,21 @@ class HardwareConfig:
             ("egm.right_port", self.egm.right_port),
             ("egm.left_robot_port", self.egm.left_robot_port),
             ("egm.right_robot_port", self.egm.right_robot_port),
-            ("kms40.port", self.kms40.port),
         ):
             if not 0 <= port <= 65535:
                 raise ValueError(f"{name} must be a port number 0..65535, got {port}")
         if not 0 < self.safety.free_force_n < self.safety.force_limit_n:
             raise ValueError("need 0 < safety.free_force_n < safety.force_limit_n")
-        if not 1 <= self.kms40.rate_divider <= 1000:
-            raise ValueError(f"kms40.rate_divider must be 1..1000, got {self.kms40.rate_divider}")
+        sensors = [f.name for f in fields(self) if isinstance(getattr(self, f.name), FtSensorConfig)]
+        if self.ft.sensor not in sensors:
+            raise ValueError(
+                f"ft.sensor must name an F/T sensor section ({', '.join(sensors)}), got {self.ft.sensor!r}"
+            )
+
+    @property
+    def ft_sensor(self) -> FtSensorConfig:
+        """The config section of the F/T sensor the backend opens (`[ft] sensor`)."""
+        return getattr(self, self.ft.sensor)
 
 
 def config_from_dict(data: dict[str, Any]) -> HardwareConfig:

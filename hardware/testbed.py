@@ -24,15 +24,15 @@ from typing import Protocol
 import numpy as np
 
 from assets.yumi import joint_limits, velocity_limits
-from hardware.biotac_bridge import SpiBridgeServer
-from hardware.biotac_sim import ElectrodeSource, SimBioTac, SimBioTacBus
-from hardware.biotac_spi import SELECT_MASKS
+from hardware.biotac.bridge import SpiBridgeServer
+from hardware.biotac.protocol import SELECT_MASKS
+from hardware.biotac.sim import ElectrodeSource, SimBioTac, SimBioTacBus
 from hardware.config import HardwareConfig, with_changes
-from hardware.egm_sim import EGM_CYCLE_S, SimEgmArm
-from hardware.faults import UdpFaultProxy
-from hardware.kms40_sim import SimKms40, WrenchSource
-from hardware.rws_client import MECHUNITS
-from hardware.rws_sim import SimRwsServer
+from hardware.egm.faults import UdpFaultProxy
+from hardware.egm.sim import EGM_CYCLE_S, SimEgmArm
+from hardware.kms40.sim import SimKms40, WrenchSource
+from hardware.rws.protocol import MECHUNITS
+from hardware.rws.sim import SimRwsServer
 from twin.backend import ARMS
 
 DEFAULT_BIOTAC_BRIDGE_PORT = 6540

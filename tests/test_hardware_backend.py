@@ -11,7 +11,7 @@ import pytest
 
 from hardware.backend import HardwareBackend
 from hardware.config import HardwareConfig, config_to_toml, load_config, with_changes
-from hardware.rws_client import RwsClient
+from hardware.rws.client import RwsClient
 from hardware.stamped import wait_for
 from hardware.testbed import REST_ELECTRODES, REST_PDC, REST_WRENCH, SimulatedTestbed
 from twin.backend import Backend, BackendError

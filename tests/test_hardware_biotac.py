@@ -9,10 +9,9 @@ from collections.abc import Sequence
 import numpy as np
 import pytest
 
-from hardware.biotac_bridge import MAGIC, SpiBridgeServer, decode_ops, encode_ops
-from hardware.biotac_reader import BioTacError, BioTacReader
-from hardware.biotac_sim import SimBioTac, SimBioTacBus
-from hardware.biotac_spi import (
+from hardware.biotac.bridge import MAGIC, SpiBridgeServer, decode_ops, encode_ops
+from hardware.biotac.client import BioTacError, BioTacReader
+from hardware.biotac.protocol import (
     COMMAND_DELAY_NS,
     ELECTRODE_CHANNELS,
     FRAME_CHANNELS,
@@ -33,7 +32,8 @@ from hardware.biotac_spi import (
     odd_parity_ok,
     sample_command,
 )
-from hardware.biotac_transport import CHEETAH_PATH_ENV, CheetahTransport, open_transport
+from hardware.biotac.sim import SimBioTac, SimBioTacBus
+from hardware.biotac.transport import CHEETAH_PATH_ENV, CheetahTransport, open_transport
 from hardware.stamped import wait_for
 
 ELECTRODES = np.arange(19) * 150 + 400

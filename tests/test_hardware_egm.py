@@ -7,8 +7,8 @@ import time
 import numpy as np
 import pytest
 
-from hardware.egm_client import RESTART_GAP_S, EgmArmLink
-from hardware.egm_messages import (
+from hardware.egm.client import RESTART_GAP_S, EgmArmLink
+from hardware.egm.protocol import (
     MAX_DATAGRAM_BYTES,
     EgmHeader,
     EgmMessageError,
@@ -22,7 +22,7 @@ from hardware.egm_messages import (
     seq_newer,
     set_joints,
 )
-from hardware.egm_sim import SimEgmArm
+from hardware.egm.sim import SimEgmArm
 from hardware.stamped import wait_for
 
 LIMITS = np.tile([-0.15, 0.15], (7, 1))

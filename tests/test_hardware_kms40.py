@@ -7,8 +7,8 @@ from collections.abc import Iterator
 import numpy as np
 import pytest
 
-from hardware.kms40_client import Kms40Client
-from hardware.kms40_protocol import (
+from hardware.kms40.client import Kms40Client
+from hardware.kms40.protocol import (
     FLAG_BITS,
     Kms40Error,
     decode_flags,
@@ -17,7 +17,7 @@ from hardware.kms40_protocol import (
     parse_error,
     parse_frame,
 )
-from hardware.kms40_sim import SimKms40
+from hardware.kms40.sim import SimKms40
 from hardware.stamped import wait_for
 
 WRENCH = np.array([0.5, -1.25, -3.0, 0.01, -0.02, 0.03])

@@ -7,8 +7,9 @@ from collections.abc import Iterator
 import numpy as np
 import pytest
 
-from hardware.rws_client import RwsClient, RwsError
-from hardware.rws_sim import REALM, SimRwsServer
+from hardware.rws.client import RwsClient, RwsError
+from hardware.rws.protocol import REALM
+from hardware.rws.sim import SimRwsServer
 
 Q_LEFT = np.array([0.1, -0.2, 0.3, -0.4, 0.5, -0.6, 0.7])  # chain order: index 2 is ABB axis 7
 

@@ -21,12 +21,13 @@ import pytest
 from typer.testing import CliRunner
 
 from hardware.config import HardwareConfig
-from hardware.egm_client import EgmArmLink, interface_toward
-from hardware.egm_messages import EgmRobot, EgmSensor, get_joints, set_joints
-from hardware.egm_sim import SimEgmArm
-from hardware.faults import UdpFaultProxy
-from hardware.rws_client import RwsClient
-from hardware.rws_sim import REALM, SimRwsServer
+from hardware.egm.client import EgmArmLink, interface_toward
+from hardware.egm.faults import UdpFaultProxy
+from hardware.egm.protocol import EgmRobot, EgmSensor, get_joints, set_joints
+from hardware.egm.sim import SimEgmArm
+from hardware.rws.client import RwsClient
+from hardware.rws.protocol import REALM
+from hardware.rws.sim import SimRwsServer
 from hardware.stamped import wait_for
 from twin.cli import app
 

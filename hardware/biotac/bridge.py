@@ -17,7 +17,7 @@ import struct
 import threading
 from collections.abc import Sequence
 
-from hardware.biotac_spi import Delay, Select, SpiOp, SpiTransport, Transfer, TransportError
+from hardware.biotac.protocol import Delay, Select, SpiOp, SpiTransport, Transfer, TransportError
 
 MAGIC = b"BTSP"
 MAX_PAYLOAD = 1 << 16

@@ -14,7 +14,7 @@ from collections import Counter
 from collections.abc import Callable
 from dataclasses import dataclass
 
-from hardware.biotac_spi import (
+from hardware.biotac.protocol import (
     DEFAULT_BITRATE_KHZ,
     Frame,
     Property,

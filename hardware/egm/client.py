@@ -27,7 +27,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from hardware.config import AUTO_BIND
-from hardware.egm_messages import (
+from hardware.egm.protocol import (
     MAX_DATAGRAM_BYTES,
     EgmHeader,
     EgmMessageError,

@@ -11,6 +11,8 @@ import re
 
 import numpy as np
 
+from hardware.ft_sensor import FtSensorError
+
 AXES = ("FX", "FY", "FZ", "MX", "MY", "MZ")
 FLAG_BITS = {
     "CALIB_VALID": 0,
@@ -26,13 +28,15 @@ FLAG_BITS = {
     "POWER_FAULT": 28,
     "CMD_FAILURE": 29,
 }
+FAULT_FLAGS = frozenset({"CALIB_FAULT", "TEMP_FAULT", "POWER_FAULT", "CMD_FAILURE"})
+"""Flags that make the sensor unusable (it must also report CALIB_VALID)."""
 BASE_RATE_HZ = 500.0  # streaming rate = BASE_RATE_HZ / LDIV
 MAX_LINE_BYTES = 1024  # longer lines are garbage by definition
 _FRAME = re.compile(r"F=\{([^{}]*)\},\s*([-+0-9.eE]+)")
 _ERROR = re.compile(r"ERROR\((-?\d+)(?:,(.*))?\)")
 
 
-class Kms40Error(RuntimeError):
+class Kms40Error(FtSensorError):
     """The sensor answered ERROR(code, text), or did not answer in time (code None)."""
 
     def __init__(self, code: int | None, message: str) -> None:

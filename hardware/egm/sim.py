@@ -18,7 +18,7 @@ from collections import Counter
 
 import numpy as np
 
-from hardware.egm_messages import (
+from hardware.egm.protocol import (
     MAX_DATAGRAM_BYTES,
     EgmHeader,
     EgmMessageError,

@@ -18,7 +18,7 @@ from collections.abc import Callable
 
 import numpy as np
 
-from hardware.kms40_protocol import AXES, BASE_RATE_HZ, MAX_LINE_BYTES, encode_flags, format_frame
+from hardware.kms40.protocol import AXES, BASE_RATE_HZ, MAX_LINE_BYTES, encode_flags, format_frame
 
 WrenchSource = Callable[[], np.ndarray]
 """Returns the true (6,) wrench (N, N·m) in the sensor frame; called from the sensor's threads."""

@@ -17,7 +17,14 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from hardware.kms40_protocol import MAX_LINE_BYTES, Kms40Error, decode_flags, parse_error, parse_frame
+from hardware.kms40.protocol import (
+    FAULT_FLAGS,
+    MAX_LINE_BYTES,
+    Kms40Error,
+    decode_flags,
+    parse_error,
+    parse_frame,
+)
 from hardware.stamped import Latest
 
 _RESTORED = ("TARE", "LDIV", "FLT", "VL", "LMASK")  # settings re-sent after a reconnect, in this order
@@ -36,7 +43,10 @@ class _Pending:
 
 
 class Kms40Client:
-    """Connected KMS40 at `host:port`; raises Kms40Error if no connection within `timeout_s` (s)."""
+    """Connected KMS40 at `host:port`; raises Kms40Error if no connection within `timeout_s` (s).
+
+    A `hardware.ft_sensor.ForceTorqueSensor` once `start` has run (`wrench`, `stats`, `info`, `close`).
+    """
 
     def __init__(self, host: str, port: int = 1000, timeout_s: float = 1.0, reconnect_s: float = 0.5) -> None:
         self.address = (host, port)
@@ -44,6 +54,8 @@ class Kms40Client:
         self.reconnect_s = reconnect_s
         self.wrench: Latest[np.ndarray] = Latest("KMS40 F/T")
         self.stats: Counter[str] = Counter()
+        self.info: dict[str, object] = {}
+        """Serial number and status flags, read by `start`."""
         self._sock: socket.socket | None = None
         self._pending: deque[_Pending] = deque()
         self._lock = threading.Lock()
@@ -56,6 +68,21 @@ class Kms40Client:
         if not self._connected.wait(timeout_s):
             self.close()
             raise Kms40Error(None, f"cannot connect to {host}:{port} within {timeout_s:g} s")
+
+    def start(self, rate_divider: int, filter_id: int) -> None:
+        """Check the sensor (CALIB_VALID, no fault flag), untare, set rate and filter, start streaming.
+
+        Records serial number and flags in `info`; Kms40Error naming the problems if the flags forbid use.
+        """
+        flags = self.flags()
+        self.info = {"serial": self.serial(), "flags": sorted(flags)}
+        problems = sorted(flags & FAULT_FLAGS) + ([] if "CALIB_VALID" in flags else ["no CALIB_VALID"])
+        if problems:
+            raise Kms40Error(None, f"the sensor reports {', '.join(problems)} (flags: {sorted(flags)})")
+        self.tare(False)
+        self.set_rate_divider(rate_divider)
+        self.set_filter(filter_id)
+        self.start_stream()
 
     # -- commands --------------------------------------------------------------------------------
     def command(self, name: str, arg: str = "") -> str:

@@ -15,16 +15,7 @@ from http.cookiejar import CookieJar
 
 import numpy as np
 
-START_FORM = {
-    "regain": "continue",
-    "execmode": "continue",
-    "cycle": "once",
-    "condition": "none",
-    "stopatbp": "disabled",
-    "alltaskbytsp": "true",
-}
-MECHUNITS = {"left": "ROB_L", "right": "ROB_R"}
-TASKS = {"left": "T_ROB_L", "right": "T_ROB_R"}
+from hardware.rws.protocol import MECHUNITS, START_FORM, jointtarget_to_chain
 
 
 class RwsError(RuntimeError):
@@ -110,10 +101,9 @@ class RwsClient:
         """`arm`'s joint target from the motion system (rad, chain order 1-2-7-3-4-5-6)."""
         state = self._request(f"rw/motionsystem/mechunits/{MECHUNITS[arm]}/jointtarget")
         try:
-            deg = [float(state[k]) for k in ("rax_1", "rax_2", "eax_a", "rax_3", "rax_4", "rax_5", "rax_6")]
+            return jointtarget_to_chain(state)
         except (KeyError, ValueError) as exc:
             raise RwsError(200, f"jointtarget of {MECHUNITS[arm]}: unexpected reply {state}") from exc
-        return np.radians(deg)
 
     def read_symbol(self, task: str, name: str) -> str:
         """The value (a RAPID literal) of data `name` in `task` (e.g. "T_ROB_L")."""

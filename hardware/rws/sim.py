@@ -38,8 +38,8 @@ from urllib.parse import parse_qs, urlsplit
 
 import numpy as np
 
-REALM = "validusers@robapi.abb"
-SESSION_COOKIE = "-http-session-"
+from hardware.rws.protocol import REALM, SESSION_COOKIE, chain_to_jointtarget
+
 _DIGEST_PARAM = re.compile(r'(\w+)=(?:"([^"]*)"|([^,\s]*))')
 _CONTENT_LENGTH = re.compile(r"[0-9]+")
 MAX_BODY_BYTES = 65536
@@ -216,10 +216,8 @@ class SimRwsServer:
         if m := re.fullmatch(r"rw/motionsystem/mechunits/(\w+)/jointtarget", path):
             if m[1] not in self.joints:
                 raise _Request(404, f"no mechanical unit {m[1]}")
-            deg = np.degrees(self.joints[m[1]]())
-            axes = {f"rax_{i + 1}": f"{deg[c]:.6f}" for i, c in enumerate((0, 1, 3, 4, 5, 6))}
             extra = {f"eax_{x}": "9E+09" for x in "bcdef"}  # unused external axes, as RWS reports them
-            return {"_type": "ms-jointtarget", **axes, "eax_a": f"{deg[2]:.6f}", **extra}
+            return {"_type": "ms-jointtarget", **chain_to_jointtarget(self.joints[m[1]]()), **extra}
         if m := re.fullmatch(r"rw/rapid/symbol/data/RAPID/(\w+)/(\w+)", path):
             return {"_type": "rap-data", "value": self._symbol(m[1], m[2])}
         raise _Request(404, f"no resource {path}")

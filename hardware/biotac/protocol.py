@@ -1,6 +1,6 @@
 """The BioTac SPI protocol: command bytes, 12-bit words, the 44-sample frame, error words, properties.
 
-Pure functions and data, shared by the driver (`biotac_reader`) and the simulator (`biotac_sim`).
+Pure functions and data, shared by the driver (`hardware.biotac.client`) and the simulator (`hardware.biotac.sim`).
 A transport executes a batch of `SpiOp`s (slave-select changes, byte transfers, delays) and returns
 the MISO bytes of every transfer, in order; that batch is the seam between the protocol and the
 USB-SPI adapter.

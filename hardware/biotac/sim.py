@@ -17,7 +17,7 @@ from collections.abc import Callable, Sequence
 
 import numpy as np
 
-from hardware.biotac_spi import (
+from hardware.biotac.protocol import (
     COMMAND_DELAY_NS,
     DEFAULT_BITRATE_KHZ,
     ELECTRODE_CHANNELS,

@@ -13,8 +13,8 @@ from array import array
 from collections.abc import Sequence
 from types import ModuleType
 
-from hardware.biotac_bridge import TcpSpiTransport
-from hardware.biotac_spi import DEFAULT_BITRATE_KHZ, Delay, Select, SpiOp, SpiTransport, Transfer, TransportError
+from hardware.biotac.bridge import TcpSpiTransport
+from hardware.biotac.protocol import DEFAULT_BITRATE_KHZ, Delay, Select, SpiOp, SpiTransport, Transfer, TransportError
 
 CHEETAH_PATH_ENV = "BIOTAC_CHEETAH_PATH"
 CHEETAH_HELP = (
