@@ -7,7 +7,7 @@ from typing import Annotated
 import typer
 from rich.table import Table
 
-from twin.cli_common import err_console, guarded, out_console, progress_bar, sigterm_as_interrupt
+from twin.cli_common import check_device, err_console, guarded, out_console, progress_bar, sigterm_as_interrupt
 
 campaign_app = typer.Typer(help="Plan and run indentation campaigns (simulated or on hardware).", no_args_is_help=True)
 dataset_app = typer.Typer(help="Inspect campaign datasets (HDF5).", no_args_is_help=True)
@@ -120,6 +120,14 @@ def run(
         bool,
         typer.Option("--restart", help="Sim: discard the parts in --out (made with other options) and start over."),
     ] = False,
+    device: Annotated[
+        str | None,
+        typer.Option(
+            "--device",
+            help="Sim: solve the fe of all trajectories as one batch per sensor on this warp device (cpu, cuda, "
+            "cuda:0, ...; docs/scale.md); default: one trajectory at a time on the workers.",
+        ),
+    ] = None,
 ) -> None:
     """Run a campaign, simulated on local workers or on the testbed's devices; a killed run resumes where it stopped.
 
@@ -147,6 +155,10 @@ def run(
         raise typer.BadParameter("--view/--view-save show simulated campaigns (hardware parts lack the fe fields)")
     if backend == "hardware" and restart:
         raise typer.BadParameter("--restart: a hardware campaign's parts are measurements; move them away yourself")
+    if backend == "hardware" and device is not None:
+        raise typer.BadParameter("--device: a hardware campaign measures, it solves no fe")
+    if device is not None:
+        guarded(lambda: check_device(device))
     guarded(lambda: prepare_out_dir(out))
     pool = _executor(executor, workers or 2, address) if backend == "sim" else None
     config = guarded(lambda: _config(quick, sensors, indenters, seed, mesh_mm))
@@ -164,14 +176,26 @@ def run(
 
         stopped = None
         if backend == "sim":
-            from twin.campaign import run_campaign
+            from twin.campaign import one_at_a_time, run_campaign
+            from twin.campaign_batched import BatchedRunner
 
+            def stage(name: str) -> None:
+                label = {"schedules": "fe schedules", "fe": f"fe batch on {device}"}[name]
+                progress.update(task, description=f"trajectories ({label})")
+
+            runner = one_at_a_time if device is None else BatchedRunner(device, on_stage=stage)
             on_trajectory = viewer.log_trajectory if viewer else None
             try:
                 with sigterm_as_interrupt():
                     result = guarded(
                         lambda: run_campaign(
-                            config, out, on_progress=report, executor=pool, on_trajectory=on_trajectory, restart=restart
+                            config,
+                            out,
+                            on_progress=report,
+                            executor=pool,
+                            on_trajectory=on_trajectory,
+                            restart=restart,
+                            runner=runner,
                         )
                     )
             except KeyboardInterrupt as exc:

@@ -1,0 +1,136 @@
+"""The campaign on the batched fe engine (`twin.campaign_batched`, warp's CPU device) against the one-at-a-time
+campaign, whose fe is stepped increment by increment as the controller reaches each pose: the same file within
+the engine's tolerance, also after an interrupted batched run is resumed.
+
+The tiny campaign presses hard enough to exercise every path of the batched runner: a viscoelastic plant
+skin (relaxation re-solves at held poses, each system on its own clock), a controller force-limit stop (the
+retreat after it leaves the recorded schedule) and an F/T gain of 0.5 that hides half the force, so the
+controller needs solves past the batch's fe force limit and the trajectory is solved again without one.
+"""
+
+from collections.abc import Callable, Iterator, Sequence
+from dataclasses import replace
+from pathlib import Path
+from typing import Any
+
+import h5py
+import numpy as np
+import pytest
+
+import twin.campaign_batched as campaign_batched
+from twin.campaign import QUICK_CONFIG, run_campaign
+from twin.campaign_batched import FE_FORCE_LIMIT_FACTOR, BatchedRunner
+from twin.executors import Executor
+from twin.plant import make_plant
+from twin.protocol import QUICK_SETTINGS
+
+CONFIG = replace(
+    QUICK_CONFIG,
+    sensors=(2,),
+    indenters=("sphere_medium",),
+    settings=replace(QUICK_SETTINGS, normal_depth=0.8e-3, angled_depth=0.4e-3, pause_s=0.2, force_limit=0.18),
+)
+"""A normal 0.8 mm and an angled 0.4 mm press of sphere_medium on sensor 2 (2 mm mesh, 0.2 s pauses), stopped
+above 0.18 N measured (the normal press reaches about 0.35 N of fe force by 0.5 mm)."""
+PLANT = make_plant(
+    [2],
+    0,
+    mount_rotation_error=0.0,
+    mount_translation_error=0.0,
+    exact_registration=True,
+    effects={"skin_relaxation": {"fraction": 0.3, "time_s": 0.2}, "ft_gain": {"scale": 0.5}},
+)
+"""Exact registration (the tip reaches the skin where planned), a relaxing skin, an F/T reading of half the force."""
+FORCE_TOLERANCE = 1e-3
+"""Forces agree within this share of the largest force (docs/scale.md: with friction, the batched and the
+one-system engine agree within 1e-3 of |F|); on warp's CPU device they are in fact the same bits."""
+
+
+class InProcess(Executor):
+    """Runs every task here, one after the other (no worker start-up in a test)."""
+
+    def map_unordered(
+        self, task: Callable[..., Any], jobs: Sequence[tuple], setup: Callable[..., None], setup_args: tuple
+    ) -> Iterator[Any]:
+        setup(*setup_args)
+        for job in jobs:
+            yield task(*job)
+
+
+def _read_all(path: Path) -> dict[str, np.ndarray]:
+    arrays: dict[str, np.ndarray] = {}
+    with h5py.File(path, "r") as f:
+        f.visititems(lambda name, item: arrays.__setitem__(name, item[()]) if isinstance(item, h5py.Dataset) else None)
+    return arrays
+
+
+def _assert_same_campaign(reference: dict[str, np.ndarray], other: dict[str, np.ndarray]) -> None:
+    """Same layout, rows and completeness exactly; forces, pressures, displacements within the fe tolerance;
+    electrode and PDC counts within one count (noise is added before rounding)."""
+    assert reference.keys() == other.keys()
+    scale = np.abs(reference["fe_force/data"]).max()
+    for key, expected in reference.items():
+        got = other[key]
+        assert got.shape == expected.shape, key
+        if key.endswith(("force/data", "/wrench")):
+            np.testing.assert_allclose(got, expected, rtol=0, atol=FORCE_TOLERANCE * scale, err_msg=key)
+        elif key.endswith("fe_pressure/data"):
+            np.testing.assert_allclose(got, expected, rtol=1e-5, err_msg=key)
+        elif key.endswith("nodal_res/data"):
+            np.testing.assert_allclose(got, expected, rtol=0, atol=1e-6, err_msg=key)
+        elif key.endswith(("electrode_vals/data", "pdc/data", "/electrodes", "/pdc")):
+            np.testing.assert_allclose(got, expected, rtol=0, atol=1.0, err_msg=key)
+        else:
+            np.testing.assert_array_equal(got, expected, err_msg=key)
+
+
+@pytest.fixture(scope="module")
+def one_at_a_time(tmp_path_factory: pytest.TempPathFactory) -> dict[str, np.ndarray]:
+    out = tmp_path_factory.mktemp("one_at_a_time")
+    run_campaign(CONFIG, out, plant=PLANT, executor=InProcess())
+    return _read_all(out / "biotac2.hdf5")
+
+
+def test_batched_campaign_equals_the_one_at_a_time_campaign(
+    one_at_a_time: dict[str, np.ndarray], tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    limits: list[float] = []
+    run_trajectories = campaign_batched.run_trajectories
+
+    def spy(*args: Any, **kwargs: Any) -> Any:
+        limits.append(args[4])
+        return run_trajectories(*args, **kwargs)
+
+    monkeypatch.setattr(campaign_batched, "run_trajectories", spy)
+    result = run_campaign(CONFIG, tmp_path, plant=PLANT, executor=InProcess(), runner=BatchedRunner("cpu"))
+    # the normal press ran past the batch's fe force limit (half the force measured) and was solved again
+    assert limits == [FE_FORCE_LIMIT_FACTOR * CONFIG.settings.force_limit, np.inf]
+    assert result.ran == 2 and result.incomplete == 1
+    batched = _read_all(tmp_path / "biotac2.hdf5")
+    _assert_same_campaign(one_at_a_time, batched)
+    wrench = batched["raw/0/wrench"]  # the normal press: stopped once the tared reading passed the limit
+    assert np.linalg.norm(wrench[-1, :3] - wrench[0, :3]) > CONFIG.settings.force_limit
+    assert batched["fe_converged/data"].all()
+
+
+def test_an_interrupted_batched_campaign_resumes_to_the_same_file(
+    one_at_a_time: dict[str, np.ndarray], tmp_path: Path
+) -> None:
+    def interrupt_after_the_first_part(done: int, total: int) -> None:
+        if done == 1:
+            raise KeyboardInterrupt
+
+    with pytest.raises(KeyboardInterrupt):
+        run_campaign(
+            CONFIG,
+            tmp_path,
+            plant=PLANT,
+            executor=InProcess(),
+            runner=BatchedRunner("cpu"),
+            on_progress=interrupt_after_the_first_part,
+        )
+    assert len(list((tmp_path / "parts").rglob("*.npz"))) == 1
+    assert not (tmp_path / "biotac2.hdf5").exists()
+    resumed = run_campaign(CONFIG, tmp_path, plant=PLANT, executor=InProcess(), runner=BatchedRunner("cpu"))
+    assert (resumed.ran, resumed.skipped) == (1, 1)
+    _assert_same_campaign(one_at_a_time, _read_all(tmp_path / "biotac2.hdf5"))
