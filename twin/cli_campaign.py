@@ -128,8 +128,13 @@ def run(
             "cuda:0, ...; docs/scale.md); default: one trajectory at a time on the workers.",
         ),
     ] = None,
+    slots: Annotated[int, typer.Option(help="With --device: trajectories solved together (fe systems).")] = 256,
 ) -> None:
     """Run a campaign, simulated on local workers or on the testbed's devices; a killed run resumes where it stopped.
+
+    With --device (sim) the protocol of every trajectory is first recorded on the workers, the fe of each
+    sensor's trajectories is solved as one batch on that warp device, and the protocol is replayed from
+    those solves into the same parts and files (docs/scale.md, "The campaign on the batched engine").
 
     With --backend hardware the same controller drives `HardwareBackend` (docs/hardware.md), one
     trajectory at a time, on the one mounted sensor (--sensors N), in real time.
@@ -157,6 +162,8 @@ def run(
         raise typer.BadParameter("--restart: a hardware campaign's parts are measurements; move them away yourself")
     if backend == "hardware" and device is not None:
         raise typer.BadParameter("--device: a hardware campaign measures, it solves no fe")
+    if slots < 1:
+        raise typer.BadParameter("--slots must be >= 1")
     if device is not None:
         guarded(lambda: check_device(device))
     guarded(lambda: prepare_out_dir(out))
@@ -183,7 +190,7 @@ def run(
                 label = {"schedules": "fe schedules", "fe": f"fe batch on {device}"}[name]
                 progress.update(task, description=f"trajectories ({label})")
 
-            runner = one_at_a_time if device is None else BatchedRunner(device, on_stage=stage)
+            runner = one_at_a_time if device is None else BatchedRunner(device, slots, stage)
             on_trajectory = viewer.log_trajectory if viewer else None
             try:
                 with sigterm_as_interrupt():
