@@ -41,11 +41,15 @@ def model_or_nominal(path: Path | None, mesh_max_edge: float) -> TwinModel:
 
 
 def load_datasets(paths: list[Path]) -> list[CampaignData]:
-    """The campaign files (warning about NaN forces); ValueError when they disagree on the mesh size the default
-    model needs."""
+    """The campaign files (warning about NaN forces; one stderr line per row-only file, naming what it cannot
+    identify); ValueError when they disagree on the mesh size the default model needs."""
     from twin.analysis.data import load_campaign
+    from twin.analysis.rows_only import rows_only_note
 
     datasets = [load_campaign(p) for p in paths]
+    for d in datasets:
+        if d.rows_only:
+            err_console.print(rows_only_note(d.path), soft_wrap=True, markup=False, highlight=False)
     warn_nonfinite_forces(paths)
     if len({d.mesh_max_edge for d in datasets}) > 1:
         raise ValueError("the datasets were made with different mesh sizes: pass --model")

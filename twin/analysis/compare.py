@@ -82,23 +82,50 @@ def time_in_increment(trajectory: TrajectoryRecord) -> np.ndarray:
     return raw.time - start_time
 
 
-def noise_estimate(trajectories: list[TrajectoryRecord]) -> dict[str, float]:
-    """Per-channel white-noise standard deviation from successive-sample differences (robust MAD).
+def _robust_sigma(values: np.ndarray) -> float:
+    """1.4826 MAD: the standard deviation of the normal part of `values` (NaN when none is finite)."""
+    values = values[np.isfinite(values)]
+    return float(1.4826 * np.median(np.abs(values - np.median(values)))) if values.size else float("nan")
 
-    During the settle pauses the signal is (nearly) constant, so differences are noise: sigma =
-    1.4826 MAD(diff) / sqrt(2).
+
+def noise_estimate(trajectories: list[TrajectoryRecord]) -> dict[str, float]:
+    """Per-channel full-rate white-noise standard deviation (N for forces, counts for pdc), robust (MAD).
+
+    From the full-rate recordings: during the settle pauses the signal is (nearly) constant, so successive
+    differences are noise: sigma = 1.4826 MAD(diff) / sqrt(2). When no trajectory has raw streams (row-only
+    files), `rows_noise_estimate` instead.
     """
+    recorded = [t for t in trajectories if not t.rows_only]
+    if not recorded:
+        return rows_noise_estimate(trajectories)
     diffs: dict[str, list[np.ndarray]] = {c: [] for c in (*FORCE_CHANNELS, "pdc")}
-    for t in trajectories:
+    for t in recorded:
         force = measured_force_fullrate(t)
         for i, c in enumerate(FORCE_CHANNELS):
             diffs[c].append(np.diff(force[:, i]))
         diffs["pdc"].append(np.diff(t.raw.pdc))
-    out = {}
-    for c, parts in diffs.items():
-        d = np.concatenate(parts)
-        out[c] = float(1.4826 * np.median(np.abs(d - np.median(d))) / np.sqrt(2.0))
-    return out
+    return {c: float(_robust_sigma(np.concatenate(parts)) / np.sqrt(2.0)) for c, parts in diffs.items()}
+
+
+def rows_noise_estimate(trajectories: list[TrajectoryRecord]) -> dict[str, float]:
+    """Per-channel noise from rows alone, as the full-rate sigma `noise_estimate` gives.
+
+    Rows are increment ends a settle pause apart, so their noise is independent from row to row; second
+    differences along each press remove a force that changes linearly with depth: rows sigma = 1.4826
+    MAD(second differences) / sqrt(6) (an upper bound where the force curves within three rows). Forces in
+    rows are low-passed: the full-rate sigma is the rows sigma over the filter's noise gain at the
+    trajectories' (stand-in) sample rate.
+    """
+    from twin.analysis.report import filtered_noise_gain
+
+    second: dict[str, list[np.ndarray]] = {c: [] for c in (*FORCE_CHANNELS, "pdc")}
+    for t in trajectories:
+        for i, c in enumerate(FORCE_CHANNELS):
+            second[c].append(np.diff(t.rows["force"][:, i], n=2))
+        second["pdc"].append(np.diff(np.asarray(t.rows["pdc"], dtype=float), n=2))
+    gain = filtered_noise_gain(float(np.median([t.rate_hz for t in trajectories])))
+    sigma = {c: _robust_sigma(np.concatenate(parts)) / np.sqrt(6.0) for c, parts in second.items()}
+    return {c: float(v / gain) if c in FORCE_CHANNELS else v for c, v in sigma.items()}
 
 
 def compare(

@@ -1,14 +1,15 @@
 """Campaign files as analysis inputs: per-trajectory full-rate recordings, their paths and rows.
 
-Reads the schema-v1 HDF5 files that `twin campaign run` writes (docs/dataset.md); a file without
-the full-rate `raw/` group or the per-trajectory path metadata cannot be replayed and says so.
+Reads the schema-v1 HDF5 files that `twin campaign run` writes (docs/dataset.md). A file with rows but
+without the full-rate `raw/` group and the per-trajectory path metadata (the paper's public layout) is read
+row-only (`twin.analysis.rows_only`); a file with neither cannot be replayed and says so.
 """
 
 from __future__ import annotations
 
 import hashlib
 import json
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from pathlib import Path
 
 import numpy as np
@@ -16,6 +17,9 @@ import numpy as np
 from twin.controller import Recording
 from twin.dataset import RAW_FIELDS, TRAJECTORY_FIELDS, open_dataset
 
+ROWS_ONLY_NORMAL_DEG = 15.0
+"""A row-only press tilted less than this (degrees) from the nominal skin's normal counts as normal (halfway
+between the paper's normal and 30-degree presses)."""
 ROW_FEATURES = ("force", "pdc", "electrode_vals", "depth", "phase", "contact_loc", "time", "trajectory_id")
 
 
@@ -37,6 +41,7 @@ class TrajectoryRecord:
     complete: bool
     raw: Recording
     rows: dict[str, np.ndarray]  # the file's subsampled rows of this trajectory (ROW_FEATURES)
+    rows_only: bool = False  # raw is a stand-in made from the rows (twin.analysis.rows_only)
 
     @property
     def rate_hz(self) -> float:
@@ -45,8 +50,9 @@ class TrajectoryRecord:
 
     @property
     def normal(self) -> bool:
-        """True for a trajectory along the surface normal (angle below 1 degree)."""
-        return self.angle < np.radians(1.0)
+        """True for a trajectory along the surface normal: angle below 1 degree, or below
+        `ROWS_ONLY_NORMAL_DEG` for a row-only press (its angle is measured from the nominal skin mesh)."""
+        return self.angle < np.radians(ROWS_ONLY_NORMAL_DEG if self.rows_only else 1.0)
 
 
 @dataclass(frozen=True)
@@ -59,14 +65,16 @@ class CampaignData:
     trajectories: list[TrajectoryRecord]
     mesh_max_edge: float
     digest: str  # sha256 of the file's bytes (first 16 hex digits)
+    rows_only: bool = False  # read from rows only (twin.analysis.rows_only)
 
     def subset(self, keep: set[int]) -> CampaignData:
         """The same campaign restricted to the trajectory ids in `keep`."""
         chosen = [t for t in self.trajectories if t.trajectory_id in keep]
-        return CampaignData(self.path, self.sensor_id, self.indenter_names, chosen, self.mesh_max_edge, self.digest)
+        return replace(self, trajectories=chosen)
 
 
-def _digest(path: Path) -> str:
+def file_digest(path: Path) -> str:
+    """sha256 of a file's bytes (first 16 hex digits)."""
     h = hashlib.sha256()
     with open(path, "rb") as handle:
         for block in iter(lambda: handle.read(1 << 20), b""):
@@ -75,8 +83,15 @@ def _digest(path: Path) -> str:
 
 
 def load_campaign(path: Path | str) -> CampaignData:
-    """Load a campaign file for replay; ValueError when it lacks what replay needs."""
+    """Load a campaign file for replay, or a row-only file (`rows_only.load_rows_only`); ValueError when it
+    lacks what replay needs."""
+    from twin.analysis.rows_only import is_rows_only, load_rows_only
+
     path = Path(path)
+    with open_dataset(path) as f:
+        rows_only = is_rows_only(f)
+    if rows_only:
+        return load_rows_only(path)
     with open_dataset(path) as f:
         missing = [g for g in ("trajectories", "raw", *ROW_FEATURES) if g not in f]
         missing += [
@@ -117,4 +132,4 @@ def load_campaign(path: Path | str) -> CampaignData:
                     rows={k: v[first : first + n] for k, v in row_data.items()},
                 )
             )
-    return CampaignData(path, int(records[0].sensor_id) if records else 0, names, records, mesh, _digest(path))
+    return CampaignData(path, int(records[0].sensor_id) if records else 0, names, records, mesh, file_digest(path))
