@@ -3,7 +3,9 @@ when nothing is hidden; an effect outside the library comes out "unexplained".
 
 Each case hides one effect, drawn with its size from a seed inside `twin.hidden`, in a plant; the
 diagnosis sees only the campaign file. The seed can be changed with BIOTAC_TWIN_HIDDEN_SEED to draw
-other sizes, trajectory points and noise. The fe replays of the nominal model and its finite-difference
+other sizes, trajectory points and noise. A measurement effect the library's draws never produce (an
+F/T gain on z only) is applied to the null campaign's raw streams by `effect_generator`, code separate
+from the plant and the analysis. The fe replays of the nominal model and its finite-difference
 neighbours are shared between cases (same paths), so each case pays for its campaign and its refits.
 """
 
@@ -13,7 +15,9 @@ from dataclasses import replace
 from pathlib import Path
 
 import h5py
+import numpy as np
 import pytest
+from effect_generator import apply_ft_map
 from measurement import strip_plant_view
 
 from twin.analysis.data import load_campaign
@@ -113,3 +117,30 @@ def test_an_effect_outside_the_library_is_unexplained(hidden: str, tmp_path: Pat
     assert result.diagnosis.base_rms > NOISE_TOLERANCE, "the unlisted effect must show in the residual"
     assert result.diagnosis.verdict == "unexplained", result.diagnosis.reason
     assert result.fit is None
+
+
+@pytest.fixture(scope="module")
+def z_gain_file(null_loop: LoopResult, tmp_path_factory: pytest.TempPathFactory) -> Path:
+    """The null campaign with an F/T gain of 0.88 on z only, applied to the raw streams by independent code."""
+    return apply_ft_map(null_loop.dataset, tmp_path_factory.mktemp("zgain") / "zgain.hdf5", np.diag([1.0, 1.0, 0.88]))
+
+
+def test_a_z_only_ft_gain_is_named_as_the_calibration_map(z_gain_file: Path, predictor: Predictor) -> None:
+    data = load_campaign(z_gain_file)
+    diagnosis = diagnose([data], TwinModel(mesh_max_edge=data.mesh_max_edge), predictor, top=1)
+    best = diagnosis.candidates[0]
+    assert diagnosis.verdict == "ft_calibration", diagnosis.reason
+    assert best.refit_parameters["zz"] == pytest.approx(0.88, abs=0.01)
+    assert best.refit_parameters["xx"] == pytest.approx(1.0, abs=0.03)
+    assert best.heldout_is_noise and best.heldout_rms <= diagnosis.rms_threshold < diagnosis.base_rms
+
+
+def test_a_fit_that_does_not_generalise_is_not_named(z_gain_file: Path, predictor: Predictor) -> None:
+    """The issue's case: without the map, crosstalk and a common gain fit part of a z-only gain in sample,
+    but neither predicts left-out indenters to the noise: "unexplained", with their held-out figures."""
+    data = load_campaign(z_gain_file)
+    model = TwinModel(mesh_max_edge=data.mesh_max_edge)
+    diagnosis = diagnose([data], model, predictor, candidates=["ft_crosstalk", "ft_gain"], top=2)
+    assert diagnosis.verdict == "unexplained", diagnosis.reason
+    assert all(c.refitted and not c.heldout_is_noise for c in diagnosis.candidates)
+    assert all(f"{c.name} (held out {c.heldout_rms:.2f}x" in diagnosis.reason for c in diagnosis.candidates)

@@ -71,11 +71,18 @@ def diagnose(
         return
     table = Table("rank", "effect", "kind", "evidence", "explains", "held-out RMS/noise", "refit RMS/noise", "fit")
     for rank, c in enumerate(result.candidates, start=1):
-        fit = ", ".join(f"{k}={v:.4g}" for k, v in (c.refit_parameters or c.parameters).items())
+        bound = set(c.at_bound)
+        fit = ", ".join(
+            f"{k}={v:.4g}{' (at bound)' if k in bound else ''}" for k, v in (c.refit_parameters or c.parameters).items()
+        )
         held = "-" if c.heldout_rms is None else f"{c.heldout_rms:.2f}"
+        if c.heldout_is_noise is not None:
+            held += " (noise)" if c.heldout_is_noise else " (not noise)"
         refit = "-" if c.refit_rms is None else f"{c.refit_rms:.2f}"
         table.add_row(str(rank), c.name, c.kind, f"{c.evidence:.0f}", f"{c.explained_fraction:.0%}", held, refit, fit)
-    out_console.print(f"residual RMS = {result.base_rms:.2f} x noise")
+    out_console.print(
+        f"residual RMS = {result.base_rms:.2f} x noise (noise test: {result.rms_threshold:.3f} x noise on these data)"
+    )
     out_console.print(table)
     out_console.print(f"verdict: [bold]{result.verdict}[/bold] - {result.reason}")
 
@@ -101,9 +108,15 @@ def improve(
     table = Table("", "RMS / noise")
     table.add_row("before", f"{fit.rms_before:.2f}")
     table.add_row(f"after adding {add}", f"{fit.rms_after:.2f}")
-    table.add_row("held out (leave one indenter out)", "-" if fit.heldout_rms is None else f"{fit.heldout_rms:.2f}")
+    held = "-" if fit.heldout_rms is None else f"{fit.heldout_rms:.2f}"
+    if fit.heldout_is_noise is not None:
+        held += " (passes the noise test)" if fit.heldout_is_noise else " (fails the noise test)"
+    table.add_row("held out (leave one indenter out)", held)
     out_console.print(table)
-    out_console.print("fitted: " + ", ".join(f"{k}={v:.5g}" for k, v in fit.values.items()))
+    bound = set(fit.at_bound)
+    out_console.print(
+        "fitted: " + ", ".join(f"{k}={v:.5g}{' (at its bound)' if k in bound else ''}" for k, v in fit.values.items())
+    )
     entry = append_entry(
         history,
         {
@@ -113,6 +126,8 @@ def improve(
             "rms_before": fit.rms_before,
             "rms_after": fit.rms_after,
             "heldout_rms": fit.heldout_rms,
+            "heldout_is_noise": fit.heldout_is_noise,
+            "at_bound": fit.at_bound,
         },
     )
     if out is not None:
