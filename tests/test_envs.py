@@ -1,5 +1,6 @@
 """The BioTac gymnasium environments: registration, gymnasium's checker, seeding, physics of the
-observations and rewards, termination, and the vector env against stand-alone environments."""
+observations and rewards, termination, the vector env against stand-alone environments, and the
+offscreen rgb_array frames."""
 
 from __future__ import annotations
 
@@ -10,12 +11,14 @@ import numpy as np
 import pytest
 from gymnasium.utils.env_checker import check_env
 from gymnasium.vector import VectorEnv
+from gymnasium.wrappers import RenderCollection
 
 import twin  # noqa: F401  (registers the environments)
 from learn.electrode_physics import ElectrodeParameters
 from twin.envs import ENV_IDS
 from twin.envs.edge import EdgeFollowEnv
 from twin.envs.press import PressEnv
+from twin.envs.render import open_gl_context
 from twin.envs.vector import TactileVectorEnv
 
 PRESS = np.array([0.0, 0.0, 1.0])
@@ -150,3 +153,75 @@ def test_vector_env_on_the_batched_warp_fe_matches_the_stepper_loop() -> None:
         rewards[device] = [vec.step(actions)[1] for _ in range(4)]
     assert np.abs(np.array(rewards[None])).max() > 0.1
     assert np.allclose(rewards["cpu"], rewards[None], atol=2e-3)  # the batched FE agrees to ~1e-3 N
+
+
+@pytest.fixture(scope="module")
+def offscreen_gl() -> None:
+    """Skip (saying why) where no offscreen OpenGL backend opens; the error names MUJOCO_GL."""
+    try:
+        open_gl_context(8, 8).free()
+    except RuntimeError as error:
+        pytest.skip(str(error))
+
+
+def _changed(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """(H, W) mask of pixels whose colour differs by more than 30 (sum of |RGB| differences)."""
+    return np.abs(a.astype(int) - b.astype(int)).sum(axis=-1) > 30
+
+
+def _red_pixels(frame: np.ndarray) -> int:
+    """Number of strongly red pixels (the force arrow's colour; nothing else in the scene is red)."""
+    return int(((frame[..., 0] > 120) & (frame[..., 1] < 90) & (frame[..., 2] < 90)).sum())
+
+
+def test_rgb_array_frames_show_the_skin_deformation_and_the_force(offscreen_gl: None) -> None:
+    env = RenderCollection(
+        gym.make("BioTacPress-v0", render_mode="rgb_array", standoff_mm=(0.3, 0.3), start_offset_mm=0.0)
+    )
+    assert "rgb_array" in env.metadata["render_modes"]
+    env.reset(seed=3)
+    terminated, steps = False, 0
+    while not terminated and steps < 9:
+        _, _, terminated, _, info = env.step(PRESS)
+        steps += 1
+    frames = env.render()  # RenderCollection: one frame per reset and step
+    assert len(frames) == steps + 1
+    assert all(f.shape == (240, 320, 3) and f.dtype == np.uint8 for f in frames)
+    free, pressed = frames[0], frames[-1]
+    assert np.linalg.norm(info["force_n"]) > 1.0 and _changed(free, pressed).mean() > 0.02
+    # The same state drawn twice is the same picture; the force arrow (red) appears only under load.
+    painter, base = env.unwrapped._painter, env.unwrapped
+    rotation, tip = base._pose()
+    increment = base._last_increment
+    assert np.array_equal(painter.render(increment.displacement, rotation, tip, increment.force), pressed)
+    assert _red_pixels(pressed) > 20 and _red_pixels(free) == 0
+    # The skin's deformation is drawn: the undeformed skin with the indenter where it is now differs,
+    # and around the tip, which the camera centres.
+    undeformed = painter.render(np.zeros_like(increment.displacement), rotation, tip, increment.force)
+    dent = np.argwhere(_changed(undeformed, pressed))
+    assert len(dent) > 50
+    centre = np.array(pressed.shape[:2]) / 2
+    assert np.linalg.norm(dent.mean(axis=0) - centre) < 0.15 * pressed.shape[1]
+    env.close()
+
+
+def test_record_video_writes_an_episode(offscreen_gl: None, tmp_path: Path) -> None:
+    pytest.importorskip("moviepy", reason="gymnasium's RecordVideo encodes with moviepy, not installed here")
+    from gymnasium.wrappers import RecordVideo
+
+    env = RecordVideo(gym.make("BioTacPress-v0", render_mode="rgb_array", max_steps=3), str(tmp_path))
+    env.reset(seed=0)
+    for _ in range(3):
+        env.step(PRESS)
+    env.close()
+    videos = list(tmp_path.glob("*.mp4"))
+    assert len(videos) == 1 and videos[0].stat().st_size > 0
+
+
+def test_rgb_array_without_an_opengl_backend_is_one_line_naming_mujoco_gl(monkeypatch: pytest.MonkeyPatch) -> None:
+    monkeypatch.setenv("MUJOCO_GL", "no_such_backend")
+    with pytest.raises(RuntimeError, match="MUJOCO_GL") as error:
+        PressEnv(render_mode="rgb_array")
+    assert "\n" not in str(error.value)
+    with pytest.raises(ValueError, match="render_mode"):
+        TactileVectorEnv(PressEnv, 2, render_mode="rgb_array")

@@ -66,9 +66,11 @@ class TactileEnv(gym.Env[dict[str, np.ndarray], np.ndarray]):
     fe, slot, readout: set by `TactileVectorEnv` so that sub-environments share one FE batch; left
     None, the environment builds a one-slot batch on the shared model with `mesh_mm` edges (mm) and the
     `fe_device` backend (None: the CPU stepper; "cpu" or "cuda:0": the batched warp FE).
+    render_mode: "rerun" (logged to `rerun_save`, else a spawned viewer) or "rgb_array" (`render` returns
+    an offscreen MuJoCo frame (`render_height`, `render_width`, 3) uint8 of the last state: twin.envs.render).
     """
 
-    metadata = {"render_modes": ["rerun"], "render_fps": 10}
+    metadata = {"render_modes": ["rerun", "rgb_array"], "render_fps": 10}
     default_indenter: str
     """The indenter a task uses unless told otherwise."""
     tip_bound_mm = 20.0
@@ -89,6 +91,8 @@ class TactileEnv(gym.Env[dict[str, np.ndarray], np.ndarray]):
         force_noise_n: float = 0.01,
         render_mode: str | None = None,
         rerun_save: str | Path | None = None,
+        render_width: int = 320,
+        render_height: int = 240,
         fe: IndentationBatch | None = None,
         slot: int = 0,
         readout: TactileReadout | None = None,
@@ -124,7 +128,17 @@ class TactileEnv(gym.Env[dict[str, np.ndarray], np.ndarray]):
                 recording, self.fe.reference, self.fe.model.geometry.skin.triangles, self.readout.electrode_positions
             )
             self._viewer.set_indenter(indenter)
+        self._painter = None
+        if render_mode == "rgb_array":
+            from twin.envs.render import SkinRenderer
+
+            geometry = self.fe.model.geometry
+            core = (geometry.core.vertices, geometry.core.triangles)
+            self._painter = SkinRenderer(
+                self.fe.reference, geometry.skin.triangles, core, indenter, render_width, render_height
+            )
         self._tare: Reading | None = None
+        self._last_increment: SlotIncrement | None = None
         self._last_obs: dict[str, np.ndarray] | None = None
         self._steps = 0
         self._frame = 0
@@ -215,11 +229,23 @@ class TactileEnv(gym.Env[dict[str, np.ndarray], np.ndarray]):
         """Apply one tip increment, re-solve the skin, observe, reward."""
         return self.outcome(self._solve(self.command(action)))
 
-    def render(self) -> None:
-        """With render_mode "rerun" every reset and step is logged as it happens; nothing to do here."""
+    def render(self) -> np.ndarray | None:
+        """render_mode "rgb_array": a frame (H, W, 3) uint8 of the last state (skin, indenter, force arrow).
+        With "rerun" every reset and step is logged as it happens: nothing to do here (None)."""
+        if self._painter is None:
+            return None
+        if self._last_increment is None:
+            raise RuntimeError("call reset() before render()")
+        rotation, tip = self._pose()
+        increment = self._last_increment
+        return self._painter.render(increment.displacement, rotation, tip, increment.force)
 
     def close(self) -> None:
-        """Finish the rerun recording (render_mode "rerun") so that a saved .rrd is complete."""
+        """Finish the rerun recording (render_mode "rerun") so that a saved .rrd is complete; free the
+        offscreen renderer ("rgb_array")."""
+        if self._painter is not None:
+            self._painter.close()
+            self._painter = None
         if self._viewer is not None:
             self._viewer.recording.flush()
             self._viewer.recording.disconnect()
@@ -252,7 +278,7 @@ class TactileEnv(gym.Env[dict[str, np.ndarray], np.ndarray]):
             k: np.clip(v, self.observation_space[k].low, self.observation_space[k].high).astype(np.float32)
             for k, v in obs.items()
         }
-        self._last_obs = obs
+        self._last_obs, self._last_increment = obs, increment
         if self._viewer is not None:
             self._log(increment, electrodes, reading.pdc - self._tare.pdc)
         return obs

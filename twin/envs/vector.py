@@ -29,7 +29,8 @@ class TactileVectorEnv(VectorEnv):
     with the `fe_device` backend of `IndentationBatch` (None: a loop of CPU steppers; "cpu"/"cuda:0":
     the batched warp FE).
 
-    With render_mode "rerun" the first sub-environment is logged (to `rerun_save` or a spawned viewer).
+    With render_mode "rerun" the first sub-environment is logged (to `rerun_save` or a spawned viewer);
+    "rgb_array" is a stand-alone environment's mode only.
     """
 
     metadata = {"render_modes": ["rerun"], "autoreset_mode": AutoresetMode.NEXT_STEP}
@@ -47,6 +48,8 @@ class TactileVectorEnv(VectorEnv):
     ) -> None:
         if num_envs < 1:
             raise ValueError(f"num_envs must be >= 1, got {num_envs!r}")
+        if render_mode is not None and render_mode not in self.metadata["render_modes"]:
+            raise ValueError(f"the vector env's render_mode must be None or one of {self.metadata['render_modes']}")
         indenter = env_kwargs.pop("indenter", env_class.default_indenter)
         self.fe = IndentationBatch(shared_model(mesh_mm), [indenter] * num_envs, fe_device)
         readout = TactileReadout(self.fe, env_kwargs.get("sensor_params"), env_kwargs.get("force_noise_n", 0.01))
