@@ -1,17 +1,24 @@
-"""Speed of learn/: training time to convergence on a ~30k-sample campaign, and inference samples/s.
+"""Speed of learn/: training time to the best epoch on a ~30k-sample campaign, and inference samples/s.
 
 The timing campaign is synthetic (learn.synthetic: analytic dents read by the physics electrode model,
-2 mm skin mesh; no warp or MuJoCo needed); it is written once to --data and reused. --table runs the
-paper's protocol on synthetic sensors, or on the campaign files biotac*.hdf5 of --campaign (e.g. the
-FE-simulated one of scripts/make_learn_campaign.py). Every model trains on the
+2 mm skin mesh); it is written once to --data and reused. Only torch, numpy, scipy and h5py are needed:
+no warp, MuJoCo, trimesh or rerun, so a GPU machine with the campaign folder carried over runs it.
+--table runs the paper's protocol on synthetic sensors, or on the campaign files biotac*.hdf5 of
+--campaign (e.g. the FE-simulated one of scripts/make_learn_campaign.py). Every model trains on the
 contiguous 80/20 split with early stopping (patience epochs without validation improvement) or the
 time limit, whichever comes first. "Time to convergence" is the wall time up to the best validation
-epoch; "converged" says whether early stopping (not the time limit) ended the run.
+epoch; "converged" says whether early stopping (not the time limit) ended the run. On a GPU each
+network is also timed for --baseline-epochs epochs on the CPU (--baseline-threads threads) in the same
+process: "speedup_vs_cpu_baseline" is that s/epoch over the GPU's.
 
     python benchmarks/learn_bench.py --device cpu --threads 2 --time-limit 900
     python benchmarks/learn_bench.py --device cuda --batch-size 128
-    python benchmarks/learn_bench.py --device cuda --table 3 --samples 10000   # the paper's table
-    python benchmarks/learn_bench.py --device cuda --table 3 --campaign runs/learn_fe_compact
+    python benchmarks/learn_bench.py --table 3 --samples 10000   # the paper's table (GPU when present)
+    python benchmarks/learn_bench.py --table 3 --campaign runs/learn_fe_compact
+
+On a GPU machine without this project installed (docs/learn.md, "Speed"): write the campaign here
+(`python benchmarks/learn_bench.py --write-only`), carry out/learn_bench over, and there run
+`PYTHONPATH=. python3 benchmarks/learn_bench.py --device cuda --threads 4`.
 
 Prints one JSON object (and writes it to --json when given).
 """
@@ -30,7 +37,7 @@ import torch
 from learn.data import load
 from learn.experiment import SplitSpec, evaluate_checkpoint, train
 from learn.synthetic import write_synthetic_campaign
-from learn.train import NETWORKS, TrainConfig
+from learn.train import NETWORKS, TrainConfig, resolve_device
 
 ROWS_PER_TRAJECTORY = 13.5
 """Mean rows of a synthetic trajectory (depths 0.5-2 mm in 0.1 mm steps, plus the first contact)."""
@@ -67,6 +74,14 @@ def inference_rate(estimator, data, device: str, repeats: int = 3) -> float:
             torch.cuda.synchronize()
         best = min(best, time.perf_counter() - start)
     return len(data) / best
+
+
+def cpu_baseline(path: Path, model: str, config: TrainConfig, epochs: int, threads: int) -> float:
+    """Seconds per epoch of ``model`` trained for ``epochs`` epochs on the CPU with ``threads`` threads."""
+    cpu = TrainConfig(**{**config.__dict__, "device": "cpu", "threads": threads, "max_epochs": epochs})
+    ckpt = train([path], model, SplitSpec("contiguous", 0.2, config.seed), cpu)
+    torch.set_num_threads(config.threads)
+    return ckpt.estimator.history[-1].seconds / len(ckpt.estimator.history)
 
 
 def paper_table(paths: list[Path], models: list[str], config: TrainConfig, held_out_indenter: str) -> list[dict]:
@@ -143,6 +158,8 @@ def _train_config(args: argparse.Namespace, **overrides: str) -> TrainConfig:
         seed=args.seed,
         threads=args.threads,
         device=args.device,
+        scale_tail=args.scale_tail,
+        angle_weight=args.angle_weight,
         **overrides,
     )
 
@@ -151,7 +168,7 @@ def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--samples", type=int, default=30000)
     parser.add_argument("--models", default="pointnet,mlp,classical,mean")
-    parser.add_argument("--device", default="cpu", choices=("cpu", "cuda"))
+    parser.add_argument("--device", default="auto", choices=("auto", "cpu", "cuda"), help="auto: cuda if present")
     parser.add_argument("--threads", type=int, default=2)
     parser.add_argument("--batch-size", type=int, default=128)
     parser.add_argument("--learning-rate", type=float, default=1e-3)
@@ -160,6 +177,11 @@ def main() -> None:
     parser.add_argument("--time-limit", type=float, default=900.0, help="seconds per network")
     parser.add_argument("--data", type=Path, default=Path("out/learn_bench"))
     parser.add_argument("--seed", type=int, default=0)
+    parser.add_argument("--scale-tail", type=float, default=TrainConfig.scale_tail, help="quantile scaling tail")
+    parser.add_argument("--angle-weight", type=float, default=TrainConfig.angle_weight, help="force-direction loss")
+    parser.add_argument("--baseline-epochs", type=int, default=2, help="CPU epochs timed beside a GPU run")
+    parser.add_argument("--baseline-threads", type=int, default=2)
+    parser.add_argument("--write-only", action="store_true", help="write the synthetic campaign and stop")
     parser.add_argument("--json", type=Path, default=None)
     parser.add_argument("--table", type=int, default=0, help="run the paper's protocol on this many sensors")
     parser.add_argument("--held-out-indenter", default="ring")
@@ -167,6 +189,7 @@ def main() -> None:
         "--campaign", type=Path, default=None, help="--table on this folder's biotac*.hdf5 instead of synthetic"
     )
     args = parser.parse_args()
+    args.device = resolve_device(args.device)
 
     torch.set_num_threads(args.threads)
     if args.table:
@@ -184,6 +207,8 @@ def main() -> None:
             args.json.write_text(json.dumps(rows, indent=1))
         return
     path = campaign(args.data, args.samples, args.seed)
+    if args.write_only:
+        return
     data = load(path)
     report: dict = {
         "samples": len(data),
@@ -214,6 +239,13 @@ def main() -> None:
                 history=[[h.epoch, round(h.val_loss, 6), round(h.seconds, 1)] for h in history],
                 inference_samples_per_s=inference_rate(ckpt.estimator, data, args.device),
             )
+            if args.device == "cuda" and args.baseline_epochs > 0:
+                base = cpu_baseline(path, model, config, args.baseline_epochs, args.baseline_threads)
+                entry.update(
+                    cpu_baseline_seconds_per_epoch=base,
+                    cpu_baseline_threads=args.baseline_threads,
+                    speedup_vs_cpu_baseline=base / entry["seconds_per_epoch"],
+                )
         report["models"][model] = entry
         print(json.dumps({model: entry}), flush=True)
     text = json.dumps(report, indent=1)

@@ -20,12 +20,14 @@ from torch import nn
 
 from learn.data import TactileData
 from learn.dataset import ElectrodeDataset
+from learn.metrics import ANGLE_MIN_FORCE
 from learn.nets import PlainMLP, PointNet2
 from learn.normalize import MinMax
 from learn.splits import contiguous
 
 TARGETS = ("contact_loc", "force", "nodal")
 NETWORKS = ("pointnet", "mlp")
+DEVICES = ("auto", "cpu", "cuda")
 
 
 @dataclass(frozen=True)
@@ -33,7 +35,11 @@ class TrainConfig:
     """How to train. network: "pointnet" | "mlp". targets: any of TARGETS the data has.
     max_epochs / patience (epochs without validation improvement) / time_limit_s (s) stop training;
     learning_rate halves after lr_patience epochs without improvement. threads: torch CPU threads.
-    device: "cpu" or "cuda"."""
+    device: "cpu", "cuda" or "auto" (cuda when torch sees a GPU, else cpu). scale_tail: inputs and
+    targets are scaled so that the scale_tail and 1 - scale_tail quantiles of the training rows map to
+    0 and 1 (0: min-max, the paper's).
+    angle_weight: weight of the force-direction term of the loss, the mean of 1 - cos(angle between
+    predicted and true force) over rows with |F_true| >= metrics.ANGLE_MIN_FORCE (0: no such term)."""
 
     network: str = "pointnet"
     targets: tuple[str, ...] = TARGETS
@@ -46,7 +52,9 @@ class TrainConfig:
     time_limit_s: float = float("inf")
     seed: int = 0
     threads: int = 2
-    device: str = "cpu"
+    device: str = "auto"
+    scale_tail: float = 0.0
+    angle_weight: float = 0.0
 
     def __post_init__(self) -> None:
         if self.network not in NETWORKS:
@@ -54,6 +62,15 @@ class TrainConfig:
         unknown = set(self.targets) - set(TARGETS)
         if unknown or not self.targets:
             raise ValueError(f"targets must be a non-empty subset of {TARGETS}, got {self.targets}")
+        if self.device not in DEVICES:
+            raise ValueError(f"unknown device {self.device!r}; choose one of {', '.join(DEVICES)}")
+
+
+def resolve_device(device: str) -> str:
+    """The torch device ("cuda" or "cpu") a TrainConfig.device names ("auto": cuda when torch sees a GPU)."""
+    if device == "auto":
+        return "cuda" if torch.cuda.is_available() else "cpu"
+    return device
 
 
 @dataclass
@@ -86,7 +103,22 @@ class NeuralEstimator:
     def _loss(self, batch: tuple[torch.Tensor, dict[str, torch.Tensor]]) -> torch.Tensor:
         x, y = batch
         out = self.net(x)
-        return sum(nn.functional.mse_loss(out[k], y[k]) for k in y)
+        loss = sum(nn.functional.mse_loss(out[k], y[k]) for k in y)
+        if self.config.angle_weight > 0.0 and "force" in y:
+            loss = loss + self.config.angle_weight * self._angle_loss(out["force"], y["force"])
+        return loss
+
+    def _angle_loss(self, scaled_pred: torch.Tensor, scaled_true: torch.Tensor) -> torch.Tensor:
+        """Mean 1 - cos of the angle between predicted and true forces (N) over rows with |F_true| >=
+        ANGLE_MIN_FORCE; zero when a batch has none."""
+        scale = self.target_scales["force"]
+        low = torch.as_tensor(scale.low, dtype=scaled_pred.dtype, device=scaled_pred.device)
+        span = torch.as_tensor(scale.span, dtype=scaled_pred.dtype, device=scaled_pred.device)
+        pred, true = scaled_pred * span + low, scaled_true * span + low
+        keep = true.norm(dim=1) >= ANGLE_MIN_FORCE
+        if not bool(keep.any()):
+            return scaled_pred.sum() * 0.0
+        return (1.0 - nn.functional.cosine_similarity(pred[keep], true[keep], dim=1, eps=1e-6)).mean()
 
     def _evaluate(self, dataset: ElectrodeDataset, device: torch.device) -> float:
         self.net.eval()
@@ -107,7 +139,7 @@ class NeuralEstimator:
         cfg = self.config
         torch.manual_seed(cfg.seed)
         torch.set_num_threads(cfg.threads)
-        device = torch.device(cfg.device)
+        device = torch.device(resolve_device(cfg.device))
         available = data.targets()
         targets = [k for k in cfg.targets if k in available]
         if not targets:
@@ -116,8 +148,8 @@ class NeuralEstimator:
             self.input_scale, self.target_scales = init.input_scale, dict(init.target_scales)
             self.target_shapes, self.net = dict(init.target_shapes), copy.deepcopy(init.net)
         else:
-            self.input_scale = MinMax.fit(data.electrodes)
-            self.target_scales = {k: MinMax.fit(available[k]) for k in targets}
+            self.input_scale = MinMax.fit_quantile(data.electrodes, cfg.scale_tail)
+            self.target_scales = {k: MinMax.fit_quantile(available[k], cfg.scale_tail) for k in targets}
             self.target_shapes = {k: available[k].shape[1:] for k in targets}
             dims = {k: int(np.prod(s)) for k, s in self.target_shapes.items()}
             self.net = _build(cfg.network, dims, data.electrode_positions)
