@@ -58,9 +58,10 @@ RAW_ONLY_EFFECTS = {
 
 
 def is_rows_only(f: h5py.File) -> bool:
-    """True for a file with rows (electrodes, force, contact locations) but no replayable recording."""
+    """True for a file with rows (electrodes, force, contact locations) that is not a campaign file (no
+    `schema_version` attribute: a campaign file must be complete) and has no replayable recording."""
     has_rows = all(k in f for k in ("electrode_vals", "contact_loc")) and any(k in f for k in FORCE_GROUPS)
-    return has_rows and not ("raw" in f and "trajectories" in f)
+    return has_rows and "schema_version" not in f.attrs and not ("raw" in f and "trajectories" in f)
 
 
 def rows_only_note(path: Path | str) -> str:
