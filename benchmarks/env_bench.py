@@ -1,36 +1,43 @@
-"""Environment speed: environment steps per second, stand-alone and vectorised, on the coarse FE mesh.
+"""Environment speed: environment steps per second of the vector env on the batched FE, against one env.
 
-    python3 benchmarks/env_bench.py [--env BioTacPress-v0] [--steps 40] [--num-envs 4,8] [--mesh-mm 2]
+    python3 benchmarks/env_bench.py --device cpu|cuda --mesh-mm 2[,1,0.5] --num-envs 1,8,64 [--steps 20]
 
-Every environment runs `--steps` steps of a pressing policy (mostly pressing, some sideways motion:
+For each mesh (largest edge, mm) a vector env of each `--num-envs` size (`twin.envs.vector.TactileVectorEnv`:
+all sub-environments' FE solved together by one `fe.batched_stepper.BatchedStepper` on the warp
+`--device`) runs `--steps` vector steps of a pressing policy (mostly pressing, some sideways motion:
 uniform in [-0.3, 0.3] x [-0.3, 0.3] x [-0.2, 1] of the action bounds, seeded) with autoreset, so the
-count mixes free, contact and reset steps as training does. "env steps/s" counts sub-environment
-steps; "FE share" is the part of the wall time spent inside the FE batch call. The vector env steps
-its sub-environments through one `step_batch` call: by default a loop over per-slot CPU steppers
-(expect the same env steps/s as stand-alone); with `--fe-device cpu|cuda:0` the batched warp FE
-(`fe.batched_stepper`), whose cost per call grows slowly with the number of environments.
+count mixes free, contact and reset steps as training does. Before the timed runs, a stand-alone
+environment (one FE system) runs the same number of steps on that mesh and device: the baseline
+("vs 1 env" = env steps/s over the baseline's). "env steps/s" counts sub-environment steps; "FE share"
+is the part of the wall time spent inside the FE batch call. A short untimed run first builds the
+model and compiles the kernels.
+
+Imports only numpy, scipy, warp, mujoco, trimesh and gymnasium beside the project (no rerun, no torch):
+it runs on a bare GPU machine. A device warp does not have is one line, exit 2.
 """
 
 from __future__ import annotations
 
 import argparse
+import sys
 import time
 
 import gymnasium as gym
 import numpy as np
-from rich.console import Console
-from rich.table import Table
 
 import twin  # noqa: F401  (registers the environments)
+from twin.envs.fe_batch import check_device
+
+COLUMNS = ("mesh (mm)", "mode", "envs", "env steps", "wall (s)", "env steps/s", "vs 1 env", "FE share")
 
 
 def _actions(rng: np.random.Generator, n: int) -> np.ndarray:
     return rng.uniform([-0.3, -0.3, -0.2], [0.3, 0.3, 1.0], (n, 3))
 
 
-def single(env_id: str, steps: int, mesh_mm: float, seed: int, fe_device: str | None) -> dict:
-    """One stand-alone environment for `steps` steps."""
-    env = gym.make(env_id, mesh_mm=mesh_mm, fe_device=fe_device)
+def single(env_id: str, steps: int, mesh_mm: float, seed: int, device: str) -> dict:
+    """The baseline: one stand-alone environment (one FE system) for `steps` steps."""
+    env = gym.make(env_id, mesh_mm=mesh_mm, device=device)
     fe = env.unwrapped.fe
     rng = np.random.default_rng(seed)
     env.reset(seed=seed)
@@ -45,10 +52,10 @@ def single(env_id: str, steps: int, mesh_mm: float, seed: int, fe_device: str | 
     return {"mode": "single", "num_envs": 1, "env_steps": steps, "wall_s": wall, "fe_s": fe.wall_s}
 
 
-def vectorised(env_id: str, num_envs: int, steps: int, mesh_mm: float, seed: int, fe_device: str | None) -> dict:
+def vectorised(env_id: str, num_envs: int, steps: int, mesh_mm: float, seed: int, device: str) -> dict:
     """A vector env of `num_envs` for `steps` vector steps (autoreset)."""
     env = gym.make_vec(
-        env_id, num_envs=num_envs, vectorization_mode="vector_entry_point", mesh_mm=mesh_mm, fe_device=fe_device
+        env_id, num_envs=num_envs, vectorization_mode="vector_entry_point", mesh_mm=mesh_mm, device=device
     )
     fe = env.fe
     rng = np.random.default_rng(seed)
@@ -62,40 +69,64 @@ def vectorised(env_id: str, num_envs: int, steps: int, mesh_mm: float, seed: int
     return {"mode": "vector", "num_envs": num_envs, "env_steps": steps * num_envs, "wall_s": wall, "fe_s": fe.wall_s}
 
 
+def table_row(mesh_mm: float, row: dict, baseline: dict) -> list[str]:
+    """One markdown table row of a run, its speed also relative to the baseline's."""
+    rate = row["env_steps"] / row["wall_s"]
+    ratio = rate / (baseline["env_steps"] / baseline["wall_s"])
+    return [
+        f"{mesh_mm:g}",
+        row["mode"],
+        str(row["num_envs"]),
+        str(row["env_steps"]),
+        f"{row['wall_s']:.1f}",
+        f"{rate:.1f}",
+        f"{ratio:.2f}",
+        f"{row['fe_s'] / row['wall_s']:.0%}",
+    ]
+
+
+def _fail(message: str) -> None:
+    """Bad input: one line on stderr, exit status 2."""
+    print(f"env_bench: {message}", file=sys.stderr)
+    sys.exit(2)
+
+
+def _numbers(text: str, kind: type, name: str) -> list:
+    try:
+        values = [kind(v) for v in text.split(",")]
+    except ValueError:
+        values = []
+    if not values or min(values) <= 0:
+        _fail(f"{name} must be positive numbers separated by commas, got {text!r}")
+    return values
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--env", default="BioTacPress-v0")
-    parser.add_argument("--steps", type=int, default=40)
-    parser.add_argument("--num-envs", default="4,8")
-    parser.add_argument("--mesh-mm", type=float, default=2.0)
+    parser.add_argument("--device", default="cpu", help="warp device of the FE: cpu, cuda, cuda:0, ...")
+    parser.add_argument("--mesh-mm", default="2", help="mesh edge(s) in mm, comma separated (2, 1, 0.5)")
+    parser.add_argument("--num-envs", default="1,4", help="vector env size(s), comma separated")
+    parser.add_argument("--steps", type=int, default=20, help="vector steps per run")
     parser.add_argument("--seed", type=int, default=0)
-    parser.add_argument(
-        "--fe-device", default=None, help="warp device of the batched FE (cpu, cuda:0); default: the CPU stepper loop"
-    )
     args = parser.parse_args()
-    run = (args.env, args.steps, args.mesh_mm, args.seed, args.fe_device)
-    single(args.env, 3, args.mesh_mm, args.seed, args.fe_device)  # warm-up: model build, kernel compilation
-    rows = [single(*run)]
-    rows += [vectorised(args.env, int(n), *run[1:]) for n in args.num_envs.split(",")]
-    table = Table(
-        "mode",
-        "envs",
-        "env steps",
-        "wall (s)",
-        "env steps/s",
-        "FE share",
-        title=f"{args.env}, {args.mesh_mm} mm mesh, FE {args.fe_device or 'CPU stepper loop'}",
-    )
-    for r in rows:
-        table.add_row(
-            r["mode"],
-            str(r["num_envs"]),
-            str(r["env_steps"]),
-            f"{r['wall_s']:.1f}",
-            f"{r['env_steps'] / r['wall_s']:.1f}",
-            f"{r['fe_s'] / r['wall_s']:.0%}",
-        )
-    Console().print(table)
+    meshes = _numbers(args.mesh_mm, float, "--mesh-mm")
+    sizes = _numbers(args.num_envs, int, "--num-envs")
+    if args.steps < 1:
+        _fail("--steps must be at least 1")
+    try:
+        check_device(args.device)
+    except ValueError as error:
+        _fail(str(error))
+    print(f"{args.env}, FE on warp device {args.device!r}, {args.steps} steps per run\n")
+    print("| " + " | ".join(COLUMNS) + " |")
+    print("|" + "---|" * len(COLUMNS))
+    for mesh_mm in meshes:
+        single(args.env, 3, mesh_mm, args.seed, args.device)  # untimed: model build, kernel compilation
+        baseline = single(args.env, args.steps, mesh_mm, args.seed, args.device)
+        rows = [baseline] + [vectorised(args.env, n, args.steps, mesh_mm, args.seed, args.device) for n in sizes]
+        for row in rows:
+            print("| " + " | ".join(table_row(mesh_mm, row, baseline)) + " |", flush=True)
 
 
 if __name__ == "__main__":

@@ -64,8 +64,8 @@ class TactileEnv(gym.Env[dict[str, np.ndarray], np.ndarray]):
     sensor_params: the BioTac's read-out (`ElectrodeParameters`; None: nominal; `ElectrodeParameters.sample`
     draws a plausible other unit); force_noise_n: white noise (N) of the F/T observation.
     fe, slot, readout: set by `TactileVectorEnv` so that sub-environments share one FE batch; left
-    None, the environment builds a one-slot batch on the shared model with `mesh_mm` edges (mm) and the
-    `fe_device` backend (None: the CPU stepper; "cpu" or "cuda:0": the batched warp FE).
+    None, the environment builds a one-slot batch on the shared model with `mesh_mm` edges (mm) on the
+    warp `device` ("cpu", "cuda", "cuda:0", ...).
     render_mode: "rerun" (logged to `rerun_save`, else a spawned viewer) or "rgb_array" (`render` returns
     an offscreen MuJoCo frame (`render_height`, `render_width`, 3) uint8 of the last state: twin.envs.render).
     """
@@ -81,7 +81,7 @@ class TactileEnv(gym.Env[dict[str, np.ndarray], np.ndarray]):
         indenter: str,
         *,
         mesh_mm: float = COARSE_MESH_MM,
-        fe_device: str | None = None,
+        device: str = "cpu",
         ft: bool = False,
         max_steps: int = 20,
         max_step_mm: float = 0.3,
@@ -101,7 +101,7 @@ class TactileEnv(gym.Env[dict[str, np.ndarray], np.ndarray]):
             raise ValueError(f"render_mode must be None or one of {self.metadata['render_modes']}, got {render_mode!r}")
         if max_steps < 1 or not max_step_mm > 0.0 or not force_limit_n > 0.0 or limit_penalty < 0.0:
             raise ValueError("need max_steps >= 1, max_step_mm > 0, force_limit_n > 0 and limit_penalty >= 0")
-        self.fe = fe if fe is not None else IndentationBatch(shared_model(mesh_mm), [indenter], fe_device)
+        self.fe = fe if fe is not None else IndentationBatch(shared_model(mesh_mm), [indenter], device)
         if not 0 <= slot < self.fe.n or self.fe.indenters[slot] != indenter:
             raise ValueError(f"slot {slot} of the FE batch must exist and carry indenter {indenter!r}")
         self.indenter, self.slot = indenter, slot

@@ -1,12 +1,10 @@
 """The FE as the environments see it: many indentation slots stepped through one batched call.
 
 `IndentationBatch.step_batch(rotations, translations)` moves every slot's indenter to its new pose and
-returns the skin's answer as stacked arrays (`BatchIncrement`). Two backends, the same call:
-- `device=None` (default): a plain loop over one `fe.indentation.IndentationStepper` per slot, all on
-  one inflated `fe.sensor.BioTacModel` (sparse direct Newton on the CPU);
-- `device="cpu"` or `"cuda:0"`: `fe.batched_stepper.BatchedStepper`, all slots in one set of warp
-  launches with a batched block-sparse Newton and CG on that device (its docs state its agreement with
-  the CPU stepper).
+returns the skin's answer as stacked arrays (`BatchIncrement`). All slots are the systems of one
+`fe.batched_stepper.BatchedStepper` on a warp device (`device`, default "cpu"): one set of kernel
+launches per Newton round for the whole batch; the linear algebra follows the device (a sparse direct
+factorisation per system on the CPU, batched CG on a GPU: `fe.batched`).
 
 Frames and units: the `biotac` frame of the product manual (x distal, -z ventral), SI (m, N, Pa).
 """
@@ -18,14 +16,25 @@ from dataclasses import dataclass
 from functools import lru_cache
 
 import numpy as np
+import warp as wp
 
 from assets.biotac import make_biotac
+from fe.batched_stepper import BatchedStepper, CutBack
 from fe.params import SkinParameters
+from fe.results import IncrementResult
 from fe.sensor import BioTacModel
-from twin.campaign import inflated_model
 
 COARSE_MESH_MM = 2.0
 """The cheap mesh (largest edge, mm): 281 skin nodes, about 0.05-0.1 s per contact increment on one core."""
+
+
+def check_device(device: str) -> str:
+    """`device` if warp has it here ("cpu", "cuda", "cuda:0", ...); else a one-line ValueError."""
+    try:
+        wp.get_device(device)
+    except (RuntimeError, ValueError) as error:
+        raise ValueError(f"warp has no device {device!r} here ({error})") from None
+    return device
 
 
 @lru_cache(maxsize=4)
@@ -33,7 +42,12 @@ def shared_model(mesh_mm: float = COARSE_MESH_MM) -> BioTacModel:
     """An inflated nominal BioTac FE model with `mesh_mm` (mm) largest edges, built once per process."""
     if not 0.3 <= mesh_mm <= 5.0:
         raise ValueError(f"mesh_mm must be in [0.3, 5] mm, got {mesh_mm!r}")
-    return inflated_model(make_biotac(mesh_mm * 1e-3), SkinParameters())
+    # twin.campaign.inflated_model does this too, but importing twin.campaign pulls in h5py and more
+    model = BioTacModel(make_biotac(mesh_mm * 1e-3), SkinParameters())
+    result = model.inflate()
+    if not result.converged:
+        raise RuntimeError(f"inflation did not converge: {result.message}")
+    return model
 
 
 @dataclass(frozen=True)
@@ -55,29 +69,24 @@ class BatchIncrement:
 
 
 class IndentationBatch:
-    """`n` independent indentation slots on one inflated FE model, one indenter per slot.
+    """`n` independent indentation slots on one inflated FE model, one indenter per slot, solved together
+    by one `fe.batched_stepper.BatchedStepper` on the warp `device` ("cpu", "cuda", "cuda:0", ...).
 
     Every slot starts at the inflated state with its indenter away; `reset(slots)` puts slots back
-    there. `device`: None for the loop of CPU steppers, else the warp device of the batched FE (module
-    docstring). Each of the loop's slots is a one-system stepper of the FE engine, so stepping slots in
-    turn gives the same answers as stepping them alone.
+    there. A slot's failed increment is undone and retaken through halved steps (`fe.batched_stepper.CutBack`,
+    up to `MAX_CUTS` halvings) as the one-system `fe.indentation.IndentationStepper` does, so a one-slot
+    batch is that stepper.
     """
 
-    def __init__(self, model: BioTacModel, indenters: list[str], device: str | None = None) -> None:
+    def __init__(self, model: BioTacModel, indenters: list[str], device: str = "cpu") -> None:
         if model.reference is None:
             raise ValueError("the FE model must be inflated before it drives an IndentationBatch")
         if not indenters:
             raise ValueError("an IndentationBatch needs at least one slot")
         self.model = model
         self.indenters = list(indenters)
-        self.device = device
-        if device is None:
-            self._steppers = [model.stepper(name) for name in self.indenters]
-        else:
-            from fe.batched import InflatedSkin
-            from fe.batched_stepper import BatchedStepper
-
-            self._batched = BatchedStepper(InflatedSkin.from_model(model), self.indenters, device)
+        self.device = check_device(device)
+        self._engine = BatchedStepper(model.inflated_skin(), self.indenters, device)
         self.wall_s = 0.0
         """Total wall-clock time (s) spent in `step_batch` so far."""
 
@@ -93,14 +102,9 @@ class IndentationBatch:
 
     def reset(self, slots: list[int] | np.ndarray | None = None) -> None:
         """Back to the inflated state with the indenter released, for `slots` (None: all)."""
-        chosen = range(self.n) if slots is None else [int(k) for k in slots]
-        if self.device is None:
-            for k in chosen:
-                self._steppers[k].reset()
-        else:
-            which = np.zeros(self.n, dtype=bool)
-            which[list(chosen)] = True
-            self._batched.reset(which)
+        which = np.zeros(self.n, dtype=bool)
+        which[range(self.n) if slots is None else [int(k) for k in slots]] = True
+        self._engine.reset(which)
 
     def step_batch(self, rotations: np.ndarray, translations: np.ndarray) -> BatchIncrement:
         """Move slot k's indenter to (rotations[k] (3,3) body->biotac, translations[k] (3,) tip, m) and
@@ -113,10 +117,7 @@ class IndentationBatch:
                 f"got {rotations.shape} and {translations.shape}"
             )
         start = time.perf_counter()
-        if self.device is None:
-            results = [s.step(r, t) for s, r, t in zip(self._steppers, rotations, translations, strict=True)]
-        else:
-            results = self._batched.step(rotations, translations)
+        results = self._solve(rotations, translations)
         wall_s = time.perf_counter() - start
         self.wall_s += wall_s
         return BatchIncrement(
@@ -127,3 +128,18 @@ class IndentationBatch:
             converged=np.array([r.converged for r in results]),
             wall_s=wall_s,
         )
+
+    def _solve(self, rotations: np.ndarray, translations: np.ndarray) -> list[IncrementResult]:
+        """Every slot's result at its target pose: slots whose increment failed step again (to the midpoint,
+        then the target) while the others wait, until each has its target's result."""
+        targets = [(r, t, None) for r, t in zip(rotations, translations, strict=True)]
+        plans = [CutBack() for _ in range(self.n)]
+        results: list[IncrementResult | None] = [None] * self.n
+        pending = np.ones(self.n, dtype=bool)
+        while pending.any():
+            poses = [plan.pose(target) for plan, target in zip(plans, targets, strict=True)]
+            answers = self._engine.step(np.array([p[0] for p in poses]), np.array([p[1] for p in poses]), pending)
+            for k in np.flatnonzero(pending):
+                if plans[k].settle(self._engine, k, answers[k].converged, targets[k]):
+                    results[k], pending[k] = answers[k], False
+        return results

@@ -2,9 +2,8 @@
 
 `TactileVectorEnv` holds `num_envs` sub-environments of one task, each on its own slot of one
 `IndentationBatch`; every `step` gathers all sub-environments' new indenter poses and makes one
-`step_batch` call. By default that call is a loop over per-slot CPU steppers (no speed-up over stepping
-the environments one by one); with `fe_device` it is the batched warp FE (`fe.batched_stepper`), all
-slots in one set of launches. Autoreset follows gymnasium's NEXT_STEP mode: the step after an episode
+`step_batch` call: the batched FE engine (`fe.batched_stepper`) on the warp `device`, all slots solved
+together. Autoreset follows gymnasium's NEXT_STEP mode: the step after an episode
 ends resets that sub-environment (its action is ignored; reward 0).
 """
 
@@ -26,8 +25,7 @@ from twin.envs.sensing import TactileReadout
 
 class TactileVectorEnv(VectorEnv):
     """`num_envs` copies of `env_class` (kwargs `env_kwargs`) on one FE batch of the `mesh_mm` (mm) model,
-    with the `fe_device` backend of `IndentationBatch` (None: a loop of CPU steppers; "cpu"/"cuda:0":
-    the batched warp FE).
+    solved together on the warp `device` ("cpu", "cuda", "cuda:0", ...).
 
     With render_mode "rerun" the first sub-environment is logged (to `rerun_save` or a spawned viewer);
     "rgb_array" is a stand-alone environment's mode only.
@@ -41,7 +39,7 @@ class TactileVectorEnv(VectorEnv):
         num_envs: int,
         *,
         mesh_mm: float = COARSE_MESH_MM,
-        fe_device: str | None = None,
+        device: str = "cpu",
         render_mode: str | None = None,
         rerun_save: str | Path | None = None,
         **env_kwargs: Any,
@@ -51,7 +49,7 @@ class TactileVectorEnv(VectorEnv):
         if render_mode is not None and render_mode not in self.metadata["render_modes"]:
             raise ValueError(f"the vector env's render_mode must be None or one of {self.metadata['render_modes']}")
         indenter = env_kwargs.pop("indenter", env_class.default_indenter)
-        self.fe = IndentationBatch(shared_model(mesh_mm), [indenter] * num_envs, fe_device)
+        self.fe = IndentationBatch(shared_model(mesh_mm), [indenter] * num_envs, device)
         readout = TactileReadout(self.fe, env_kwargs.get("sensor_params"), env_kwargs.get("force_noise_n", 0.01))
         self.envs = [
             env_class(
