@@ -94,10 +94,6 @@ class TrajectorySpec:
     increment: np.ndarray = field(repr=False)
     """(K,) increment index of each depth: -1 at the standoff, 0.. for the loading/unloading steps."""
 
-    def tip_positions(self) -> np.ndarray:
-        """(K, 3) tip positions (m, biotac frame) along the path."""
-        return self.touch_point + np.outer(self.depths, self.direction)
-
     def tip_pose(self, k: int) -> np.ndarray:
         """4x4 pose of the indenter frame in the biotac frame at path index k."""
         pose = np.eye(4)
