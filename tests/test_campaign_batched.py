@@ -19,7 +19,7 @@ import pytest
 
 import twin.campaign_batched as campaign_batched
 from twin.campaign import QUICK_CONFIG, run_campaign
-from twin.campaign_batched import FE_FORCE_LIMIT_FACTOR, BatchedRunner
+from twin.campaign_batched import FE_FORCE_LIMIT_FACTOR, SOLVES_DIR, BatchedRunner
 from twin.executors import Executor
 from twin.plant import make_plant
 from twin.protocol import QUICK_SETTINGS
@@ -47,12 +47,18 @@ one-system engine agree within 1e-3 of |F|); on warp's CPU device they are in fa
 
 
 class InProcess(Executor):
-    """Runs every task here, one after the other (no worker start-up in a test)."""
+    """Runs every task here, one after the other (no worker start-up in a test); sets up again only for other
+    setup arguments."""
+
+    def __init__(self) -> None:
+        self.set_up: tuple = ()
 
     def map_unordered(
         self, task: Callable[..., Any], jobs: Sequence[tuple], setup: Callable[..., None], setup_args: tuple
     ) -> Iterator[Any]:
-        setup(*setup_args)
+        if self.set_up != (setup, *map(id, setup_args)):
+            setup(*setup_args)
+            self.set_up = (setup, *map(id, setup_args))
         for job in jobs:
             yield task(*job)
 
@@ -84,6 +90,19 @@ def _assert_same_campaign(reference: dict[str, np.ndarray], other: dict[str, np.
             np.testing.assert_array_equal(got, expected, err_msg=key)
 
 
+def _spy_on_batches(monkeypatch: pytest.MonkeyPatch) -> list[float]:
+    """The force limit (N) of each batched fe run the campaign makes, in order."""
+    limits: list[float] = []
+    run_trajectories = campaign_batched.run_trajectories
+
+    def spy(*args: Any, **kwargs: Any) -> Any:
+        limits.append(args[4])
+        return run_trajectories(*args, **kwargs)
+
+    monkeypatch.setattr(campaign_batched, "run_trajectories", spy)
+    return limits
+
+
 @pytest.fixture(scope="module")
 def one_at_a_time(tmp_path_factory: pytest.TempPathFactory) -> dict[str, np.ndarray]:
     out = tmp_path_factory.mktemp("one_at_a_time")
@@ -94,14 +113,7 @@ def one_at_a_time(tmp_path_factory: pytest.TempPathFactory) -> dict[str, np.ndar
 def test_batched_campaign_equals_the_one_at_a_time_campaign(
     one_at_a_time: dict[str, np.ndarray], tmp_path: Path, monkeypatch: pytest.MonkeyPatch
 ) -> None:
-    limits: list[float] = []
-    run_trajectories = campaign_batched.run_trajectories
-
-    def spy(*args: Any, **kwargs: Any) -> Any:
-        limits.append(args[4])
-        return run_trajectories(*args, **kwargs)
-
-    monkeypatch.setattr(campaign_batched, "run_trajectories", spy)
+    limits = _spy_on_batches(monkeypatch)
     result = run_campaign(CONFIG, tmp_path, plant=PLANT, executor=InProcess(), runner=BatchedRunner("cpu"))
     # the normal press ran past the batch's fe force limit (half the force measured) and was solved again
     assert limits == [FE_FORCE_LIMIT_FACTOR * CONFIG.settings.force_limit, np.inf]
@@ -111,10 +123,11 @@ def test_batched_campaign_equals_the_one_at_a_time_campaign(
     wrench = batched["raw/0/wrench"]  # the normal press: stopped once the tared reading passed the limit
     assert np.linalg.norm(wrench[-1, :3] - wrench[0, :3]) > CONFIG.settings.force_limit
     assert batched["fe_converged/data"].all()
+    assert not list((tmp_path / "parts" / SOLVES_DIR).rglob("*.npz"))  # dropped once the parts are written
 
 
 def test_an_interrupted_batched_campaign_resumes_to_the_same_file(
-    one_at_a_time: dict[str, np.ndarray], tmp_path: Path
+    one_at_a_time: dict[str, np.ndarray], tmp_path: Path, monkeypatch: pytest.MonkeyPatch
 ) -> None:
     def interrupt_after_the_first_part(done: int, total: int) -> None:
         if done == 1:
@@ -129,8 +142,12 @@ def test_an_interrupted_batched_campaign_resumes_to_the_same_file(
             runner=BatchedRunner("cpu"),
             on_progress=interrupt_after_the_first_part,
         )
-    assert len(list((tmp_path / "parts").rglob("*.npz"))) == 1
+    assert len(list((tmp_path / "parts").rglob("trajectory_*.npz"))) == 1
+    assert len(list((tmp_path / "parts" / SOLVES_DIR).rglob("solves_*.npz"))) == 1  # solved, not yet synthesised
     assert not (tmp_path / "biotac2.hdf5").exists()
+    limits = _spy_on_batches(monkeypatch)
     resumed = run_campaign(CONFIG, tmp_path, plant=PLANT, executor=InProcess(), runner=BatchedRunner("cpu"))
     assert (resumed.ran, resumed.skipped) == (1, 1)
+    assert limits == [np.inf]  # its batched solves were kept: only the normal press's re-solve without a limit
+    assert not list((tmp_path / "parts" / SOLVES_DIR).rglob("*.npz"))
     _assert_same_campaign(one_at_a_time, _read_all(tmp_path / "biotac2.hdf5"))

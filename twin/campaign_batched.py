@@ -11,12 +11,13 @@ before anything is solved. `BatchedRunner` works in three passes:
 2. fe (in this process, on the warp device): per sensor, every schedule is a timed `PoseTrajectory` of one
    batched run (`fe.batched_runner.run_trajectories`: each system on its own clock, failed steps cut back as
    the one-at-a-time stepper does), which ends a trajectory at its first increment that fails or whose
-   indenter force exceeds `FE_FORCE_LIMIT_FACTOR` times the protocol's force limit;
-3. synthesis (in this process, as each trajectory's solves come back): the protocol runs again on a fresh
-   testbed with the same noise stream and clock, a `ScheduleReplay` answering each solve with its batched
-   result, so the controller (its force-limit stop included), noise, measurement effects, processing and
-   part file are those of the one-at-a-time campaign (`twin.campaign.one_at_a_time`); they agree within the
-   engine's tolerance (bit for bit on warp's CPU device, tests/test_campaign_batched.py).
+   indenter force exceeds `FE_FORCE_LIMIT_FACTOR` times the protocol's force limit; each trajectory's
+   schedule and results are written to `parts/fe_solves` as it ends (so a resume skips its fe);
+3. synthesis (on the executor's workers): the protocol runs again on a fresh testbed with the same noise
+   stream and clock, a `ScheduleReplay` answering each solve with its batched result, so the controller (its
+   force-limit stop included), noise, measurement effects, processing and part file are those of the
+   one-at-a-time campaign (`twin.campaign.one_at_a_time`); they agree within the engine's tolerance (bit for
+   bit on warp's CPU device, tests/test_campaign_batched.py). The solves are dropped once the part is written.
 
 A trajectory whose controller goes on past where the batch stopped it (a measurement effect that hides more
 than a third of the force) is solved again, without a force limit, in a second batch.
@@ -25,7 +26,8 @@ than a third of the force) is solved again, without a force limit, in a second b
 from __future__ import annotations
 
 from collections.abc import Callable
-from dataclasses import dataclass
+from dataclasses import dataclass, fields
+from pathlib import Path
 
 import numpy as np
 
@@ -42,6 +44,7 @@ from twin.campaign import (
     simulate_trajectory,
     write_trajectory_part,
 )
+from twin.dataset import read_part, write_part
 from twin.executors import Executor
 from twin.planning import PlannedTrajectory
 from twin.plant import Plant
@@ -177,15 +180,70 @@ def synthesise(
     return write_trajectory_part(worker, task, backend, recording)
 
 
+# -- solved schedules on disk, between the fe batch and the synthesis workers -------------------------------
+SOLVES_DIR = "fe_solves"
+"""Folder in the parts folder holding each solved schedule until its part is written."""
+_RESULT_FIELDS = tuple(f.name for f in fields(IncrementResult))
+
+
+def solves_path(task: TrajectoryTask) -> Path:
+    """Where the task's solved schedule waits for its synthesis."""
+    job, parts_dir = task[0], Path(task[3])
+    return parts_dir / SOLVES_DIR / f"biotac{job.sensor_id}" / f"solves_{job.spec.trajectory_id:06d}.npz"
+
+
+def write_solves(path: Path, schedule: SolveSchedule, increments: list[IncrementResult]) -> None:
+    """Write a schedule and its batched results (every `IncrementResult` field, stacked) atomically."""
+    arrays = {
+        "indenter": np.asarray(schedule.indenter),
+        "times": schedule.times,
+        "rotations": schedule.rotations,
+        "translations": schedule.translations,
+        "solved": np.asarray(len(increments)),
+    }
+    for name in _RESULT_FIELDS:
+        arrays[f"result_{name}"] = np.asarray([getattr(r, name) for r in increments])
+    write_part(path, arrays)
+
+
+def read_solves(path: Path) -> tuple[SolveSchedule, list[IncrementResult]]:
+    """The schedule and results `write_solves` wrote (the same values)."""
+    arrays = read_part(path)
+    schedule = SolveSchedule(str(arrays["indenter"]), arrays["times"], arrays["rotations"], arrays["translations"])
+    columns = [arrays[f"result_{name}"] for name in _RESULT_FIELDS]
+    increments = [
+        IncrementResult(*(c[k] if c.ndim > 1 else c[k].item() for c in columns)) for k in range(int(arrays["solved"]))
+    ]
+    return schedule, increments
+
+
+def synthesise_part(
+    job: PlannedTrajectory, slot: int, registration: np.ndarray, parts_dir: str
+) -> tuple[tuple[int, int], bool | None]:
+    """Executor task (after `twin.campaign.init_worker`): synthesise the trajectory from its solved schedule
+    and write its part (then drop the solves); returns its (sensor id, trajectory id) and whether it is
+    complete, None when the protocol needs solves past the batch's force-limit stop."""
+    task = (job, slot, registration, parts_dir)
+    path = solves_path(task)
+    schedule, increments = read_solves(path)
+    try:
+        sid, tid, complete = synthesise(process_worker(), task, schedule, increments)
+    except ScheduleExhausted:
+        return _key(task), None
+    path.unlink()
+    return (sid, tid), complete
+
+
 @dataclass(frozen=True)
 class BatchedRunner:
     """A `twin.campaign.TrajectoryRunner` that solves the fe of every trajectory of a sensor as the systems of
-    one batched run on the warp `device` (`slots` systems at once); see the module docstring. `on_stage`
-    is told what it is doing ("schedules", "fe"), e.g. for a progress bar."""
+    one batched run on the warp `device` (`slots` systems at once); see the module docstring.
+    `on_stage(stage, done, total)` is told how far each stage ("schedules", "fe", "synthesis") has come, in
+    trajectories, e.g. for a progress bar."""
 
     device: str = "cpu"
     slots: int = 256
-    on_stage: Callable[[str], None] | None = None
+    on_stage: Callable[[str, int, int], None] | None = None
 
     def __call__(
         self,
@@ -195,20 +253,18 @@ class BatchedRunner:
         executor: Executor,
         finished: Finished,
     ) -> None:
-        if not tasks:
-            return
-        self._stage("schedules")
-        schedules = dict(executor.map_unordered(plan_schedule, tasks, init_worker, (config, plant)))
-        self._stage("fe")
+        unsolved = [task for task in tasks if not solves_path(task).exists()]  # a resume keeps solved ones
+        schedules: dict[tuple[int, int], SolveSchedule] = {}
+        for key, schedule in executor.map_unordered(plan_schedule, unsolved, init_worker, (config, plant)):
+            schedules[key] = schedule
+            self._stage("schedules", len(schedules), len(unsolved))
         worker = CampaignWorker(config, plant)
-        limit = FE_FORCE_LIMIT_FACTOR * config.settings.force_limit
-        for sid in sorted({task[0].sensor_id for task in tasks}):
-            pending = [task for task in tasks if task[0].sensor_id == sid]
-            for task in [t for t in pending if not len(schedules[_key(t)].times)]:  # the protocol asked for none
-                finished(*synthesise(worker, task, schedules[_key(task)], []))
-            pending = [t for t in pending if len(schedules[_key(t)].times)]
-            pending = self._solve(worker, pending, schedules, limit, finished)
-            if pending and self._solve(worker, pending, schedules, np.inf, finished):
+        self._solve(worker, unsolved, schedules, FE_FORCE_LIMIT_FACTOR * config.settings.force_limit)
+        exhausted = self._synthesise(tasks, config, plant, executor, finished)
+        if exhausted:  # solve them again without a force limit, from their recorded schedules
+            schedules = {_key(task): read_solves(solves_path(task))[0] for task in exhausted}
+            self._solve(worker, exhausted, schedules, np.inf)
+            if self._synthesise(exhausted, config, plant, executor, finished):
                 raise RuntimeError("a trajectory solved without a force limit still ran out of solves")
 
     def _solve(
@@ -217,30 +273,52 @@ class BatchedRunner:
         tasks: list[TrajectoryTask],
         schedules: dict[tuple[int, int], SolveSchedule],
         force_limit: float,
+    ) -> None:
+        """Solve the tasks' schedules, one batch per sensor ending trajectories above `force_limit` (N), and
+        write each trajectory's solves as it ends."""
+        done = 0
+        for task in [t for t in tasks if not len(schedules[_key(t)].times)]:  # the protocol asked for no solve
+            write_solves(solves_path(task), schedules[_key(task)], [])
+            done += 1
+        for sid in sorted({task[0].sensor_id for task in tasks}):
+            mine = [t for t in tasks if t[0].sensor_id == sid and len(schedules[_key(t)].times)]
+            if not mine:
+                continue
+
+            def ended(index: int, increments: list[IncrementResult], mine: list[TrajectoryTask] = mine) -> None:
+                nonlocal done
+                write_solves(solves_path(mine[index]), schedules[_key(mine[index])], increments)
+                increments.clear()  # written: free the displacement fields as the run goes on
+                done += 1
+                self._stage("fe", done, len(tasks))
+
+            skin = worker.sensor(sid)[0].inflated_skin()
+            poses = [schedules[_key(t)].poses() for t in mine]
+            run_trajectories(skin, poses, self.device, self.slots, force_limit, on_trajectory=ended)
+
+    def _synthesise(
+        self,
+        tasks: list[TrajectoryTask],
+        config: CampaignConfig,
+        plant: Plant,
+        executor: Executor,
         finished: Finished,
     ) -> list[TrajectoryTask]:
-        """Solve the tasks' schedules (one sensor's) as one batch ending trajectories above `force_limit` (N),
-        synthesising and writing each trajectory as it ends; returns those that needed more solves."""
-        if not tasks:
-            return []
-        exhausted: list[TrajectoryTask] = []
-
-        def ended(index: int, increments: list[IncrementResult]) -> None:
-            task = tasks[index]
-            try:
-                finished(*synthesise(worker, task, schedules[_key(task)], increments))
-            except ScheduleExhausted:
-                exhausted.append(task)
-            increments.clear()  # the displacement fields are written: free them as the run goes on
-
-        model = worker.sensor(tasks[0][0].sensor_id)[0]
-        poses = [schedules[_key(task)].poses() for task in tasks]
-        run_trajectories(model.inflated_skin(), poses, self.device, self.slots, force_limit, on_trajectory=ended)
+        """Synthesise the tasks' parts on the executor; returns those that need more solves."""
+        by_key = {_key(task): task for task in tasks}
+        exhausted, done = [], 0
+        for key, complete in executor.map_unordered(synthesise_part, tasks, init_worker, (config, plant)):
+            if complete is None:
+                exhausted.append(by_key[key])
+                continue
+            finished(*key, complete)
+            done += 1
+            self._stage("synthesis", done, len(tasks))
         return exhausted
 
-    def _stage(self, name: str) -> None:
+    def _stage(self, name: str, done: int, total: int) -> None:
         if self.on_stage is not None:
-            self.on_stage(name)
+            self.on_stage(name, done, total)
 
 
 def _key(task: TrajectoryTask) -> tuple[int, int]:

@@ -186,9 +186,9 @@ def run(
             from twin.campaign import one_at_a_time, run_campaign
             from twin.campaign_batched import BatchedRunner
 
-            def stage(name: str) -> None:
-                label = {"schedules": "fe schedules", "fe": f"fe batch on {device}"}[name]
-                progress.update(task, description=f"trajectories ({label})")
+            def stage(name: str, done: int, total: int) -> None:
+                label = {"schedules": "fe schedules", "fe": f"fe batch on {device}", "synthesis": "synthesis"}[name]
+                progress.update(task, description=f"trajectories ({label} {done}/{total})")
 
             runner = one_at_a_time if device is None else BatchedRunner(device, slots, stage)
             on_trajectory = viewer.log_trajectory if viewer else None
