@@ -53,6 +53,7 @@ def _case(out: Path, hidden: str, seed: int, predictor: Predictor) -> dict:
         "runner_up": names[1] if len(names) > 1 else None,
         "evidence_margin": result.diagnosis.candidates[0].evidence - result.diagnosis.candidates[1].evidence,
         "rms_before": result.diagnosis.base_rms,
+        "noise_rms_threshold": result.diagnosis.rms_threshold,
         "rms_after": fit.rms_after if fit else None,
         "heldout_rms": fit.heldout_rms if fit else None,
         "seconds": {**result.seconds, "total": time.perf_counter() - start},

@@ -123,3 +123,32 @@ def test_improve_keeps_the_history_beside_the_dataset_or_the_model(
     result = runner.invoke(app, ["improve", str(fake_inputs), "--add", "time_delay", "--model", str(model_file)])
     assert result.exit_code == 0, result.output
     assert len(read_history(model_file.parent / "twin-history.jsonl")) == 1
+
+
+class _NarrowBasin:
+    """A delay whose signature appears only near its true size: the prediction moves by a fixed pattern
+    weighted by a bump around 0.25 s (flat at zero delay), and the data hold that pattern plus noise."""
+
+    def __init__(self, n: int = 400) -> None:
+        rng = np.random.default_rng(2)
+        self.pattern = 5.0 * np.sin(np.arange(n) / 7.0)
+        noise = rng.standard_normal(n)
+        self.residual = type("R", (), {"values": self.pattern + noise})()
+        self.nuisance = type("N", (), {"chi2": staticmethod(lambda v: float(np.nansum(v**2)))})()
+
+    def shifted(self, predictor: object, model: TwinModel) -> np.ndarray:
+        seconds = model.effects.get("time_delay", {}).get("seconds", 0.0)
+        return self.pattern * np.exp(-(((seconds - 0.25) / 0.05) ** 2))
+
+
+def test_an_effect_far_from_its_off_value_is_found_from_its_starts() -> None:
+    """Linearised at zero delay, the bump is flat and explains nothing; the start at 0.25 s finds it, and
+    the refit from there reaches the noise."""
+    base = _NarrowBasin()
+    effect = diagnose_module.EFFECTS["time_delay"]
+    lin = diagnose_module.sensitivity(effect, TwinModel(), None, base)
+    assert lin.point["seconds"] == pytest.approx(0.25)
+    candidate = Candidate("time_delay", "measurement", {}, 0.0, 0.0, 0.0)
+    _refit(candidate, TwinModel(), None, base, lin)
+    assert candidate.refit_parameters["seconds"] == pytest.approx(0.25, abs=0.01)
+    assert candidate.refit_rms < 1.1
