@@ -9,8 +9,9 @@ uniform in [-0.3, 0.3] x [-0.3, 0.3] x [-0.2, 1] of the action bounds, seeded) w
 count mixes free, contact and reset steps as training does. Before the timed runs, a stand-alone
 environment (one FE system) runs the same number of steps on that mesh and device: the baseline
 ("vs 1 env" = env steps/s over the baseline's). "env steps/s" counts sub-environment steps; "FE share"
-is the part of the wall time spent inside the FE batch call. A short untimed run first builds the
-model and compiles the kernels.
+is the part of the wall time spent inside the FE batch call; "CPU (s)" is the process's CPU time (all
+threads), which, unlike the wall time, does not grow when other jobs share the cores. A short untimed
+run first builds the model and compiles the kernels.
 
 Imports only numpy, scipy, warp, mujoco, trimesh and gymnasium beside the project (no rerun, no torch):
 it runs on a bare GPU machine. A device warp does not have is one line, exit 2.
@@ -28,7 +29,7 @@ import numpy as np
 import twin  # noqa: F401  (registers the environments)
 from twin.envs.fe_batch import check_device
 
-COLUMNS = ("mesh (mm)", "mode", "envs", "env steps", "wall (s)", "env steps/s", "vs 1 env", "FE share")
+COLUMNS = ("mesh (mm)", "mode", "envs", "env steps", "wall (s)", "CPU (s)", "env steps/s", "vs 1 env", "FE share")
 
 
 def _actions(rng: np.random.Generator, n: int) -> np.ndarray:
@@ -42,14 +43,14 @@ def single(env_id: str, steps: int, mesh_mm: float, seed: int, device: str) -> d
     rng = np.random.default_rng(seed)
     env.reset(seed=seed)
     fe.wall_s = 0.0
-    start = time.perf_counter()
+    start, cpu = time.perf_counter(), time.process_time()
     for _ in range(steps):
         _, _, terminated, truncated, _ = env.step(_actions(rng, 1)[0])
         if terminated or truncated:
             env.reset()
-    wall = time.perf_counter() - start
+    wall, cpu = time.perf_counter() - start, time.process_time() - cpu
     env.close()
-    return {"mode": "single", "num_envs": 1, "env_steps": steps, "wall_s": wall, "fe_s": fe.wall_s}
+    return {"mode": "single", "num_envs": 1, "env_steps": steps, "wall_s": wall, "cpu_s": cpu, "fe_s": fe.wall_s}
 
 
 def vectorised(env_id: str, num_envs: int, steps: int, mesh_mm: float, seed: int, device: str) -> dict:
@@ -61,12 +62,19 @@ def vectorised(env_id: str, num_envs: int, steps: int, mesh_mm: float, seed: int
     rng = np.random.default_rng(seed)
     env.reset(seed=seed)
     fe.wall_s = 0.0
-    start = time.perf_counter()
+    start, cpu = time.perf_counter(), time.process_time()
     for _ in range(steps):
         env.step(_actions(rng, num_envs))
-    wall = time.perf_counter() - start
+    wall, cpu = time.perf_counter() - start, time.process_time() - cpu
     env.close()
-    return {"mode": "vector", "num_envs": num_envs, "env_steps": steps * num_envs, "wall_s": wall, "fe_s": fe.wall_s}
+    return {
+        "mode": "vector",
+        "num_envs": num_envs,
+        "env_steps": steps * num_envs,
+        "wall_s": wall,
+        "cpu_s": cpu,
+        "fe_s": fe.wall_s,
+    }
 
 
 def table_row(mesh_mm: float, row: dict, baseline: dict) -> list[str]:
@@ -79,6 +87,7 @@ def table_row(mesh_mm: float, row: dict, baseline: dict) -> list[str]:
         str(row["num_envs"]),
         str(row["env_steps"]),
         f"{row['wall_s']:.1f}",
+        f"{row['cpu_s']:.1f}",
         f"{rate:.1f}",
         f"{ratio:.2f}",
         f"{row['fe_s'] / row['wall_s']:.0%}",
