@@ -9,7 +9,7 @@ env (so each step is one batched FE call), and refits the Gaussian over W to the
 random policy (uniform actions) on held-out seeds is the baseline; the final mean W is evaluated on the
 same held-out seeds.
 
-    python3 scripts/train_press_policy.py --out docs/img/press_training.png
+    python3 scripts/train_press_policy.py --out docs/img/press_training.png [--device cuda] [--mesh-mm 2]
 
 Cost: about (population x episodes + validation) x iterations x max_steps FE increments on the coarse
 mesh (a few minutes on two CPU cores with the defaults).
@@ -28,6 +28,7 @@ import numpy as np
 from matplotlib.figure import Figure
 
 import twin  # noqa: F401  (registers the environments)
+from twin.envs.fe_batch import check_device
 
 N_FEATURES = 7
 MASK = np.array(
@@ -95,6 +96,8 @@ def train(args: argparse.Namespace) -> dict:
         num_envs=n_train + args.validation,
         vectorization_mode="vector_entry_point",
         max_steps=args.max_steps,
+        mesh_mm=args.mesh_mm,
+        device=args.device,
     )
     validation_seeds = [10**5 + k for k in range(args.validation)]
     mean = np.zeros((3, N_FEATURES))
@@ -163,10 +166,16 @@ def main() -> None:
     parser.add_argument("--init-std", type=float, default=0.5)
     parser.add_argument("--min-std", type=float, default=0.1)
     parser.add_argument("--seed", type=int, default=0)
+    parser.add_argument("--mesh-mm", type=float, default=2.0, help="FE mesh edge (mm).")
+    parser.add_argument("--device", default="cpu", help="Warp device of the batched FE (cpu, cuda, cuda:0, ...).")
     parser.add_argument("--json", type=Path, default=None, help="Also write the numbers to this JSON file.")
     args = parser.parse_args()
     if not 0 < args.elites <= args.population or args.iterations < 1 or args.episodes < 1:
         parser.error("need 0 < elites <= population, iterations >= 1 and episodes >= 1")
+    try:
+        check_device(args.device)
+    except ValueError as error:
+        parser.exit(2, f"train_press_policy: {error}\n")
     result = train(args)
     plot(result, args.out)
     if args.json is not None:
