@@ -47,6 +47,8 @@ from twin.effects import EFFECTS, Effect
 NOISE_TOLERANCE = 1.3
 """Screen before refits: candidates whose linearised held-out RMS is within this multiple of the noise
 rank ahead of those that are not. Naming uses the noise test (`twin.analysis.significance`) instead."""
+BACKTRACKS = 2
+"""Halvings of a refit step that does not lower the misfit before the refit stops there."""
 CHANNELS = (*FORCE_CHANNELS, "pdc")
 """Residual channels, in the order of the last axis of every signal array."""
 PDC_GAIN_PRIOR = 0.05
@@ -455,11 +457,13 @@ def _identifiability(candidate: Candidate, jac: np.ndarray) -> None:
 def _refit(
     candidate: Candidate, model: TwinModel, predictor: Predictor, base: _Base, lin: Linearisation, iterations: int = 3
 ) -> None:
-    """Linear steps re-predicted nonlinearly each time: the first with the given J; a physics effect that
-    still leaves more than the tolerance is linearised again where it stands (Gauss-Newton: one fe replay
-    per parameter), a measurement effect keeps J (its predictions reuse cached fe replays) and ends with a
-    nonlinear least-squares polish. When the result fits worse than the model's own values of the effect
-    (the starting point), those are kept."""
+    """Damped Gauss-Newton: linear steps re-predicted nonlinearly each time, the first with the given J; a
+    step that does not lower the misfit is halved (up to `BACKTRACKS` times, one prediction each) and
+    the iterations stop when none does; a physics effect whose residual still fails the noise test is
+    linearised again where it stands (one fe replay per parameter), a measurement effect keeps J (its
+    predictions reuse cached fe replays) and, unless linear in its parameters, ends with a nonlinear
+    least-squares polish. When the result fits worse than the model's own values of the effect (the
+    starting point), those are kept."""
     effect = EFFECTS[candidate.name]
     values = lin.point
 
@@ -470,8 +474,18 @@ def _refit(
     best = (_rms(misfit(start)), start)
     residual = base.residual.values - lin.offset
     for iteration in range(iterations):
-        values = _clipped(effect, values, _linear_fit(effect, values, lin.jac, residual))
-        residual = misfit(values)
+        delta = _linear_fit(effect, values, lin.jac, residual)
+        trial = _clipped(effect, values, delta)
+        trial_residual = misfit(trial)
+        for _ in range(BACKTRACKS):
+            if _rms(trial_residual) < _rms(residual):
+                break
+            delta = delta / 2.0
+            trial = _clipped(effect, values, delta)
+            trial_residual = misfit(trial)
+        if not _rms(trial_residual) < _rms(residual):
+            break
+        values, residual = trial, trial_residual
         more = iteration + 1 < iterations
         if more and effect.kind == "physics" and not base.noise_test(residual).is_noise:
             lin = linearise(effect, model, values, predictor, base)
