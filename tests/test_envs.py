@@ -207,12 +207,13 @@ def test_record_video_writes_an_episode(offscreen_gl: None, tmp_path: Path) -> N
     pytest.importorskip("moviepy", reason="gymnasium's RecordVideo encodes with moviepy, not installed here")
     from gymnasium.wrappers import RecordVideo
 
-    env = RecordVideo(gym.make("BioTacPress-v0", render_mode="rgb_array", max_steps=3), str(tmp_path))
+    folder = tmp_path / "videos"
+    env = RecordVideo(gym.make("BioTacPress-v0", render_mode="rgb_array", max_steps=3), str(folder))
     env.reset(seed=0)
     for _ in range(3):
         env.step(PRESS)
     env.close()
-    videos = list(tmp_path.glob("*.mp4"))
+    videos = list(folder.glob("*.mp4"))
     assert len(videos) == 1 and videos[0].stat().st_size > 0
 
 
