@@ -13,8 +13,9 @@ is the part of the wall time spent inside the FE batch call; "CPU (s)" is the pr
 threads), which, unlike the wall time, does not grow when other jobs share the cores. A short untimed
 run first builds the model and compiles the kernels.
 
-Imports only numpy, scipy, warp, mujoco, trimesh and gymnasium beside the project (no rerun, no torch):
-it runs on a bare GPU machine. A device warp does not have is one line, exit 2.
+Needs only numpy, scipy, warp, trimesh (with rtree, which trimesh imports for the meshes' bounds tree)
+and gymnasium beside the project (no mujoco, rerun, torch, rich or h5py): it runs on a bare GPU machine.
+A device warp does not have is one line, exit 2.
 """
 
 from __future__ import annotations
