@@ -14,9 +14,12 @@ from gymnasium.vector import VectorEnv
 from gymnasium.wrappers import RenderCollection
 
 import twin  # noqa: F401  (registers the environments)
+from assets.indenters import get_indenter
+from fe.indentation import IndentationStepper
 from learn.electrode_physics import ElectrodeParameters
 from twin.envs import ENV_IDS
 from twin.envs.edge import EdgeFollowEnv
+from twin.envs.fe_batch import IndentationBatch, shared_model
 from twin.envs.press import PressEnv
 from twin.envs.render import open_gl_context
 from twin.envs.vector import TactileVectorEnv
@@ -145,6 +148,28 @@ def test_vector_env_matches_stand_alone_envs_and_autoresets_next_step() -> None:
     assert np.all(obs["tip"][:, 2] < 0.0) and np.all(obs["pdc"] == 0.0)
     with pytest.raises(ValueError, match="actions must be"):
         vec.step(actions[:2])
+
+
+def test_a_failed_slot_is_cut_back_like_the_one_system_stepper_while_the_others_wait() -> None:
+    model = shared_model(2.0)
+    point = model.reference[np.argmin(model.reference[:, 2])]  # the pad's lowest vertex
+    press = model.plan_trajectory(get_indenter("sphere_medium"), point, 0.0, 0.0, 0.0, 1.0)
+    start = press.touch_point - 0.3e-3 * press.direction
+    deep = press.touch_point + 3.5e-3 * press.direction  # one 3.8 mm jump: fails unless halved
+    uncut = IndentationStepper(model.inflated_skin(), "sphere_medium", None, "cpu", max_cuts=0)
+    uncut.step(press.rotation, start)
+    assert not uncut.step(press.rotation, deep).converged
+    alone = model.stepper("sphere_medium")
+    alone.step(press.rotation, start)
+    reference = alone.step(press.rotation, deep)
+    assert reference.converged and np.linalg.norm(reference.force) > 4.0
+    batch = IndentationBatch(model, ["sphere_medium"] * 2)
+    rotations = np.stack([press.rotation] * 2)
+    batch.step_batch(rotations, np.stack([start, start]))
+    out = batch.step_batch(rotations, np.stack([deep, start]))  # slot 1 stays off the skin
+    assert np.all(out.converged)
+    assert out.force[0] == pytest.approx(reference.force, rel=1e-6, abs=1e-9)
+    assert np.all(out.force[1] == 0.0) and np.allclose(out.displacement[0], reference.displacement, atol=1e-12)
 
 
 def test_a_device_warp_does_not_have_is_one_line() -> None:
