@@ -1,12 +1,15 @@
 """Environment speed: environment steps per second of the vector env on the batched FE, against one env.
 
     python3 benchmarks/env_bench.py --device cpu|cuda --mesh-mm 2[,1,0.5] --num-envs 1,8,64 [--steps 20]
+                                     [--same-episodes]
 
 For each mesh (largest edge, mm) a vector env of each `--num-envs` size (`twin.envs.vector.TactileVectorEnv`:
 all sub-environments' FE solved together by one `fe.batched_stepper.BatchedStepper` on the warp
 `--device`) runs `--steps` vector steps of a pressing policy (mostly pressing, some sideways motion:
 uniform in [-0.3, 0.3] x [-0.3, 0.3] x [-0.2, 1] of the action bounds, seeded) with autoreset, so the
-count mixes free, contact and reset steps as training does. Before the timed runs, a stand-alone
+count mixes free, contact and reset steps as training does. Sub-environment k plays its own episodes
+(seed + k); with `--same-episodes` all play the baseline's episodes and actions, so the ratio measures
+the batch's throughput on equal work, free of the episode mix. Before the timed runs, a stand-alone
 environment (one FE system) runs the same number of steps on that mesh and device: the baseline
 ("vs 1 env" = env steps/s over the baseline's). "env steps/s" counts sub-environment steps; "FE share"
 is the part of the wall time spent inside the FE batch call; "CPU (s)" is the process's CPU time (all
@@ -54,22 +57,25 @@ def single(env_id: str, steps: int, mesh_mm: float, seed: int, device: str) -> d
     return {"mode": "single", "num_envs": 1, "env_steps": steps, "wall_s": wall, "cpu_s": cpu, "fe_s": fe.wall_s}
 
 
-def vectorised(env_id: str, num_envs: int, steps: int, mesh_mm: float, seed: int, device: str) -> dict:
-    """A vector env of `num_envs` for `steps` vector steps (autoreset)."""
+def vectorised(
+    env_id: str, num_envs: int, steps: int, mesh_mm: float, seed: int, device: str, same: bool = False
+) -> dict:
+    """A vector env of `num_envs` for `steps` vector steps (autoreset); `same`: every sub-environment plays
+    the baseline's episodes and actions (the batch's throughput on equal work), else its own."""
     env = gym.make_vec(
         env_id, num_envs=num_envs, vectorization_mode="vector_entry_point", mesh_mm=mesh_mm, device=device
     )
     fe = env.fe
     rng = np.random.default_rng(seed)
-    env.reset(seed=seed)
+    env.reset(seed=[seed] * num_envs if same else seed)
     fe.wall_s = 0.0
     start, cpu = time.perf_counter(), time.process_time()
     for _ in range(steps):
-        env.step(_actions(rng, num_envs))
+        env.step(np.tile(_actions(rng, 1), (num_envs, 1)) if same else _actions(rng, num_envs))
     wall, cpu = time.perf_counter() - start, time.process_time() - cpu
     env.close()
     return {
-        "mode": "vector",
+        "mode": "vector, same" if same else "vector",
         "num_envs": num_envs,
         "env_steps": steps * num_envs,
         "wall_s": wall,
@@ -119,6 +125,9 @@ def main() -> None:
     parser.add_argument("--num-envs", default="1,4", help="vector env size(s), comma separated")
     parser.add_argument("--steps", type=int, default=20, help="vector steps per run")
     parser.add_argument("--seed", type=int, default=0)
+    parser.add_argument(
+        "--same-episodes", action="store_true", help="every sub-environment plays the baseline's episodes and actions"
+    )
     args = parser.parse_args()
     meshes = _numbers(args.mesh_mm, float, "--mesh-mm")
     sizes = _numbers(args.num_envs, int, "--num-envs")
@@ -134,7 +143,8 @@ def main() -> None:
     for mesh_mm in meshes:
         single(args.env, 3, mesh_mm, args.seed, args.device)  # untimed: model build, kernel compilation
         baseline = single(args.env, args.steps, mesh_mm, args.seed, args.device)
-        rows = [baseline] + [vectorised(args.env, n, args.steps, mesh_mm, args.seed, args.device) for n in sizes]
+        run = (args.steps, mesh_mm, args.seed, args.device, args.same_episodes)
+        rows = [baseline] + [vectorised(args.env, n, *run) for n in sizes]
         for row in rows:
             print("| " + " | ".join(table_row(mesh_mm, row, baseline)) + " |", flush=True)
 
