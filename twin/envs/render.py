@@ -81,20 +81,18 @@ def build_model(
     spec = mujoco.MjSpec()
     spec.visual.global_.offwidth, spec.visual.global_.offheight = width, height
     spec.visual.headlight.ambient = (0.35, 0.35, 0.35)
-    shapes = {
-        "skin": (reference, triangles, SKIN_RGBA),
-        "core": (*core, CORE_RGBA),
-    }
-    shape = get_indenter(indenter).mesh(INDENTER_MESH_EDGE)
-    for name, (vertices, faces, _) in (*shapes.items(), ("indenter", (shape.vertices, shape.faces, None))):
-        mesh = spec.add_mesh(name=name, uservert=np.ravel(vertices).tolist(), userface=np.ravel(faces).tolist())
-        mesh.inertia = mujoco.mjtMeshInertia.mjMESH_INERTIA_SHELL
-    for name, (_, _, rgba) in shapes.items():
-        spec.worldbody.add_geom(name=name, type=mujoco.mjtGeom.mjGEOM_MESH, meshname=name, rgba=rgba)
     tool = spec.worldbody.add_body(name="indenter", mocap=True)
-    tool.add_geom(type=mujoco.mjtGeom.mjGEOM_MESH, meshname="indenter", rgba=INDENTER_RGBA)
-    for geom in spec.geoms:
-        geom.contype = geom.conaffinity = 0
+    shape = get_indenter(indenter).mesh(INDENTER_MESH_EDGE)
+    drawn = (
+        ("skin", spec.worldbody, reference, triangles, SKIN_RGBA),
+        ("core", spec.worldbody, *core, CORE_RGBA),
+        ("indenter", tool, shape.vertices, shape.faces, INDENTER_RGBA),
+    )
+    for name, body, vertices, faces, rgba in drawn:
+        mesh = spec.add_mesh(name=name, uservert=np.ravel(vertices).tolist(), userface=np.ravel(faces).tolist())
+        mesh.inertia = mujoco.mjtMeshInertia.mjMESH_INERTIA_SHELL  # open surfaces: no solid volume needed
+        geom = body.add_geom(name=name, type=mujoco.mjtGeom.mjGEOM_MESH, meshname=name, rgba=rgba)
+        geom.contype = geom.conaffinity = 0  # drawn only
     spec.worldbody.add_light(pos=(0.0, 0.0, -0.1), dir=(0.0, 0.0, 1.0), diffuse=(0.5, 0.5, 0.5))
     return spec.compile()
 
