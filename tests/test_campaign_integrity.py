@@ -93,6 +93,12 @@ def test_bad_out_is_a_usage_error(tmp_path: Path, monkeypatch: pytest.MonkeyPatc
     _usage_error([*QUICK_ARGS, "--out", str(tmp_path / "ro")], "Read-only file system")
 
 
+def test_a_device_warp_cannot_use_is_a_usage_error(tmp_path: Path) -> None:
+    """`--device` (the batched campaign) is checked before anything is planned or written."""
+    _usage_error([*QUICK_ARGS, "--out", str(tmp_path / "out"), "--device", "abacus"], "warp device 'abacus'")
+    assert not (tmp_path / "out").exists()
+
+
 def test_interrupted_run_says_it_can_resume(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
     def interrupted(*args: object, **kwargs: object) -> None:
         raise KeyboardInterrupt
