@@ -134,9 +134,7 @@ def _angle_to_normal(direction: np.ndarray, touch: np.ndarray) -> float:
     return float(np.arccos(np.clip(-direction @ normal / np.linalg.norm(normal), -1.0, 1.0)))
 
 
-def stand_in_recording(
-    rows: dict[str, np.ndarray], sensor_in_biotac: np.ndarray, rate_hz: float
-) -> Recording:
+def stand_in_recording(rows: dict[str, np.ndarray], sensor_in_biotac: np.ndarray, rate_hz: float) -> Recording:
     """A full-rate stand-in of one press from its rows (see the module docstring), each row the last sample of
     its increment. rows: force (K, 3) N biotac frame, electrode_vals (K, 19), pdc (K,), depth (K,) m,
     time (K,) s (increasing)."""
@@ -214,9 +212,7 @@ def load_rows_only(path: Path | str) -> CampaignData:
         mine = np.flatnonzero(press == p)
         if len(mine) < MIN_PRESS_ROWS:
             continue
-        direction, touch, depth = press_geometry(
-            location[mine], None if rows["depth"] is None else rows["depth"][mine]
-        )
+        direction, touch, depth = press_geometry(location[mine], None if rows["depth"] is None else rows["depth"][mine])
         electrodes = rows["electrode_vals"][mine]
         press_rows = {
             "force": rows["force"][mine],
