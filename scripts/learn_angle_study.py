@@ -7,8 +7,9 @@ biotac*.hdf5 in a folder (FE-simulated, scripts/make_learn_campaign.py, or synth
 - the *zero-shear* predictor: the force along the inward skin normal at the trajectory's sampled point
   (perfect location, no shear): the floor of any model whose inputs do not show shear;
 - 1 - cos beside the angle (what "angular cosine error" could also mean);
-- networks with the paper's min-max scaling against quantile scaling of inputs and targets
-  (`--tail`) and a force-direction loss term (`--angle-weight`).
+- networks with the paper's min-max scaling against quantile scaling of inputs and targets and
+  force-direction and force-magnitude loss terms (`--variants`, TrainConfig's scale_tail, angle_weight,
+  magnitude_weight).
 
     python3 scripts/learn_angle_study.py out/learn_fe --json angle_study.json [--network mlp]
 
@@ -53,13 +54,19 @@ def trajectory_points(path: Path) -> dict[int, np.ndarray]:
     return {int(i): p for i, p in zip(ids, points, strict=True)}
 
 
-def zero_shear_forces(data: TactileData, points: dict[int, np.ndarray], mesh_edge: float) -> np.ndarray:
-    """(N, 3) N: unit forces along the inward normal of the nominal skin at each row's sampled point."""
+def zero_shear_forces(at: np.ndarray, mesh_edge: float) -> np.ndarray:
+    """(N, 3) N: unit forces along the inward normal of the nominal skin at its vertex nearest to each
+    point of ``at`` (N, 3) m: what a model that sees no shear can best predict."""
     skin = make_biotac(mesh_edge).skin
     normals = vertex_normals(skin.vertices, skin.triangles)
-    at = np.array([points[int(t)] for t in data.trajectory])
     nearest = np.argmin(((at[:, None, :] - skin.vertices[None]) ** 2).sum(axis=2), axis=1)
     return -normals[nearest]
+
+
+def sampled_points(data: TactileData, path: Path) -> np.ndarray:
+    """(N, 3) m: each row's trajectory's sampled skin point."""
+    points = trajectory_points(path)
+    return np.array([points[int(t)] for t in data.trajectory])
 
 
 def force_report(predicted: np.ndarray, true: np.ndarray) -> dict:
@@ -91,28 +98,32 @@ def network_variants(args: argparse.Namespace) -> dict[str, TrainConfig]:
     """The network settings compared: the paper's min-max scaling, quantile scaling, + direction loss."""
     base = TrainConfig(
         network=args.network,
-        targets=("contact_loc", "force"),
+        targets=tuple(args.targets.split(",")),
         patience=args.patience,
         max_epochs=args.max_epochs,
         threads=args.threads,
         device=args.device,
         time_limit_s=args.time_limit,
     )
-    return {
-        f"{args.network} min-max": base,
-        f"{args.network} quantile {args.tail:g}": TrainConfig(**{**base.__dict__, "scale_tail": args.tail}),
-        f"{args.network} quantile {args.tail:g} + angle loss {args.angle_weight:g}": TrainConfig(
-            **{**base.__dict__, "scale_tail": args.tail, "angle_weight": args.angle_weight}
-        ),
-    }
+    variants = {f"{args.network} min-max": base}
+    for spec in args.variants.split(","):
+        tail, angle, magnitude = (float(v) for v in spec.split(":"))
+        name = f"{args.network} tail {tail:g}, angle loss {angle:g}, magnitude loss {magnitude:g}"
+        changes = {"scale_tail": tail, "angle_weight": angle, "magnitude_weight": magnitude}
+        variants[name] = TrainConfig(**{**base.__dict__, **changes})
+    return variants
 
 
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("folder", type=Path, help="folder of campaign files biotac*.hdf5")
     ap.add_argument("--network", default="mlp", choices=("mlp", "pointnet"))
-    ap.add_argument("--tail", type=float, default=0.01, help="quantile scaling's tail fraction")
-    ap.add_argument("--angle-weight", type=float, default=1.0)
+    ap.add_argument(
+        "--variants",
+        default="0.01:0:0,0:0.3:0,0:0.3:0.3",
+        help="networks besides the paper's min-max one: scale_tail:angle_weight:magnitude_weight,...",
+    )
+    ap.add_argument("--targets", default="contact_loc,force,nodal", help="network targets (comma-separated)")
     ap.add_argument("--patience", type=int, default=10)
     ap.add_argument("--max-epochs", type=int, default=300)
     ap.add_argument("--time-limit", type=float, default=300.0, help="s per network")
@@ -129,12 +140,9 @@ def main() -> None:
     train = concatenate([p.subset(tr) for p, (tr, _) in zip(parts, rows, strict=True)])
     test = concatenate([p.subset(te) for p, (_, te) in zip(parts, rows, strict=True)])
     tests = [p.subset(te) for p, (_, te) in zip(parts, rows, strict=True)]
-    zero_shear = np.concatenate(
-        [
-            zero_shear_forces(t, trajectory_points(path), args.mesh_mm * 1e-3)
-            for t, path in zip(tests, paths, strict=True)
-        ]
-    )
+    edge = args.mesh_mm * 1e-3
+    at = np.concatenate([sampled_points(t, path) for t, path in zip(tests, paths, strict=True)])
+    zero_shear = zero_shear_forces(at, edge)
     mag = np.linalg.norm(test.force, axis=1)
     report: dict = {
         "files": [str(p) for p in paths],
@@ -156,11 +164,14 @@ def main() -> None:
         net = NeuralEstimator(config).fit(train)
         predicted = net.predict(test)
         entry = force_report(predicted["force"], test.force)
-        entry["contact_loc_mean_mm"] = round(
-            float(location_errors(predicted["contact_loc"], test.contact_loc).mean() * 1e3), 2
-        )
+        if "contact_loc" in predicted:
+            errors = location_errors(predicted["contact_loc"], test.contact_loc)
+            entry["contact_loc_mean_mm"] = round(float(errors.mean() * 1e3), 2)
         entry["epochs"], entry["wall_s"] = len(net.history), round(time.perf_counter() - start, 1)
         report["models"][name] = entry
+        if "contact_loc" in predicted:
+            at_predicted = zero_shear_forces(predicted["contact_loc"], edge)
+            report["models"][f"zero-shear at the {name} location"] = force_report(at_predicted, test.force)
         print(json.dumps({name: entry}), flush=True)
     text = json.dumps(report, indent=1)
     print(text)
