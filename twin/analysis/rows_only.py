@@ -65,9 +65,13 @@ def is_rows_only(f: h5py.File) -> bool:
 
 
 def rows_only_note(path: Path | str) -> str:
-    """One line for stderr: the file is read row-only, and which effects that leaves unidentifiable."""
+    """One line for stderr: the file is read row-only, which effects that leaves unidentifiable, and whether its
+    indenter indices were read as the public meshes' order (`indenter_names_of`)."""
     effects = "; ".join(f"{name} ({why})" for name, why in RAW_ONLY_EFFECTS.items())
-    return f"{path}: rows only (no raw streams); presses derived from the rows; not identifiable: {effects}"
+    with h5py.File(path, "r") as f:
+        named = "indenter_names" in f.attrs
+    order = "" if named else f"; indenter_type taken as the public meshes in order ({', '.join(PUBLIC_NAMES)})"
+    return f"{path}: rows only (no raw streams); presses derived from the rows; not identifiable: {effects}{order}"
 
 
 def segment_presses(location: np.ndarray, indenter: np.ndarray) -> np.ndarray:
