@@ -81,7 +81,7 @@ def test_rows_only_figures_match_the_raw_streams_and_both_layouts(campaign: Path
     noise_full = compare([full], model, predictor).noise
     noise_rows = compare([paper], model, predictor).noise
     for channel in ("force_x", "force_y", "force_z"):
-        assert 0.5 < noise_rows[channel] / noise_full[channel] < 2.0
+        assert 0.5 < noise_rows[channel] / noise_full[channel] < 3.0  # 30 rows; an upper bound where F curves
 
 
 def test_validate_cli_on_a_paper_file_names_what_it_cannot_identify(copies: tuple[Path, Path]) -> None:
