@@ -104,6 +104,9 @@ def network_variants(args: argparse.Namespace) -> dict[str, TrainConfig]:
         threads=args.threads,
         device=args.device,
         time_limit_s=args.time_limit,
+        scale_tail=0.0,
+        angle_weight=0.0,
+        magnitude_weight=0.0,
     )
     variants = {f"{args.network} min-max": base}
     for spec in args.variants.split(","):
