@@ -101,6 +101,7 @@ class NeuralEstimator:
     target_scales: dict[str, MinMax] = field(default_factory=dict)
     target_shapes: dict[str, tuple[int, ...]] = field(default_factory=dict)
     history: list[EpochRecord] = field(default_factory=list)
+    _force_affine: tuple | None = field(default=None, repr=False)
 
     @property
     def name(self) -> str:
@@ -113,27 +114,32 @@ class NeuralEstimator:
         cfg = self.config
         if "force" in y and (cfg.angle_weight > 0.0 or cfg.magnitude_weight > 0.0):
             pred, true = self._newtons(out["force"]), self._newtons(y["force"])
-            loss = loss + cfg.angle_weight * self._angle_loss(pred, true)
-            size = true.norm(dim=1)
-            relative = (pred.norm(dim=1) - size) / (size + ANGLE_MIN_FORCE)
-            loss = loss + cfg.magnitude_weight * (relative**2).mean()
+            if cfg.angle_weight > 0.0:
+                loss = loss + cfg.angle_weight * self._angle_loss(pred, true)
+            if cfg.magnitude_weight > 0.0:
+                size = true.norm(dim=1)
+                relative = (pred.norm(dim=1) - size) / (size + ANGLE_MIN_FORCE)
+                loss = loss + cfg.magnitude_weight * (relative**2).mean()
         return loss
 
     def _newtons(self, scaled: torch.Tensor) -> torch.Tensor:
-        """(B, 3) N: scaled force targets or outputs mapped back to newtons (differentiable)."""
-        scale = self.target_scales["force"]
-        low = torch.as_tensor(scale.low, dtype=scaled.dtype, device=scaled.device)
-        span = torch.as_tensor(scale.span, dtype=scaled.dtype, device=scaled.device)
+        """(B, 3) N: scaled force targets or outputs mapped back to newtons (differentiable). The scaler
+        is copied to the device once per device and dtype, not once per batch."""
+        key = (scaled.device, scaled.dtype)
+        if self._force_affine is None or self._force_affine[0] != key:
+            scale = self.target_scales["force"]
+            low, span = (torch.as_tensor(v, dtype=scaled.dtype, device=scaled.device) for v in (scale.low, scale.span))
+            self._force_affine = (key, low, span)
+        _, low, span = self._force_affine
         return scaled * span + low
 
     @staticmethod
     def _angle_loss(pred: torch.Tensor, true: torch.Tensor) -> torch.Tensor:
         """Mean 1 - cos of the angle between predicted and true forces (B, 3) N over rows with |F_true| >=
-        ANGLE_MIN_FORCE; zero when a batch has none."""
-        keep = true.norm(dim=1) >= ANGLE_MIN_FORCE
-        if not bool(keep.any()):
-            return pred.sum() * 0.0
-        return (1.0 - nn.functional.cosine_similarity(pred[keep], true[keep], dim=1, eps=1e-6)).mean()
+        ANGLE_MIN_FORCE; zero when a batch has none (no host synchronisation: a mask, not a branch)."""
+        keep = (true.norm(dim=1) >= ANGLE_MIN_FORCE).to(pred.dtype)
+        cos = nn.functional.cosine_similarity(pred, true, dim=1, eps=1e-6)
+        return (keep * (1.0 - cos)).sum() / keep.sum().clamp(min=1.0)
 
     def _evaluate(self, dataset: ElectrodeDataset, device: torch.device) -> float:
         self.net.eval()
@@ -169,6 +175,7 @@ class NeuralEstimator:
             dims = {k: int(np.prod(s)) for k, s in self.target_shapes.items()}
             self.net = _build(cfg.network, dims, data.electrode_positions)
         self.net.to(device)
+        self._force_affine = None
         train_rows, val_rows = self._validation_rows(data)
         train = ElectrodeDataset(data.subset(train_rows), self.input_scale, self.target_scales)
         val = ElectrodeDataset(data.subset(val_rows), self.input_scale, self.target_scales) if len(val_rows) else train
