@@ -4,7 +4,10 @@ Every trajectory draws its randomness from `SeedSequence([seed, sensor, trajecto
 from the same simulated state and clock time whatever the order or worker it runs in, so a killed
 and resumed campaign writes exactly the file an uninterrupted one writes. Finished trajectories are
 part files (written atomically); a resume skips them. The same holds for the executor
-(`twin.executors`): a trajectory re-run after its worker died rewrites the same part file.
+(`twin.executors`): a trajectory re-run after its worker died rewrites the same part file. A
+`TrajectoryRunner` says how the trajectories' fe is solved: `one_at_a_time` (the default, each worker
+stepping its trajectory's skin as the controller reaches each pose) or `twin.campaign_batched.BatchedRunner`
+(all of a sensor's trajectories as one batch on a warp device, the same parts within the engine's tolerance).
 """
 
 from __future__ import annotations
