@@ -19,6 +19,7 @@ from fe.indentation import IncrementResult, IndentationStepper, Trajectory, driv
 from fe.newton import NewtonSettings
 from fe.params import ContactSettings, SkinParameters
 from fe.trapped_air import TrappedAir
+from fe.wptypes import host_device
 
 SENSOR_THICKNESS = 15.1e-3
 """Manufacturer's total sensor thickness after pressurisation (m)."""
@@ -67,7 +68,8 @@ class BioTacModel:
             volume_origin=core.vertices.mean(axis=0),
         )
         """The unpressurised skin (its rest mesh as the starting state)."""
-        self._inflation = BatchedStepper(self.rest_skin, ["sphere_medium"])  # the indenter stays away
+        # the indenter stays away; on warp's CPU device unless this machine's warp cannot compile for it
+        self._inflation = BatchedStepper(self.rest_skin, ["sphere_medium"], host_device())
         self._volume0 = float(self._inflation.rest_volumes[0])
         self.reference: np.ndarray | None = None
         self.pressure = 0.0

@@ -50,6 +50,14 @@ def _init_without_driver_warning() -> None:
 if not _cuda_driver_loadable():
     _init_without_driver_warning()
 
+
+
+def host_device() -> str:
+    """The warp device for a model's own solves (inflation): "cpu" where warp can compile CPU kernels, else
+    the default CUDA device (a GPU machine whose warp ships without its CPU compiler)."""
+    return "cpu" if wp.is_cpu_available() else "cuda"
+
+
 mat32d = wp.types.matrix(shape=(3, 2), dtype=wp.float64)
 mat99d = wp.types.matrix(shape=(9, 9), dtype=wp.float64)
 vec9d = wp.types.vector(length=9, dtype=wp.float64)
