@@ -52,6 +52,10 @@ CONFOUNDED = {
     "residual equally well (evidence 127107.5 against 127103.3, 4.2 apart where 10 is needed): force alone "
     "cannot tell a stiffer skin from a larger F/T gain, and the diagnosis says so; the electrodes and PDC in "
     "the residual (issue 20) are what would separate them",
+    "skin_thickness": "on seed 5's points (2026-11-26, commit b857b16) the 3x3 ft_calibration map fits a thinner "
+    "skin's force in sample slightly better (evidence 214450.8 against 213699.8) and ranks first; only it is "
+    "refitted here (top=1) and its held-out residual, 2.37x with yx and zx at their bounds, fails the noise test, "
+    "so the verdict is 'unexplained' rather than the map; skin_thickness, second, is not refitted",
     "ft_crosstalk": "on seed 5's points (full suite, 2026-11-26) the crosstalk refit brings the error down "
     "but its parameters are not identifiable from these six trajectories, so the verdict is 'unexplained' "
     "(base RMS 1.54x the noise) rather than a named cause that might not generalise",
