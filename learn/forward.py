@@ -24,8 +24,8 @@ import numpy as np
 import torch
 from torch import nn
 
+from fe.electrodes import ADC_MAX, DEFAULT_SKIN_THICKNESS, ElectrodeModel
 from learn.data import CHUNK_ROWS, N_ELECTRODES
-from learn.electrode_physics import ADC_MAX, DEFAULT_SKIN_THICKNESS, ElectrodeModel
 from learn.nets import shared_mlp
 from learn.normalize import MinMax
 from learn.splits import contiguous

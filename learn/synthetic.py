@@ -16,7 +16,7 @@ import h5py
 import numpy as np
 
 from assets.biotac import BioTacGeometry, make_biotac, vertex_normals
-from learn.electrode_physics import ElectrodeModel, ElectrodeParameters
+from fe.electrodes import ElectrodeModel, ElectrodeParameters
 
 
 def gaussian_dent(

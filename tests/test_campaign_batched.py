@@ -20,7 +20,7 @@ import pytest
 
 import twin.campaign_batched as campaign_batched
 from assets.biotac import make_biotac
-from learn.electrode_physics import ElectrodeModel, ElectrodeParameters
+from fe.electrodes import ElectrodeModel, ElectrodeParameters
 from twin.campaign import QUICK_CONFIG, run_campaign
 from twin.campaign_batched import FE_FORCE_LIMIT_FACTOR, SOLVES_DIR, BatchedRunner
 from twin.executors import Executor

@@ -15,8 +15,8 @@ from gymnasium.wrappers import RenderCollection
 
 import twin  # noqa: F401  (registers the environments)
 from assets.indenters import get_indenter
+from fe.electrodes import ElectrodeParameters
 from fe.indentation import IndentationStepper
-from learn.electrode_physics import ElectrodeParameters
 from twin.envs import ENV_IDS
 from twin.envs.edge import EdgeFollowEnv
 from twin.envs.fe_batch import IndentationBatch, shared_model

@@ -26,14 +26,7 @@ ALLOWED_LAYERS = {
 """Layer -> the layers its modules may import from."""
 SEAMS = {"hardware": {"twin.backend"}}
 """Single modules of a forbidden layer that a layer may import: hardware implements twin.backend's Backend."""
-TEMPORARY_ALLOWANCES = {
-    # Sensor physics that the twin needs lives in learn for now; the lead moves learn.electrode_physics
-    # out of learn and then deletes this entry.
-    ("twin", "learn.electrode_physics"): "learn.electrode_physics is sensor physics, not learning (issue 23)",
-    # A forwarder that twin.cli_campaign still calls; it goes (with this entry) when cli_campaign imports
-    # run_from_config from twin.cli_devices.
-    ("twin.campaign_hardware", "twin.cli_devices"): "run_from_config forwarder until cli_campaign is migrated",
-}
+TEMPORARY_ALLOWANCES: dict[tuple[str, str], str] = {}
 """(importing layer or module, imported module) -> why it is tolerated. Nothing else is."""
 
 

@@ -7,7 +7,7 @@ import numpy as np
 import pytest
 import torch
 
-from learn.electrode_physics import ElectrodeModel, ElectrodeParameters
+from fe.electrodes import ElectrodeModel, ElectrodeParameters
 from learn.forward import ForwardModel, campaign_field_samples, fit_and_score, physics_features
 from learn.synthetic import write_synthetic_campaign
 

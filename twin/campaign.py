@@ -25,9 +25,9 @@ import numpy as np
 
 from assets.biotac import BioTacGeometry, make_biotac
 from assets.indenters import INDENTERS, indenter_name
+from fe.electrodes import ElectrodeModel
 from fe.params import SkinParameters
 from fe.sensor import BioTacModel
-from learn.electrode_physics import ElectrodeModel
 from twin.backend import ARMS
 from twin.controller import Recording, execute
 from twin.dataset import assemble_sensor_file, part_path, read_part, write_part

@@ -155,20 +155,3 @@ def _provenance(plan: CampaignPlan, backend: Backend, extra: dict | None) -> dic
         "registration": {a: plan.registration[(sid, a)].tolist() for a in ARMS},
         **(extra or {}),
     }
-
-
-def run_from_config(
-    config: CampaignConfig,
-    hardware_file: Path,
-    out_dir: Path,
-    on_tool_change: Callable[[str, str], None] | None = None,
-    on_progress: Callable[[int, int], None] | None = None,
-) -> HardwareCampaignResult:
-    """`twin.cli_devices.run_from_config`, where opening `HardwareBackend` belongs (the CLI layer).
-
-    Kept only while `twin.cli_campaign` imports it from here; goes when that import names
-    `twin.cli_devices` (tests/test_import_edges.py lists this edge as a temporary allowance).
-    """
-    from twin.cli_devices import run_from_config as run
-
-    return run(config, hardware_file, out_dir, on_tool_change, on_progress)

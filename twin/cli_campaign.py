@@ -217,7 +217,7 @@ def run(
                 if viewer:
                     viewer.close()
         else:
-            from twin.campaign_hardware import run_from_config
+            from twin.cli_devices import run_from_config
 
             try:
                 result = guarded(lambda: run_from_config(config, hardware_config, out, None if yes else mount, report))

@@ -15,9 +15,7 @@ export_app = typer.Typer(help="Export for other simulators.")
 @export_app.command("export")
 def export_command(
     fmt: Annotated[str, typer.Option("--format", help="mjcf or urdf.")],
-    out: Annotated[
-        Path, typer.Option(help="File to write; a URDF's STL meshes go to <stem>_meshes/ beside it.")
-    ],
+    out: Annotated[Path, typer.Option(help="File to write; a URDF's STL meshes go to <stem>_meshes/ beside it.")],
     testbed: Annotated[
         bool, typer.Option("--testbed", help="The whole testbed: bench, both YuMi arms (no tool), mount, BioTac.")
     ] = False,

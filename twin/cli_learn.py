@@ -116,7 +116,7 @@ def train(
     learning_rate: Annotated[float, typer.Option(help="Adam learning rate.")] = 1e-3,
     time_limit: Annotated[float, typer.Option(help="Stop training after this many seconds.")] = float("inf"),
     threads: Annotated[int, typer.Option(help="Torch CPU threads.")] = 2,
-    device: Annotated[str, typer.Option(help="cpu or cuda.")] = "cpu",
+    device: Annotated[str, typer.Option(help="cpu, cuda, or auto (cuda when present).")] = "auto",
     init: Annotated[Path | None, typer.Option(help="Pretrained checkpoint to fine-tune.")] = None,
     as_json: Annotated[bool, typer.Option("--json", help="Print the metrics as JSON.")] = False,
 ) -> None:

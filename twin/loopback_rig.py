@@ -37,7 +37,7 @@ from typing import NamedTuple, Protocol
 import numpy as np
 
 from assets.biotac import make_biotac
-from learn.electrode_physics import ElectrodeModel
+from fe.electrodes import ElectrodeModel
 from twin.backend import ARMS, BackendError
 from twin.campaign import CampaignConfig, inflated_model, true_biotac_pose
 from twin.effects import apply_skin

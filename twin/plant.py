@@ -13,8 +13,8 @@ from dataclasses import asdict, dataclass, field, replace
 
 import numpy as np
 
+from fe.electrodes import ElectrodeParameters
 from fe.params import SkinParameters
-from learn.electrode_physics import ElectrodeParameters
 from twin.backend import ARMS
 from twin.effects import EffectValues, check_values
 from twin.registration import ENCODER_NOISE_RAD, PAPER_JOINT_OFFSET_STD

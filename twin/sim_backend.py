@@ -21,9 +21,9 @@ from typing import Protocol
 
 import numpy as np
 
+from fe.electrodes import ElectrodeModel
 from fe.indentation import IncrementResult
 from fe.sensor import BioTacModel
-from learn.electrode_physics import ElectrodeModel
 from twin.backend import ARMS, BackendError, Sample, check_arm
 from twin.effects import EffectValues, check_values, measure_wrench
 from twin.kinematics import joint_limits, velocity_limits

@@ -19,11 +19,11 @@ import numpy as np
 
 from assets.biotac import make_biotac
 from fe.batched_runner import PoseTrajectory, run_trajectories
+from fe.electrodes import ElectrodeModel
 from fe.indentation import IndentationStepper
 from fe.params import SkinParameters
 from fe.results import IncrementResult
 from fe.sensor import SENSOR_THICKNESS, BioTacModel, InflationResult
-from learn.electrode_physics import ElectrodeModel
 from twin.analysis.data import TrajectoryRecord
 from twin.controller import Recording
 from twin.effects import EffectValues, apply_path, apply_skin, check_values, measure_wrench

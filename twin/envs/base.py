@@ -26,7 +26,7 @@ import gymnasium as gym
 import numpy as np
 from gymnasium import spaces
 
-from learn.electrode_physics import ADC_MAX, N_ELECTRODES, ElectrodeParameters
+from fe.electrodes import ADC_MAX, N_ELECTRODES, ElectrodeParameters
 from twin.envs.fe_batch import COARSE_MESH_MM, BatchIncrement, IndentationBatch, shared_model
 from twin.envs.sensing import Reading, TactileReadout
 

@@ -1,6 +1,6 @@
 """What a real BioTac (and, optionally, a wrist F/T sensor) reports about an FE state.
 
-Electrodes and PDC come from `learn.electrode_physics.ElectrodeModel` on the FE's inflated skin (nominal
+Electrodes and PDC come from `fe.electrodes.ElectrodeModel` on the FE's inflated skin (nominal
 read-out unless parameters are given), with the ADC's noise and rounding; both are tared at the start
 of each episode as a user of the real sensor would. The optional F/T reading is the FE indenter force
 plus white noise. Units: counts for electrodes and PDC, N (biotac frame) for the force.
@@ -12,7 +12,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from learn.electrode_physics import ElectrodeModel, ElectrodeParameters
+from fe.electrodes import ElectrodeModel, ElectrodeParameters
 from twin.envs.fe_batch import IndentationBatch
 
 

@@ -7,7 +7,7 @@ import numpy as np
 import pytest
 
 from assets.biotac import BioTacGeometry, make_biotac, vertex_normals
-from learn.electrode_physics import ADC_MAX, N_ELECTRODES, ElectrodeModel, ElectrodeParameters
+from fe.electrodes import ADC_MAX, N_ELECTRODES, ElectrodeModel, ElectrodeParameters
 from learn.synthetic import gaussian_dent
 
 
@@ -167,7 +167,7 @@ def test_bad_inputs_are_rejected(geometry: BioTacGeometry, model: ElectrodeModel
 
 
 def test_import_is_cheap_and_torch_free() -> None:
-    code = "import sys, learn, learn.electrode_physics, learn.synthetic; assert 'torch' not in sys.modules"
+    code = "import sys, learn, fe.electrodes, learn.synthetic; assert 'torch' not in sys.modules"
     subprocess.run([sys.executable, "-c", code], check=True)
 
 
