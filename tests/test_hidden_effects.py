@@ -43,8 +43,6 @@ def _loop(tmp_path: Path, hidden: str | None, predictor: Predictor) -> LoopResul
 
 
 CONFOUNDED = {
-    "trapped_air": "a bubble lowers the fluid's pressure rise by a near-constant factor, which the 5 % prior on "
-    "the PDC gain absorbs; its force signature stays within the noise on this protocol: the verdict is 'nothing'",
     "registration_offset": "on the points drawn from seeds 5 and 6 the offset leaves 6.5-8x the noise and its "
     "evidence, linearised at zero offset, ranks fill_volume or skin_thickness first (only the first is refitted "
     "here); the model with the true offset fits to 1.00x the noise, and on seed 7 it ranks first and is found",

@@ -111,7 +111,6 @@ class SimBackend:
         self._stepper: SkinSolver | None = None
         self._stepper_arm: str | None = None
         self._last_tip: np.ndarray | None = None
-        self._state: IncrementResult | None = None
         self._clean = self._rest_signals()
         self.solve_log: list[tuple[float, IncrementResult]] = []
         """Every fe solve as (simulated time s, result), in time order."""
@@ -128,7 +127,6 @@ class SimBackend:
             self._stepper = self._solver(tool)
             self._stepper_arm = arm
             self._last_tip = None
-            self._state = None
             self._clean = self._rest_signals()
             self._record_wrench()
 
@@ -194,11 +192,6 @@ class SimBackend:
         return measure_wrench(np.array([self.time_s]), clean_at, self.effects)[0]
 
     # -- simulation state ------------------------------------------------------------------------
-    @property
-    def fe_state(self) -> IncrementResult | None:
-        """The last fe solution (None before the indenter first rested at a pose)."""
-        return self._state
-
     def tip_pose_biotac(self, arm: str) -> np.ndarray:
         """True 4x4 pose of `arm`'s tool tip in the biotac frame."""
         return np.linalg.inv(self.true_biotac_pose) @ self.scene.tool_pose(arm)
@@ -220,7 +213,6 @@ class SimBackend:
         if not result.converged:
             raise BackendError(f"the skin model did not converge at this pose ({result.message})")
         self._last_tip = pose[:3, 3].copy()
-        self._state = result
         self.solve_log.append((self.time_s, result))
         self._clean = self._signals(result, pose[:3, 3])
         self._record_wrench()

@@ -54,12 +54,6 @@ def read_history(history: Path) -> list[dict]:
     return entries
 
 
-def latest_model(history: Path) -> TwinModel | None:
-    """The model of the last entry, or None for an empty history."""
-    entries = read_history(history)
-    return TwinModel.from_dict(entries[-1]["model"]) if entries else None
-
-
 def load_model(path: Path) -> TwinModel:
     """A TwinModel from a JSON file (`TwinModel.to_dict()` shape); clear error otherwise."""
     try:
