@@ -12,6 +12,7 @@ Also: the backend's held electrode impedance (computed once per skin state) chan
 from collections.abc import Callable, Iterator, Sequence
 from dataclasses import replace
 from pathlib import Path
+from types import SimpleNamespace
 from typing import Any
 
 import h5py
@@ -22,7 +23,15 @@ import twin.campaign_batched as campaign_batched
 from assets.biotac import make_biotac
 from fe.electrodes import ElectrodeModel, ElectrodeParameters
 from twin.campaign import QUICK_CONFIG, run_campaign
-from twin.campaign_batched import FE_FORCE_LIMIT_FACTOR, SOLVES_DIR, BatchedRunner
+from twin.campaign_batched import (
+    FE_FORCE_LIMIT_FACTOR,
+    SOLVES_DIR,
+    BatchedRunner,
+    SolveSchedule,
+    _kept,
+    solves_path,
+    write_solves,
+)
 from twin.executors import Executor
 from twin.plant import make_plant
 from twin.protocol import QUICK_SETTINGS
@@ -173,3 +182,18 @@ def test_held_impedance_gives_the_same_counts_and_solves_once_per_skin_state(mon
     got = [held.counts(v, 10.0 + k, held_rng) for k, v in enumerate(states)]
     np.testing.assert_array_equal(np.array(got), np.array(expected))
     assert len(solved) == 3  # rest, pressed, and the copy of rest (a new array)
+
+
+def test_a_resume_keeps_solves_only_for_the_schedule_they_were_solved_for(tmp_path: Path) -> None:
+    """A plan re-derived in another run may ask for its first solve a controller tick later (on a GPU the
+    inflation's sums have no fixed order): the kept solves are then solved again, not replayed off schedule."""
+    job = SimpleNamespace(sensor_id=2, spec=SimpleNamespace(trajectory_id=7))
+    task = (job, 0, np.eye(4), str(tmp_path))
+    schedule = SolveSchedule("sphere_medium", np.array([0.5, 0.6]), np.tile(np.eye(3), (2, 1, 1)), np.zeros((2, 3)))
+    assert not _kept(task, schedule)  # nothing solved yet
+    solves_path(task).parent.mkdir(parents=True)
+    write_solves(solves_path(task), schedule, [])
+    assert _kept(task, schedule)
+    assert not _kept(task, replace(schedule, times=schedule.times + 0.01))
+    assert not _kept(task, replace(schedule, translations=schedule.translations + 1e-12))
+    assert not _kept(task, replace(schedule, indenter="sphere_large"))

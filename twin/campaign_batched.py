@@ -70,6 +70,12 @@ class SolveSchedule:
         """The schedule as a timed trajectory of the batched runner."""
         return PoseTrajectory(self.indenter, self.rotations, self.translations, self.times)
 
+    def same_as(self, other: SolveSchedule) -> bool:
+        """Whether `other` asks for exactly these solves (indenter, times, poses, bit for bit)."""
+        return self.indenter == other.indenter and all(
+            np.array_equal(getattr(self, name), getattr(other, name)) for name in ("times", "rotations", "translations")
+        )
+
 
 def _relaxes(model: BioTacModel) -> bool:
     """Whether the model's skin is viscoelastic (as `fe.indentation.IndentationStepper.relaxes`)."""
@@ -253,11 +259,14 @@ class BatchedRunner:
         executor: Executor,
         finished: Finished,
     ) -> None:
-        unsolved = [task for task in tasks if not solves_path(task).exists()]  # a resume keeps solved ones
+        # Every task's schedule is recorded again, and a resume keeps a solved one only where the schedule is the
+        # same: a plan re-derived in this run may differ by a hair (e.g. an inflation on CUDA, whose sums have no
+        # fixed order, moving a touch point and with it the first solve by a controller tick).
         schedules: dict[tuple[int, int], SolveSchedule] = {}
-        for key, schedule in executor.map_unordered(plan_schedule, unsolved, init_worker, (config, plant)):
+        for key, schedule in executor.map_unordered(plan_schedule, tasks, init_worker, (config, plant)):
             schedules[key] = schedule
-            self._stage("schedules", len(schedules), len(unsolved))
+            self._stage("schedules", len(schedules), len(tasks))
+        unsolved = [task for task in tasks if not _kept(task, schedules[_key(task)])]
         worker = CampaignWorker(config, plant)
         self._solve(worker, unsolved, schedules, FE_FORCE_LIMIT_FACTOR * config.settings.force_limit)
         exhausted = self._synthesise(tasks, config, plant, executor, finished)
@@ -319,6 +328,12 @@ class BatchedRunner:
     def _stage(self, name: str, done: int, total: int) -> None:
         if self.on_stage is not None:
             self.on_stage(name, done, total)
+
+
+def _kept(task: TrajectoryTask, schedule: SolveSchedule) -> bool:
+    """Whether the task's solves were kept by an earlier run for exactly this schedule."""
+    path = solves_path(task)
+    return path.exists() and read_solves(path)[0].same_as(schedule)
 
 
 def _key(task: TrajectoryTask) -> tuple[int, int]:
