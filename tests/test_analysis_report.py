@@ -17,16 +17,10 @@ from typer.testing import CliRunner
 from assets.biotac import make_biotac
 from twin.analysis.compare import PHASES, Comparison, SampleTable
 from twin.analysis.predict import TwinModel
-from twin.analysis.report import (
-    FIGURES,
-    KERNEL_REACH,
-    ReportFiles,
-    depth_bins,
-    depth_step_mm,
-    filtered_noise_gain,
-    residual_field,
-    write_report,
-)
+from twin.analysis.report import ReportFiles, write_report
+from twin.analysis.report.field import KERNEL_REACH, residual_field
+from twin.analysis.report.figures import FIGURES
+from twin.analysis.report.stats import depth_bins, depth_step_mm, filtered_noise_gain
 from twin.cli import app
 from twin.cli_analysis import model_or_nominal
 from twin.processing import lowpass

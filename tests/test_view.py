@@ -15,7 +15,7 @@ from typer.testing import CliRunner
 
 from assets.biotac import electrode_table
 from assets.indenters import INDENTERS, get_indenter
-from twin.analysis.report import residual_field
+from twin.analysis.report.field import residual_field
 from twin.cli import app
 from twin.envs.fe_batch import shared_model
 from twin.envs.press import PressEnv

@@ -116,7 +116,7 @@ def rows_noise_estimate(trajectories: list[TrajectoryRecord]) -> dict[str, float
     rows are low-passed: the full-rate sigma is the rows sigma over the filter's noise gain at the
     trajectories' (stand-in) sample rate.
     """
-    from twin.analysis.report import filtered_noise_gain
+    from twin.analysis.report.stats import filtered_noise_gain
 
     second: dict[str, list[np.ndarray]] = {c: [] for c in (*FORCE_CHANNELS, "pdc")}
     for t in trajectories:
