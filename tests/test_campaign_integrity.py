@@ -167,7 +167,7 @@ PARENT_SCRIPT = """
 import sys
 
 import sleepy
-from twin.cli_common import sigterm_as_interrupt
+from twin.cli.common import sigterm_as_interrupt
 from twin.executors import LocalExecutor
 
 try:

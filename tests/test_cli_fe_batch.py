@@ -8,9 +8,9 @@ import pytest
 from typer.testing import CliRunner
 
 from fe.params import SkinParameters
-from twin import cli_fe_batch
 from twin.analysis.predict import TwinModel
 from twin.cli import app
+from twin.cli import fe_batch as cli_fe_batch
 from twin.fe_batch_results import BatchResults
 
 runner = CliRunner()

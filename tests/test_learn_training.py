@@ -17,7 +17,7 @@ from learn.metrics import paper_metrics
 from learn.splits import split
 from learn.synthetic import write_synthetic_campaign
 from learn.train import NeuralEstimator, TrainConfig
-from twin.cli_learn import learn_app
+from twin.cli.learn import learn_app
 
 torch.set_num_threads(1)
 FAST = TrainConfig(max_epochs=30, batch_size=32, threads=1, patience=30)

@@ -12,7 +12,7 @@ import pytest
 from typer.testing import CliRunner
 
 import twin.analysis.diagnose as diagnose_module
-import twin.cli_loop as cli_loop
+import twin.cli.loop as cli_loop
 from twin.analysis.diagnose import Candidate, Diagnosis, EffectFit, Linearisation, _refit
 from twin.analysis.history import read_history
 from twin.analysis.predict import TwinModel

@@ -1,6 +1,6 @@
 """Rerun views of the twin: skin, indenter, force, electrodes and series; datasets, reports, live campaigns.
 
-`twin view` (twin/cli_view.py) logs datasets and reports; `CampaignViewer` logs a running campaign's
+`twin view` (twin/cli/view.py) logs datasets and reports; `CampaignViewer` logs a running campaign's
 trajectories; the gymnasium environments log every step with `render_mode="rerun"`. docs/view.md.
 """
 

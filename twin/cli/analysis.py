@@ -4,56 +4,23 @@ from __future__ import annotations
 
 import json
 from pathlib import Path
-from typing import TYPE_CHECKING, Annotated
+from typing import Annotated
 
 import typer
 from rich.table import Table
 
-from twin.cli_common import (
+from twin.cli.common import (
     DeviceOption,
     analysis_predictor,
     err_console,
     guarded,
+    load_datasets,
+    model_or_nominal,
     out_console,
     progress_bar,
-    warn_nonfinite_forces,
 )
 
-if TYPE_CHECKING:
-    from twin.analysis.data import CampaignData
-    from twin.analysis.predict import TwinModel
-
 analysis_app = typer.Typer(help="Compare the model with measurements.")
-
-
-def model_or_nominal(path: Path | None, mesh_max_edge: float) -> TwinModel:
-    """The TwinModel of a `TwinModel.to_dict()` JSON file, or the nominal model at `mesh_max_edge` (m)."""
-    from twin.analysis.predict import TwinModel
-
-    if path is None:
-        return TwinModel(mesh_max_edge=mesh_max_edge)
-    try:
-        return TwinModel.from_dict(json.loads(path.read_text()))
-    except OSError as exc:
-        raise ValueError(f"cannot read the model {path}: {exc}") from exc
-    except (json.JSONDecodeError, KeyError, TypeError, AttributeError) as exc:
-        raise ValueError(f"{path} is not a model JSON (TwinModel.to_dict()): {exc!r}") from exc
-
-
-def load_datasets(paths: list[Path]) -> list[CampaignData]:
-    """The campaign files (warning about NaN forces; one stderr line per row-only file, naming what it cannot
-    identify); ValueError when they disagree on the mesh size the default model needs."""
-    from twin.analysis.data import load_campaign
-    from twin.analysis.rows_only import rows_only_note
-
-    datasets = [load_campaign(p) for p in paths]
-    for d in datasets:
-        if d.rows_only:
-            err_console.print(rows_only_note(d.path), soft_wrap=True, markup=False, highlight=False)
-    warn_nonfinite_forces(paths)
-    if len({d.mesh_max_edge for d in datasets}) > 1:
-        raise ValueError("the datasets were made with different mesh sizes: pass --model")
-    return datasets
 
 
 def _print_overall(summary: dict, out: Path) -> None:

@@ -10,8 +10,16 @@ import numpy as np
 import typer
 from rich.table import Table
 
-from twin.cli_analysis import load_datasets, model_or_nominal
-from twin.cli_common import DeviceOption, analysis_predictor, err_console, guarded, out_console, progress_bar
+from twin.cli.common import (
+    DeviceOption,
+    analysis_predictor,
+    err_console,
+    guarded,
+    load_datasets,
+    model_or_nominal,
+    out_console,
+    progress_bar,
+)
 
 calibrate_app = typer.Typer()
 

@@ -12,7 +12,7 @@ from typing import TYPE_CHECKING, Annotated
 import typer
 from rich.table import Table
 
-from twin.cli_common import err_console, guarded, out_console, progress_bar, warn_nonfinite_forces
+from twin.cli.common import err_console, guarded, out_console, progress_bar, warn_nonfinite_forces
 
 if TYPE_CHECKING:
     from learn.checkpoint import Checkpoint

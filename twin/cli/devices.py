@@ -1,8 +1,4 @@
-"""`twin devices ...`: simulated YuMi (EGM + RWS), KMS40 and BioTac devices on loopback, and preflight checks.
-
-Also where a hardware campaign opens `hardware.backend.HardwareBackend` (`run_from_config`): the CLI
-layer is the one place that joins `twin` and `hardware`.
-"""
+"""`twin devices ...`: simulated YuMi (EGM + RWS), KMS40 and BioTac devices on loopback, and preflight checks."""
 
 from __future__ import annotations
 
@@ -10,20 +6,15 @@ import ipaddress
 import json
 import socket
 import time
-from collections.abc import Callable
-from dataclasses import asdict
 from pathlib import Path
 from typing import TYPE_CHECKING, Annotated
 
 import typer
 from rich.markup import escape
 
-from twin.cli_campaign import MeshMm, Quick, Seed, Sensors, _config
-from twin.cli_common import err_console, guarded
+from twin.cli.common import MeshMm, Quick, Seed, Sensors, campaign_config, err_console, guarded
 
 if TYPE_CHECKING:
-    from twin.campaign import CampaignConfig
-    from twin.campaign_hardware import HardwareCampaignResult
     from twin.loopback_rig import TwinSources
 
 devices_app = typer.Typer(help="Simulated devices that speak the real wire protocols.", no_args_is_help=True)
@@ -162,7 +153,7 @@ def _twin(
 
     if indenter is None:
         raise ValueError("--twin needs --indenter NAME: the indenter mounted on the arms")
-    config = _config(quick, sensors, None, seed, mesh_mm)
+    config = campaign_config(quick, sensors, None, seed, mesh_mm)
     sensor_id = config.sensors[0] if sensor is None else sensor
     if sensor_id not in config.sensors:
         raise ValueError(f"--sensor {sensor_id} is not among the campaign's sensors {config.sensors}")
@@ -215,32 +206,3 @@ def config_template() -> None:
     from hardware.config import HardwareConfig, config_to_toml
 
     print(config_to_toml(HardwareConfig()))
-
-
-def run_from_config(
-    config: CampaignConfig,
-    hardware_file: Path,
-    out_dir: Path,
-    on_tool_change: Callable[[str, str], None] | None = None,
-    on_progress: Callable[[int, int], None] | None = None,
-) -> HardwareCampaignResult:
-    """Plan `config`, open `HardwareBackend` on the config file `hardware_file`, run the plan, close.
-
-    Bad input (config file, several sensors) raises ValueError before anything is opened; a device
-    that cannot be opened raises BackendError.
-    """
-    from hardware.backend import HardwareBackend
-    from hardware.config import load_config
-    from twin.campaign import plan_campaign
-    from twin.campaign_hardware import mounted_sensor, run_hardware_campaign
-
-    mounted_sensor(config)
-    hardware = load_config(hardware_file)
-    plan = plan_campaign(config)
-    backend = HardwareBackend(hardware)
-    try:
-        return run_hardware_campaign(
-            plan, out_dir, backend, {"hardware_config": asdict(hardware)}, on_tool_change, on_progress
-        )
-    finally:
-        backend.close()

@@ -7,7 +7,7 @@ from typing import Annotated
 
 import typer
 
-from twin.cli_common import err_console, guarded
+from twin.cli.common import err_console, guarded
 
 view_app = typer.Typer(help="Rerun views.")
 

@@ -10,15 +10,15 @@ import typer
 from rich.progress import Progress
 from rich.table import Table
 
-from twin.cli_common import FE_MESH_HELP, FE_MODEL_HELP
-from twin.cli_common import check_device as _check_device
-from twin.cli_common import err_console as _err
-from twin.cli_common import guarded as _guarded
-from twin.cli_common import inflated_twin_model as _inflated_twin_model
-from twin.cli_common import out_console as _out
-from twin.cli_common import parse_floats as _floats
-from twin.cli_common import progress_bar as _progress
-from twin.cli_fe_batch import batch
+from twin.cli.common import FE_MESH_HELP, FE_MODEL_HELP
+from twin.cli.common import check_device as _check_device
+from twin.cli.common import err_console as _err
+from twin.cli.common import guarded as _guarded
+from twin.cli.common import inflated_twin_model as _inflated_twin_model
+from twin.cli.common import out_console as _out
+from twin.cli.common import parse_floats as _floats
+from twin.cli.common import progress_bar as _progress
+from twin.cli.fe_batch import batch
 
 fe_app = typer.Typer(help="Finite-element skin model: physics checks and indentations.", no_args_is_help=True)
 fe_app.command("batch")(batch)

@@ -19,14 +19,14 @@ import numpy as np
 import typer
 from rich.table import Table
 
-from twin.cli_common import FE_MESH_HELP as MESH_HELP
-from twin.cli_common import FE_MODEL_HELP as MODEL_HELP
-from twin.cli_common import check_device as _check_device
-from twin.cli_common import err_console as _err
-from twin.cli_common import guarded as _guarded
-from twin.cli_common import inflated_twin_model as _inflated_twin_model
-from twin.cli_common import out_console as _out
-from twin.cli_common import progress_bar as _progress
+from twin.cli.common import FE_MESH_HELP as MESH_HELP
+from twin.cli.common import FE_MODEL_HELP as MODEL_HELP
+from twin.cli.common import check_device as _check_device
+from twin.cli.common import err_console as _err
+from twin.cli.common import guarded as _guarded
+from twin.cli.common import inflated_twin_model as _inflated_twin_model
+from twin.cli.common import out_console as _out
+from twin.cli.common import progress_bar as _progress
 from twin.fe_batch_results import POSES_FILE_KEYS, BatchResults, read_poses
 
 FLUSH_S = 60.0

@@ -1,9 +1,10 @@
 """Shared CLI helpers: number parsing, bad-input guarding, warnings about NaN forces, SIGTERM as Ctrl-C, progress
-bars (stderr), consoles, the fe model and warp device of the `twin fe` commands, the predictor (and its warp device)
-of the analysis commands."""
+bars (stderr), consoles, the fe model and warp device of the `twin fe` commands, the predictor (and its warp device),
+model and datasets of the analysis commands, the campaign options and config of `twin campaign` and `twin devices`."""
 
 from __future__ import annotations
 
+import json
 import os
 import signal
 import sys
@@ -22,7 +23,9 @@ from rich.progress import BarColumn, Progress, TextColumn, TimeElapsedColumn, Ti
 if TYPE_CHECKING:
     from fe.params import SkinParameters
     from fe.sensor import BioTacModel, InflationResult
+    from twin.analysis.data import CampaignData
     from twin.analysis.predict import Predictor, TwinModel
+    from twin.campaign import CampaignConfig
 
 err_console = Console(stderr=True)
 out_console = Console()
@@ -111,7 +114,6 @@ def inflated_twin_model(
     by the model's rule (`twin.analysis.predict.inflated_fe_model`), with the InflationResult. Bad input
     (unreadable or invalid model, bad mesh size): one-line message and exit code 2."""
     from twin.analysis.predict import inflated_fe_model
-    from twin.cli_analysis import model_or_nominal
     from twin.effects import apply_skin
 
     def load() -> tuple[TwinModel, SkinParameters]:
@@ -188,3 +190,60 @@ def analysis_predictor(device: str) -> Predictor:
 
     guarded(lambda: check_device(device))
     return Predictor(device)
+
+
+def model_or_nominal(path: Path | None, mesh_max_edge: float) -> TwinModel:
+    """The TwinModel of a `TwinModel.to_dict()` JSON file, or the nominal model at `mesh_max_edge` (m)."""
+    from twin.analysis.predict import TwinModel
+
+    if path is None:
+        return TwinModel(mesh_max_edge=mesh_max_edge)
+    try:
+        return TwinModel.from_dict(json.loads(path.read_text()))
+    except OSError as exc:
+        raise ValueError(f"cannot read the model {path}: {exc}") from exc
+    except (json.JSONDecodeError, KeyError, TypeError, AttributeError) as exc:
+        raise ValueError(f"{path} is not a model JSON (TwinModel.to_dict()): {exc!r}") from exc
+
+
+def load_datasets(paths: list[Path]) -> list[CampaignData]:
+    """The campaign files (warning about NaN forces; one stderr line per row-only file, naming what it cannot
+    identify); ValueError when they disagree on the mesh size the default model needs."""
+    from twin.analysis.data import load_campaign
+    from twin.analysis.rows_only import rows_only_note
+
+    datasets = [load_campaign(p) for p in paths]
+    for d in datasets:
+        if d.rows_only:
+            err_console.print(rows_only_note(d.path), soft_wrap=True, markup=False, highlight=False)
+    warn_nonfinite_forces(paths)
+    if len({d.mesh_max_edge for d in datasets}) > 1:
+        raise ValueError("the datasets were made with different mesh sizes: pass --model")
+    return datasets
+
+
+def campaign_config(
+    quick: bool, sensors: str | None, indenters: str | None, seed: int, mesh_mm: float | None
+) -> CampaignConfig:
+    """The campaign of the `--quick/--sensors/--indenters/--seed/--mesh-mm` options (`twin campaign plan|run`,
+    `twin devices serve --twin`): the paper plan or `QUICK_CONFIG`, with comma-separated sensor ids and indenter
+    names, and the skin mesh max edge given in mm (stored in m)."""
+    from twin.campaign import QUICK_CONFIG, CampaignConfig
+
+    config = QUICK_CONFIG if quick else CampaignConfig()
+    changes: dict = {"seed": seed}
+    if sensors:
+        changes["sensors"] = tuple(int(s) for s in sensors.split(",") if s.strip())
+    if indenters:
+        changes["indenters"] = tuple(s.strip() for s in indenters.split(",") if s.strip())
+    if mesh_mm is not None:
+        changes["mesh_max_edge"] = mesh_mm * 1e-3
+    return replace(config, **changes)
+
+
+Quick = Annotated[bool, typer.Option("--quick", help="A small campaign: coarse mesh, few trajectories.")]
+Sensors = Annotated[str | None, typer.Option(help="Comma-separated sensor ids (default 1,2,3).")]
+Indenters = Annotated[str | None, typer.Option(help="Comma-separated indenter names (default all nine).")]
+Seed = Annotated[int, typer.Option(help="Seed of every random draw.")]
+MeshMm = Annotated[float | None, typer.Option(help="Skin mesh max edge (mm); default 0.5, quick 2.")]
+"""The campaign options of `campaign_config`."""

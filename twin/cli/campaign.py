@@ -1,39 +1,40 @@
-"""`twin campaign ...` and `twin dataset ...`: plan and run indentation campaigns, inspect datasets."""
+"""`twin campaign ...`: plan and run indentation campaigns, simulated or on hardware.
+
+Also where a hardware campaign opens `hardware.backend.HardwareBackend` (`run_from_config`): the CLI
+layer is the one place that joins `twin` and `hardware`.
+"""
+
+from __future__ import annotations
 
 import json
+from collections.abc import Callable
+from dataclasses import asdict
 from pathlib import Path
-from typing import Annotated
+from typing import TYPE_CHECKING, Annotated
 
 import typer
 from rich.table import Table
 
-from twin.cli_common import check_device, err_console, guarded, out_console, progress_bar, sigterm_as_interrupt
+from twin.cli.common import (
+    Indenters,
+    MeshMm,
+    Quick,
+    Seed,
+    Sensors,
+    campaign_config,
+    check_device,
+    err_console,
+    guarded,
+    out_console,
+    progress_bar,
+    sigterm_as_interrupt,
+)
+
+if TYPE_CHECKING:
+    from twin.campaign import CampaignConfig
+    from twin.campaign_hardware import HardwareCampaignResult
 
 campaign_app = typer.Typer(help="Plan and run indentation campaigns (simulated or on hardware).", no_args_is_help=True)
-dataset_app = typer.Typer(help="Inspect campaign datasets (HDF5).", no_args_is_help=True)
-
-
-def _config(quick: bool, sensors: str | None, indenters: str | None, seed: int, mesh_mm: float | None):
-    from dataclasses import replace
-
-    from twin.campaign import QUICK_CONFIG, CampaignConfig
-
-    config = QUICK_CONFIG if quick else CampaignConfig()
-    changes: dict = {"seed": seed}
-    if sensors:
-        changes["sensors"] = tuple(int(s) for s in sensors.split(",") if s.strip())
-    if indenters:
-        changes["indenters"] = tuple(s.strip() for s in indenters.split(",") if s.strip())
-    if mesh_mm is not None:
-        changes["mesh_max_edge"] = mesh_mm * 1e-3
-    return replace(config, **changes)
-
-
-Quick = Annotated[bool, typer.Option("--quick", help="A small campaign: coarse mesh, few trajectories.")]
-Sensors = Annotated[str | None, typer.Option(help="Comma-separated sensor ids (default 1,2,3).")]
-Indenters = Annotated[str | None, typer.Option(help="Comma-separated indenter names (default all nine).")]
-Seed = Annotated[int, typer.Option(help="Seed of every random draw.")]
-MeshMm = Annotated[float | None, typer.Option(help="Skin mesh max edge (mm); default 0.5, quick 2.")]
 
 
 @campaign_app.command("plan")
@@ -51,7 +52,7 @@ def plan(
 
     if paper and quick:
         raise typer.BadParameter("--paper and --quick exclude each other")
-    config = guarded(lambda: _config(quick, sensors, indenters, seed, mesh_mm))
+    config = guarded(lambda: campaign_config(quick, sensors, indenters, seed, mesh_mm))
     err_console.print("planning (inflating the nominal model, registering, solving IK) ...")
     stats = guarded(lambda: plan_campaign(config)).statistics()
     if as_json:
@@ -168,7 +169,7 @@ def run(
         guarded(lambda: check_device(device))
     guarded(lambda: prepare_out_dir(out))
     pool = _executor(executor, workers or 2, address) if backend == "sim" else None
-    config = guarded(lambda: _config(quick, sensors, indenters, seed, mesh_mm))
+    config = guarded(lambda: campaign_config(quick, sensors, indenters, seed, mesh_mm))
     viewer = _campaign_viewer(config, view, view_save) if backend == "sim" else None
     with progress_bar() as progress:
         task = progress.add_task("trajectories", total=None)
@@ -217,8 +218,6 @@ def run(
                 if viewer:
                     viewer.close()
         else:
-            from twin.cli_devices import run_from_config
-
             try:
                 result = guarded(lambda: run_from_config(config, hardware_config, out, None if yes else mount, report))
             except BackendError as exc:
@@ -233,25 +232,30 @@ def run(
         raise typer.Exit(code=1)
 
 
-@dataset_app.command("info")
-def info(
-    path: Annotated[Path, typer.Argument(help="A campaign HDF5 file.")],
-    as_json: Annotated[bool, typer.Option("--json", help="Print JSON.")] = False,
-) -> None:
-    """Features with shapes and units, trajectory counts and provenance of a campaign file."""
-    from twin.dataset import dataset_info
+def run_from_config(
+    config: CampaignConfig,
+    hardware_file: Path,
+    out_dir: Path,
+    on_tool_change: Callable[[str, str], None] | None = None,
+    on_progress: Callable[[int, int], None] | None = None,
+) -> HardwareCampaignResult:
+    """Plan `config`, open `HardwareBackend` on the config file `hardware_file`, run the plan, close.
 
-    summary = guarded(lambda: dataset_info(path))
-    if as_json:
-        print(json.dumps(summary))
-        return
-    table = Table("feature", "shape", "dtype", "units", "frame")
-    for name, feature in summary["features"].items():
-        table.add_row(name, str(tuple(feature["shape"])), feature["dtype"], feature["units"], feature["frame"] or "")
-    out_console.print(table)
-    if summary["simulation_only"]:
-        out_console.print(
-            f"simulation only (the plant's view; the analysis never reads it): {', '.join(summary['simulation_only'])}"
+    Bad input (config file, several sensors) raises ValueError before anything is opened; a device
+    that cannot be opened raises BackendError.
+    """
+    from hardware.backend import HardwareBackend
+    from hardware.config import load_config
+    from twin.campaign import plan_campaign
+    from twin.campaign_hardware import mounted_sensor, run_hardware_campaign
+
+    mounted_sensor(config)
+    hardware = load_config(hardware_file)
+    plan = plan_campaign(config)
+    backend = HardwareBackend(hardware)
+    try:
+        return run_hardware_campaign(
+            plan, out_dir, backend, {"hardware_config": asdict(hardware)}, on_tool_change, on_progress
         )
-    if "trajectories" in summary:
-        out_console.print(f"trajectories: {summary['trajectories']}")
+    finally:
+        backend.close()

@@ -7,7 +7,7 @@ from typing import Annotated
 import typer
 from rich.table import Table
 
-from twin.cli_common import (
+from twin.cli.common import (
     DeviceOption,
     analysis_predictor,
     err_console,
