@@ -22,7 +22,7 @@ from twin.analysis.report.field import KERNEL_REACH, residual_field
 from twin.analysis.report.figures import FIGURES
 from twin.analysis.report.stats import depth_bins, depth_step_mm, filtered_noise_gain
 from twin.cli import app
-from twin.cli_analysis import model_or_nominal
+from twin.cli.common import model_or_nominal
 from twin.processing import lowpass
 
 MESH = 2e-3
