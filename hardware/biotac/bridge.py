@@ -18,6 +18,7 @@ import threading
 from collections.abc import Sequence
 
 from hardware.biotac.protocol import Delay, Select, SpiOp, SpiTransport, Transfer, TransportError
+from hardware.tcp_server import TcpServer
 
 MAGIC = b"BTSP"
 MAX_PAYLOAD = 1 << 16
@@ -111,22 +112,13 @@ class TcpSpiTransport:
         self._sock.close()
 
 
-class SpiBridgeServer:
+class SpiBridgeServer(TcpServer):
     """Serve `transport` (e.g. a SimBioTacBus) to TcpSpiTransport clients on `host:port` (0 picks one)."""
 
     def __init__(self, transport: SpiTransport, host: str = "127.0.0.1", port: int = 0) -> None:
         self.transport = transport
-        self._server = socket.create_server((host, port))
-        self._server.settimeout(0.02)  # how soon close() is noticed
-        self._stop = threading.Event()
         self._clients: set[socket.socket] = set()
-        self._thread = threading.Thread(target=self._accept, name="spi-bridge", daemon=True)
-        self._thread.start()
-
-    @property
-    def port(self) -> int:
-        """The TCP port the bridge listens on."""
-        return self._server.getsockname()[1]
+        super().__init__(host, port, "spi-bridge")
 
     def disconnect_all(self) -> None:
         """Drop every client connection (keeps listening)."""
@@ -136,27 +128,13 @@ class SpiBridgeServer:
             except OSError:
                 pass
 
-    def close(self) -> None:
-        """Stop listening and drop clients; safe to call twice."""
-        self._stop.set()
-        self._thread.join(timeout=1.0)
-        self._server.close()
-        self.disconnect_all()
-
-    def _accept(self) -> None:
-        while not self._stop.is_set():
-            try:
-                sock, _ = self._server.accept()
-            except TimeoutError:
-                continue
-            except OSError:
-                return
-            self._clients.add(sock)
-            threading.Thread(target=self._serve, args=(sock,), name="spi-bridge-client", daemon=True).start()
+    def _on_client(self, sock: socket.socket) -> None:
+        self._clients.add(sock)
+        threading.Thread(target=self._serve, args=(sock,), name="spi-bridge-client", daemon=True).start()
 
     def _serve(self, sock: socket.socket) -> None:
         try:
-            while not self._stop.is_set():
+            while not self.closing:
                 try:
                     ops = decode_ops(_recv(sock))
                 except ValueError as exc:

@@ -19,6 +19,7 @@ from collections.abc import Callable
 import numpy as np
 
 from hardware.kms40.protocol import AXES, BASE_RATE_HZ, MAX_LINE_BYTES, encode_flags, format_frame
+from hardware.tcp_server import TcpServer
 
 WrenchSource = Callable[[], np.ndarray]
 """Returns the true (6,) wrench (N, N·m) in the sensor frame; called from the sensor's threads."""
@@ -30,7 +31,7 @@ class _BadArgument(ValueError):
     pass
 
 
-class SimKms40:
+class SimKms40(TcpServer):
     """KMS40 simulator on `host:port` (port 0 picks one) reading `wrench_source` at every frame."""
 
     def __init__(
@@ -47,18 +48,9 @@ class SimKms40:
         self.range = np.array([force_range_n] * 3 + [torque_range_nm] * 3)
         self.extra_flags: set[str] = set()
         """Status bits FLAGS() reports on top of the computed ones (fault injection, e.g. {"TEMP_FAULT"})."""
-        self._server = socket.create_server((host, port))
-        self._server.settimeout(0.02)  # how soon close() is noticed
-        self._stop = threading.Event()
         self._connections: list[_Connection] = []
         self._t0 = time.monotonic()
-        self._thread = threading.Thread(target=self._accept, name="kms40-sim", daemon=True)
-        self._thread.start()
-
-    @property
-    def port(self) -> int:
-        """The TCP port the sensor listens on."""
-        return self._server.getsockname()[1]
+        super().__init__(host, port, "kms40-sim")
 
     def timestamp(self) -> int:
         """Device time stamp: ms since the simulator started."""
@@ -74,22 +66,8 @@ class SimKms40:
         for conn in list(self._connections):
             conn.close()
 
-    def close(self) -> None:
-        """Stop listening and drop all connections; safe to call twice."""
-        self._stop.set()
-        self._thread.join(timeout=1.0)
-        self._server.close()
-        self.disconnect_all()
-
-    def _accept(self) -> None:
-        while not self._stop.is_set():
-            try:
-                sock, _ = self._server.accept()
-            except TimeoutError:
-                continue
-            except OSError:
-                return
-            self._connections = [c for c in self._connections if c.alive] + [_Connection(self, sock)]
+    def _on_client(self, sock: socket.socket) -> None:
+        self._connections = [c for c in self._connections if c.alive] + [_Connection(self, sock)]
 
 
 class _Connection:
