@@ -36,6 +36,7 @@ import torch
 
 from learn.data import load
 from learn.experiment import SplitSpec, evaluate_checkpoint, train
+from learn.report import add_model, emit
 from learn.synthetic import write_synthetic_campaign
 from learn.train import NETWORKS, TrainConfig, resolve_device
 
@@ -246,12 +247,8 @@ def main() -> None:
                     cpu_baseline_threads=args.baseline_threads,
                     speedup_vs_cpu_baseline=base / entry["seconds_per_epoch"],
                 )
-        report["models"][model] = entry
-        print(json.dumps({model: entry}), flush=True)
-    text = json.dumps(report, indent=1)
-    print(text)
-    if args.json is not None:
-        args.json.write_text(text)
+        add_model(report, model, entry)
+    emit(report, args.json)
 
 
 if __name__ == "__main__":

@@ -19,7 +19,6 @@ Angles in rad, forces in N, locations in mm; the biotac frame. Prints one JSON o
 from __future__ import annotations
 
 import argparse
-import json
 import sys
 import time
 from pathlib import Path
@@ -34,6 +33,7 @@ from learn.baselines import Classical, MeanPredictor  # noqa: E402
 from learn.data import TactileData, concatenate  # noqa: E402
 from learn.experiment import SplitSpec, load_files, split_rows  # noqa: E402
 from learn.metrics import ANGLE_MIN_FORCE, location_errors  # noqa: E402
+from learn.report import add_model, emit  # noqa: E402
 from learn.train import NeuralEstimator, TrainConfig  # noqa: E402
 
 FORCE_BINS = (0.0, 0.5, 1.0, 2.0, 5.0, np.inf)
@@ -171,15 +171,11 @@ def main() -> None:
             errors = location_errors(predicted["contact_loc"], test.contact_loc)
             entry["contact_loc_mean_mm"] = round(float(errors.mean() * 1e3), 2)
         entry["epochs"], entry["wall_s"] = len(net.history), round(time.perf_counter() - start, 1)
-        report["models"][name] = entry
+        add_model(report, name, entry)
         if "contact_loc" in predicted:
             at_predicted = zero_shear_forces(predicted["contact_loc"], edge)
             report["models"][f"zero-shear at the {name} location"] = force_report(at_predicted, test.force)
-        print(json.dumps({name: entry}), flush=True)
-    text = json.dumps(report, indent=1)
-    print(text)
-    if args.json is not None:
-        args.json.write_text(text)
+    emit(report, args.json)
 
 
 if __name__ == "__main__":
