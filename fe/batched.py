@@ -320,7 +320,9 @@ class BatchedShell:
             "frozen_stress": z((B, len(tri)), wp.mat22d),
             "friction": per_batch([p.friction for p in params]),
             "offset": per_batch(offsets),
+            "thickness": per_batch([p.thickness for p in params]),
             "kappa": wp.float64(cs.penalty_stiffness),
+            "min_stretch": wp.float64(cs.min_stretch),
             "slip_eps": wp.float64(cs.slip_length),
             "origin": wp.vec3d(*skin.volume_origin),
         }
@@ -561,13 +563,9 @@ class BatchedShell:
         changed by more than the friction tolerance; returns which systems changed ((B,) bool)."""
         self._gaps(x)
         self._stats.zero_()
-        wp.launch(
-            bk.lag_candidates,
-            (self.batch, self.n_vertices),
-            [self.buf["indenter_gap"], self._static["vertex_area"], self._static["kappa"], self.lagged_force]
-            + [self._candidate, self._stats],
-            device=self.device,
-        )
+        values = {**self._static, "gap": self.buf["indenter_gap"], "lagged_force": self.lagged_force}
+        values |= {"candidate": self._candidate, "stats": self._stats}
+        launch(contact.lag_candidates, (self.batch, self.n_vertices), values, self.device)
         stats = self._stats.numpy()
         changed = mask & (stats[:, 0] > self.skin.contact.friction_tolerance * np.maximum(stats[:, 1], 1e-12))
         if changed.any():

@@ -433,21 +433,33 @@ class BatchedStepper:
         return results
 
     def _inadmissible(self, i: int, gap: np.ndarray, core_gap: np.ndarray, force: np.ndarray, balance: float) -> str:
-        """Why system i's converged state is not a solution of the skin ("" if it is): the indenter or the core
-        deeper in the skin than `ContactSettings.max_penetration` (gaps (V,) m, negative inside; clamped
-        vertices included for the indenter: on the rim it reaches the rigid base), forces out of balance
-        under a load, or the indenter force pulling the indenter into the skin (it went through: force (3,)
-        N on the skin, the press direction being the indenter's -z axis). Core gaps of vertices whose search
-        was skipped are lower bounds >= 0 (`fe.contact.core_contact_kernel`), so they never refuse."""
-        limit = self.skin.contact.max_penetration * self.skins[i].params.thickness
+        """Why system i's converged state is not a solution of the skin ("" if it is): a half-layer squeezed
+        below `ContactSettings.min_stretch` by the indenter or the core (gaps (V,) m, negative closing;
+        clamped vertices included for the indenter: on the rim it squeezes the skin onto the rigid base), or
+        a zero-thickness contact penetrated deeper than `ContactSettings.max_penetration` of the thickness;
+        forces out of balance under a load; or the indenter force pulling the indenter into the skin (it went
+        through: force (3,) N on the skin, the press direction being the indenter's -z axis). Core gaps of
+        vertices whose search was skipped are lower bounds >= 0 (`fe.contact.core_contact_kernel`), so they
+        never refuse."""
+        settings, skin = self.skin.contact, self.skins[i]
         free = ~self.shell.fixed.all(axis=1)  # clamped vertices sit on the rigid base: no core contact there
-        deepest = float(min(gap.min(initial=0.0), core_gap[free].min(initial=0.0) if self.shell.has_core else 0.0))
-        if deepest < -limit:
-            on_indenter = gap.min(initial=0.0) <= deepest
-            where = "the indenter" if on_indenter else "the core"
-            vertex = int(np.argmin(gap if on_indenter else np.where(free, core_gap, np.inf)))
+        half = 0.5 * skin.params.thickness if skin.indenter_offset is None else skin.indenter_offset
+        bodies = [("the indenter", gap, half)]
+        if self.shell.has_core:
+            bodies.append(("the core", np.where(free, core_gap, np.inf), skin.core_offset))
+        for where, gaps, h in bodies:
+            vertex = int(np.argmin(gaps))
+            closing = -float(gaps[vertex])
             clamped = " at a clamped vertex (the rigid base)" if np.all(self.shell.fixed[vertex]) else ""
-            return f"{where} {-deepest * 1e6:.0f} um into the skin{clamped} (limit {limit * 1e6:.0f} um)"
+            if h > 0.0 and closing > (1.0 - settings.min_stretch) * h:
+                stretch = 1.0 - closing / h
+                return (
+                    f"{where} squeezes the skin to {stretch:.2f} of its half-thickness{clamped} "
+                    f"(floor {settings.min_stretch:.2f})"
+                )
+            limit = settings.max_penetration * skin.params.thickness
+            if h <= 0.0 and closing > limit:
+                return f"{where} {closing * 1e6:.0f} um into the skin{clamped} (limit {limit * 1e6:.0f} um)"
         if np.linalg.norm(force) > _LOAD_FLOOR and not balance <= _BALANCE_TOLERANCE:
             return f"forces out of balance by {balance:.1e} of the load"
         push = float(force @ -self.pose_rotation[i, :, 2])

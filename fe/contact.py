@@ -1,14 +1,24 @@
 """Contact energies per skin vertex, in warp: rigid core (frictionless) and rigid indenter (frictional).
 
-Normal contact is a one-sided quadratic penalty on the gap g (m) between the skin surface and the body:
-E_n = kappa A_v g^2 / 2 for g < 0, with A_v the vertex's lumped reference area (m^2) and kappa the
-penalty stiffness (Pa/m), so kappa |g| is the contact pressure. Friction is lagged Coulomb with IPC
-smoothing: E_f = mu lambda f0(|u_T|), lambda the normal force (N) and n the contact normal of the last
-lagging pass, u_T the slip over the increment projected on the plane normal to n, and f0 the C1
-smoothing of |u| over the slip length eps (m). The indenter moves rigidly from pose (R0, t0) to (R, t);
-the slip of a skin vertex at p relative to the indenter material point now under it is
-u = R0 R^T (p - t) + t0 - x_start, i.e. its motion seen from the indenter's body frame. Its SDF is
-evaluated in its own frame (tip at the origin, body along +z).
+Normal contact is the through-thickness compression of the skin. The shell's mid-surface carries half the
+thickness, h (m), on each side (the indenter's side: `InflatedSkin.indenter_offset`, default t/2; the core's:
+`InflatedSkin.core_offset`); with d (m) the signed distance of a mid-surface vertex to the body and
+g = d - h its gap, a closing gap squeezes that half-layer to the stretch lam = d / h = 1 + g / h. The layer is
+incompressible Neo-Hookean, compressed with free lateral expansion (Ogden, Non-linear Elastic Deformations,
+1984, sec. 7.2: uniaxial nominal stress mu (lam - lam^-2)), so a vertex of reference area A_v (m^2) stores
+E_n = A_v h (mu / 2)(lam^2 + 2 / lam - 3) for lam < 1 and nothing above: C1 at lam = 1 (the stress
+vanishes there), stiffening as lam^-3 towards lam = 0. Below `ContactSettings.min_stretch` the energy goes on
+as its second-order Taylor expansion there (finite and convex for any gap, so Newton never meets a
+non-finite energy), and `fe.batched_stepper.BatchedStepper` refuses any converged state that reaches it.
+h = 0 (a zero-thickness membrane, e.g. `fe.dome`) keeps the one-sided quadratic penalty kappa A_v g^2 / 2
+(kappa in Pa/m). mu (Pa) is the skin's current (relaxation-scaled) modulus mu t / t of each system.
+
+Friction is lagged Coulomb with IPC smoothing: E_f = mu_fr lambda f0(|u_T|), lambda the normal force (N) of
+the law above and n the contact normal of the last lagging pass, u_T the slip over the increment projected
+on the plane normal to n, and f0 the C1 smoothing of |u| over the slip length eps (m). The indenter moves
+rigidly from pose (R0, t0) to (R, t); the slip of a skin vertex at p relative to the indenter material
+point now under it is u = R0 R^T (p - t) + t0 - x_start, i.e. its motion seen from the indenter's body
+frame. Its SDF is evaluated in its own frame (tip at the origin, body along +z).
 """
 
 import warp as wp
@@ -16,6 +26,34 @@ import warp as wp
 from fe.indenter_sdf import indenter_sdf, indenter_sdf_grad
 
 _TINY = wp.constant(wp.float64(1e-30))
+
+
+@wp.func
+def layer_response(
+    g: wp.float64, h: wp.float64, mu: wp.float64, area: wp.float64, kappa: wp.float64, min_stretch: wp.float64
+) -> wp.vec3d:
+    """(energy J, dE/dg N, d2E/dg2 N/m) of one vertex's normal contact at gap g (m, negative when closing) for
+    a half-layer of thickness h (m) and shear modulus mu (Pa), reference area `area` (m^2): the Neo-Hookean
+    layer of the module docstring (continued quadratically below `min_stretch`), or for h = 0 the penalty
+    kappa (Pa/m). -dE/dg >= 0 is the normal force."""
+    zero = wp.float64(0.0)
+    one = wp.float64(1.0)
+    if g >= zero:
+        return wp.vec3d(zero, zero, zero)
+    if h <= zero:
+        ka = kappa * area
+        return wp.vec3d(wp.float64(0.5) * ka * g * g, ka * g, ka)
+    lam = one + g / h
+    c = wp.max(lam, min_stretch)
+    s = (c - one) * h  # the gap at c, written so that nothing cancels near lam = 1
+    e = wp.float64(0.5) * area * mu * s * s * (c + wp.float64(2.0)) / (h * c)
+    f1 = area * mu * (s / h) * (c * c + c + one) / (c * c)
+    f2 = area * mu * (one + wp.float64(2.0) / (c * c * c)) / h
+    if lam < c:  # past the floor: the Taylor expansion at c
+        dg = g - s
+        e += f1 * dg + wp.float64(0.5) * f2 * dg * dg
+        f1 += f2 * dg
+    return wp.vec3d(e, f1, f2)
 
 
 @wp.func
@@ -85,6 +123,9 @@ def core_contact_kernel(
     vertex_area: wp.array(dtype=wp.float64),
     offset: wp.float64,
     kappa: wp.float64,
+    mu_t: wp.array(dtype=wp.float64),
+    thickness: wp.array(dtype=wp.float64),
+    min_stretch: wp.float64,
     energy: wp.array2d(dtype=wp.float64),
     gradient: wp.array2d(dtype=wp.vec3d),
     hessian: wp.array2d(dtype=wp.mat33d),
@@ -93,10 +134,11 @@ def core_contact_kernel(
     queried_gap: wp.array2d(dtype=wp.float64),
     active: wp.array(dtype=wp.int32),
 ):
-    """Frictionless one-sided contact of skin vertex v (mid-surface, `offset` m outside) with the core mesh.
+    """Frictionless contact of skin vertex v with the core mesh: the inner half-layer (thickness `offset` m)
+    squeezed by the `layer_response` law (modulus mu_t[b] / thickness[b] Pa).
 
     The closest-face search is limited to offset + 1 mm from the core (a vertex farther out is reported at
-    1 m), a hundred times the penetration the penalty allows at 1 MPa; a smaller radius prunes the BVH
+    1 m), beyond any closure of the half-layer; a smaller radius prunes the BVH
     search (half the cost of 5 mm). The search is skipped where it cannot find contact: the signed distance
     is 1-Lipschitz, so a vertex that has moved less than its gap at its last search (`queried_at`,
     `queried_gap`, kept per vertex between evaluations) is still out of contact, and its gap is reported as
@@ -124,9 +166,9 @@ def core_contact_kernel(
     if g >= zero:
         return
     n = wp.vec3d(dn[1], dn[2], dn[3])
-    ka = kappa * vertex_area[v]
-    energy[b, v] = wp.float64(0.5) * ka * g * g
-    wp.atomic_add(gradient, b, v, n * (ka * g))
+    law = layer_response(g, offset, mu_t[b] / thickness[b], vertex_area[v], kappa, min_stretch)
+    energy[b, v] = law[0]
+    wp.atomic_add(gradient, b, v, n * law[1])
     h = wp.float64(1e-9)
     curv = wp.mat33d()
     for j in range(3):
@@ -137,7 +179,7 @@ def core_contact_kernel(
         for i in range(3):
             curv[i, j] = (plus[i + 1] - minus[i + 1]) / (wp.float64(2.0) * h)
     curv = wp.float64(0.5) * (curv + wp.transpose(curv))
-    hessian[b, v] = ka * (wp.outer(n, n) + g * curv)
+    hessian[b, v] = law[2] * wp.outer(n, n) + law[1] * curv
 
 
 @wp.func
@@ -163,6 +205,9 @@ def indenter_contact_kernel(
     translation_start: wp.array(dtype=wp.vec3d),
     offset: wp.array(dtype=wp.float64),
     kappa: wp.float64,
+    mu_t: wp.array(dtype=wp.float64),
+    thickness: wp.array(dtype=wp.float64),
+    min_stretch: wp.float64,
     friction: wp.array(dtype=wp.float64),
     lagged_force: wp.array2d(dtype=wp.float64),
     lagged_normal: wp.array2d(dtype=wp.vec3d),
@@ -175,8 +220,9 @@ def indenter_contact_kernel(
     normal: wp.array2d(dtype=wp.vec3d),
     active: wp.array(dtype=wp.int32),
 ):
-    """Penalty normal contact + lagged smoothed Coulomb friction of skin vertex v with the indenter of batch b
-    (shape kind[b] with dims[b] of `fe.indenter_sdf`)."""
+    """Normal contact (the outer half-layer, thickness offset[b] m, squeezed by the `layer_response` law) +
+    lagged smoothed Coulomb friction of skin vertex v with the indenter of batch b (shape kind[b] with dims[b]
+    of `fe.indenter_sdf`)."""
     b, v = wp.tid()
     if active[b] == 0:  # a system left out of this evaluation: nothing is written for it
         return
@@ -193,10 +239,10 @@ def indenter_contact_kernel(
     e = zero
     grad = wp.vec3d()
     H = wp.mat33d()
-    ka = kappa * vertex_area[v]
     if g < zero:
-        e = wp.float64(0.5) * ka * g * g
-        grad = n * (ka * g)
+        law = layer_response(g, offset[b], mu_t[b] / thickness[b], vertex_area[v], kappa, min_stretch)
+        e = law[0]
+        grad = n * law[1]
         if want_hessian != 0:
             # d2g/dx2 by central differences of the analytic SDF gradient.
             h = wp.float64(1e-8)
@@ -210,7 +256,7 @@ def indenter_contact_kernel(
                 for i in range(3):
                     curv[i, j] = col[i]
             curv = wp.float64(0.5) * (curv + wp.transpose(curv))
-            H = ka * (wp.outer(n, n) + g * curv)
+            H = law[2] * wp.outer(n, n) + law[1] * curv
     lam = lagged_force[b, v] * friction[b]
     if lam > zero:
         nl = lagged_normal[b, v]
@@ -257,3 +303,26 @@ def indenter_gap_kernel(
     b, v = wp.tid()
     gap[b, v] = _sdf_world(kind[b], dims[b], rotation[b], translation[b], x[b, v]) - offset[b]
     normal[b, v] = _sdf_grad_world(kind[b], dims[b], rotation[b], translation[b], x[b, v])
+
+
+@wp.kernel
+def lag_candidates(
+    gap: wp.array2d(dtype=wp.float64),
+    vertex_area: wp.array(dtype=wp.float64),
+    offset: wp.array(dtype=wp.float64),
+    kappa: wp.float64,
+    mu_t: wp.array(dtype=wp.float64),
+    thickness: wp.array(dtype=wp.float64),
+    min_stretch: wp.float64,
+    lagged_force: wp.array2d(dtype=wp.float64),
+    candidate: wp.array2d(dtype=wp.float64),
+    stats: wp.array2d(dtype=wp.float64),
+):
+    """Normal force (N) of each vertex on the indenter of batch b from its gap (m), by `layer_response`;
+    stats[b] = (largest change from the lagged force, largest force)."""
+    b, v = wp.tid()
+    law = layer_response(gap[b, v], offset[b], mu_t[b] / thickness[b], vertex_area[v], kappa, min_stretch)
+    f = -law[1]
+    candidate[b, v] = f
+    wp.atomic_max(stats, b, 0, wp.abs(f - lagged_force[b, v]))
+    wp.atomic_max(stats, b, 1, f)

@@ -89,22 +89,28 @@ class SkinParameters:
 
 @dataclass(frozen=True)
 class ContactSettings:
-    """Numerics of contact: penalty stiffness (Pa/m), friction slip smoothing length (m), lagging passes, and
-    the admissible penetration (`fe.batched_stepper.BatchedStepper` refuses a converged increment beyond it)."""
+    """Numerics of contact (`fe.contact`): the penalty stiffness (Pa/m) of a zero-thickness contact, friction
+    slip smoothing length (m), lagging passes and tolerance, and the admissible closures
+    (`fe.batched_stepper.BatchedStepper` refuses a converged increment beyond them)."""
 
     penalty_stiffness: float = 1e11
+    """Penalty kappa (Pa/m) where the skin keeps no half-thickness from a body (offset 0: a membrane)."""
     slip_length: float = 1e-6
     friction_passes: int = 4
     friction_tolerance: float = 1e-3
     max_penetration: float = 0.1
-    """Deepest penetration of the indenter or the core into the skin's outer or inner surface that a
-    converged increment may show, as a fraction of the skin thickness: the penalty stands in for the
-    rubber's through-thickness compression only for small closures (0.1 of 1.57 mm is a contact pressure of
-    15.7 MPa at the default penalty, far beyond rubber's); deeper, the indenter has gone through the skin
-    (a clamped rim vertex, a step that tunnels), and the forces are the penalty's, not the skin's."""
+    """Deepest penetration of a body into a zero-thickness (penalty) contact that a converged increment may
+    show, as a fraction of the skin thickness: deeper, the forces are the penalty's, not the skin's."""
+    min_stretch: float = 0.25
+    """Smallest through-thickness stretch of a squeezed half-layer (`fe.contact.layer_response`) that a
+    converged increment may show; below it the law is continued quadratically and the state refused: the
+    Neo-Hookean layer then carries mu (lam^-2 - lam) = 15.75 mu (4.4 MPa at the paper's mu), far beyond
+    rubber's working range, so the indenter has reached the core or the rigid base through the skin."""
 
     def __post_init__(self) -> None:
         if self.penalty_stiffness <= 0 or self.slip_length <= 0 or self.friction_passes < 1:
             raise ValueError("contact settings must be positive (penalty, slip length, passes >= 1)")
         if not self.max_penetration > 0.0:
             raise ValueError(f"max_penetration={self.max_penetration} must be positive")
+        if not 0.0 < self.min_stretch < 1.0:
+            raise ValueError(f"min_stretch={self.min_stretch} must be within (0, 1)")
