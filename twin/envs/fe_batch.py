@@ -23,6 +23,7 @@ from fe.batched_stepper import BatchedStepper, CutBack
 from fe.params import SkinParameters
 from fe.results import IncrementResult
 from fe.sensor import BioTacModel
+from twin.fe_models import inflated_model
 
 COARSE_MESH_MM = 2.0
 """The cheap mesh (largest edge, mm): 281 skin nodes, about 0.05-0.1 s per contact increment on one core."""
@@ -42,12 +43,7 @@ def shared_model(mesh_mm: float = COARSE_MESH_MM) -> BioTacModel:
     """An inflated nominal BioTac FE model with `mesh_mm` (mm) largest edges, built once per process."""
     if not 0.3 <= mesh_mm <= 5.0:
         raise ValueError(f"mesh_mm must be in [0.3, 5] mm, got {mesh_mm!r}")
-    # twin.campaign.inflated_model does this too, but importing twin.campaign pulls in h5py and more
-    model = BioTacModel(make_biotac(mesh_mm * 1e-3), SkinParameters())
-    result = model.inflate()
-    if not result.converged:
-        raise RuntimeError(f"inflation did not converge: {result.message}")
-    return model
+    return inflated_model(make_biotac(mesh_mm * 1e-3), SkinParameters())
 
 
 @dataclass(frozen=True)
