@@ -3,6 +3,7 @@ nothing (the trajectory re-runs, no part is duplicated)."""
 
 import os
 import sys
+import time
 from collections.abc import Callable, Iterator, Sequence
 from dataclasses import replace
 from pathlib import Path
@@ -108,6 +109,22 @@ def test_ray_with_a_killed_worker_writes_the_local_pool_dataset(tmp_path: Path) 
     for key in a:
         np.testing.assert_array_equal(a[key], b[key], err_msg=key)
     assert sorted(a["trajectories/trajectory_id"].tolist()) == [0, 1]
+
+
+def test_a_local_pool_serves_every_map_with_the_same_setup_until_closed() -> None:
+    """One start-up for both maps of a batched campaign; another setup gets new workers; close ends them."""
+    executor, setup_args, other_args = LocalExecutor(1), (float(0),), (float(0),)  # two equal objects
+    first = list(executor.map_unordered(os.getpid, [()], time.sleep, setup_args))
+    again = list(executor.map_unordered(os.getpid, [()], time.sleep, setup_args))
+    assert first == again and first[0] != os.getpid()
+    other = list(executor.map_unordered(os.getpid, [()], time.sleep, other_args))  # equal, but not the same object
+    assert other != first
+    executor.close()
+    assert executor._pool is None
+    with pytest.raises(ProcessLookupError):  # the replaced and the closed workers are gone (and reaped)
+        os.kill(first[0], 0)
+    with pytest.raises(ProcessLookupError):
+        os.kill(other[0], 0)
 
 
 def test_executor_choice_is_checked() -> None:

@@ -171,15 +171,26 @@ def _uncovered(config: CampaignConfig, planned: list[PlannedTrajectory]) -> set[
 # -- execution ---------------------------------------------------------------------------------------
 @dataclass
 class CampaignWorker:
-    """Per-process state: the geometry, the plant's inflated fe models and scenes, built on first use."""
+    """Per-process state: the geometry, the plant's inflated fe models and the testbed scene, built on first
+    use."""
 
     config: CampaignConfig
     plant: Plant
     geometry: BioTacGeometry = field(init=False)
     models: dict = field(default_factory=dict)
+    _scene: TestbedScene | None = field(default=None, init=False, repr=False)
 
     def __post_init__(self) -> None:
         self.geometry = make_biotac(self.config.mesh_max_edge)
+
+    def scene(self) -> TestbedScene:
+        """The testbed scene in its starting state (`TestbedScene.reset`): built once per process, reset for
+        each trajectory, so every trajectory starts from the same state as on a scene built for it alone."""
+        if self._scene is None:
+            self._scene = TestbedScene(self.config.scene)
+        else:
+            self._scene.reset()
+        return self._scene
 
     def sensor(self, sid: int) -> tuple[BioTacModel, ElectrodeModel]:
         if sid not in self.models:
@@ -343,12 +354,12 @@ robot<-biotac 4x4 of its arm, and the parts folder."""
 def simulate_trajectory(
     worker: CampaignWorker, job: PlannedTrajectory, slot: int, solver: Callable[[str], SkinSolver] | None = None
 ) -> tuple[SimBackend, Recording]:
-    """Run one trajectory's protocol on a fresh simulated testbed (its own noise stream and clock); the skin
+    """Run one trajectory's protocol on the worker's testbed, reset (its own noise stream and clock); the skin
     solved by `solver` (default: the sensor's fe stepper, one solve at a time). Returns the backend (its
     `solve_log`) and the recording."""
     config, sid, spec = worker.config, job.sensor_id, job.spec
     model, electrodes = worker.sensor(sid)
-    scene = TestbedScene(config.scene)
+    scene = worker.scene()
     rng = np.random.default_rng(np.random.SeedSequence([config.seed, sid, spec.trajectory_id]))
     backend = SimBackend(
         scene,
@@ -453,7 +464,8 @@ def run_campaign(
 ) -> CampaignResult:
     """Plan and run the campaign into `out_dir` (one HDF5 per sensor); resumes from existing parts.
 
-    Trajectories run on `executor` (default: `workers` local processes) through `runner` (default
+    Trajectories run on `executor` (default: `workers` local processes, closed at the end; one passed in is
+    left to its owner to close) through `runner` (default
     `one_at_a_time`; `twin.campaign_batched.BatchedRunner` solves the fe of all of them as one batch); the
     files do not depend on the executor, and on the runner only within the fe engine's tolerance.
     on_progress(done, total) is called after each trajectory; on_trajectory(sensor id, part arrays as
@@ -478,6 +490,7 @@ def run_campaign(
     done, incomplete = len(jobs) - len(todo), 0
     if on_progress:
         on_progress(done, len(jobs))
+    own_executor = executor is None
     executor = executor if executor is not None else LocalExecutor(max(1, workers))
     tasks = [
         (j, slots[(j.sensor_id, j.spec.trajectory_id)], plan.registration[(j.sensor_id, j.arm)], str(parts_dir))
@@ -493,7 +506,11 @@ def run_campaign(
         if on_progress:
             on_progress(done, len(jobs))
 
-    runner(tasks, config, plant, executor, finished)
+    try:
+        runner(tasks, config, plant, executor, finished)
+    finally:
+        if own_executor:
+            executor.close()
     provenance = {
         "code_version": code_version(),
         "config": json.loads(json.dumps(asdict(config), default=str)),

@@ -2,11 +2,14 @@
 
 An executor maps a task function over argument tuples and yields the results as they finish, in any
 order. Each worker process first runs `setup(*setup_args)` once (e.g. building the inflated FE models),
-then any number of tasks. Tasks must be idempotent: a campaign task writes its part file atomically, so
-a task that re-runs after its worker died writes exactly what the first attempt would have written.
+then any number of tasks; its workers may be kept for the next map with the same setup (the batched
+campaign maps twice over the same trajectories), until `close()`. Tasks must be idempotent: a campaign
+task writes its part file atomically, so a task that re-runs after its worker died writes exactly what the
+first attempt would have written.
 
 - `LocalExecutor`: a `ProcessPoolExecutor` over spawned processes that die with their parent; needs
-  nothing extra.
+  nothing extra. Its pool serves every map with the same setup (the same function and argument objects)
+  and is replaced for another setup.
 - `RayExecutor`: Ray tasks on a local or existing cluster (`pip install "biotac-twin[ray]"`); a task
   whose worker dies is re-run by Ray (up to `max_retries` times), so a killed worker loses nothing.
 """
@@ -50,26 +53,40 @@ class Executor(ABC):
         A task that raises ends the iteration with that exception.
         """
 
+    def close(self) -> None:  # noqa: B027 (an optional hook: most executors keep nothing)
+        """Release the workers kept between maps (none by default)."""
+
+    def __enter__(self) -> Executor:
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.close()
+
 
 class LocalExecutor(Executor):
     """`workers` spawned local processes (spawn, so warp and MuJoCo start clean in each).
 
     The workers die with this process, however it ends (`_die_with_parent`), and leave Ctrl-C to it; when
     the iteration ends early (an exception, KeyboardInterrupt, the consumer stopping) they are terminated
-    at once rather than left to finish their trajectories.
+    at once rather than left to finish their trajectories. A map that ends normally leaves them running for
+    the next map with the same setup (no new start-up: imports, PARDISO, the models inflated again), until
+    `close()` or a map with another setup.
     """
 
     def __init__(self, workers: int = 2) -> None:
         if workers < 1:
             raise ValueError(f"workers must be >= 1, got {workers}")
         self.workers = workers
+        self._pool: ProcessPoolExecutor | None = None
+        self._setup: tuple = ()
+        """The kept pool's setup function and argument objects (held, so that their ids stay theirs)."""
 
     def map_unordered(
         self, task: Callable[..., Any], jobs: Sequence[tuple], setup: Callable[..., None], setup_args: tuple
     ) -> Iterator[Any]:
         if not jobs:
             return
-        pool = ProcessPoolExecutor(self.workers, get_context("spawn"), _local_setup, (os.getpid(), setup, setup_args))
+        pool = self._pool_for(setup, setup_args)
         try:
             futures = [pool.submit(task, *job) for job in jobs]
             for future in as_completed(futures):
@@ -77,9 +94,25 @@ class LocalExecutor(Executor):
         except BaseException:
             for process in list(pool._processes.values()):  # no public way before Python 3.14's terminate_workers
                 process.terminate()
+            self.close()
             raise
-        finally:
-            pool.shutdown(wait=True, cancel_futures=True)
+
+    def close(self) -> None:
+        """Shut the kept pool down (its workers end after their current task; none is pending)."""
+        if self._pool is not None:
+            self._pool.shutdown(wait=True, cancel_futures=True)
+            self._pool, self._setup = None, ()
+
+    def _pool_for(self, setup: Callable[..., None], setup_args: tuple) -> ProcessPoolExecutor:
+        """The kept pool when it was set up by `setup` with these very argument objects, else a new one."""
+        key = (setup, *setup_args)
+        same = len(key) == len(self._setup) and all(a is b for a, b in zip(key, self._setup, strict=True))
+        if self._pool is None or not same:
+            self.close()
+            initargs = (os.getpid(), setup, setup_args)
+            self._pool = ProcessPoolExecutor(self.workers, get_context("spawn"), _local_setup, initargs)
+            self._setup = key
+        return self._pool
 
 
 PR_SET_PDEATHSIG = 1

@@ -245,6 +245,11 @@ class TestbedScene:
         self._pin_nose = {self.model.geom(f"{arm}_tool_pin_nose").id for arm in ARMS}
         self._tools: dict[str, str | None] = {arm: None for arm in ARMS}
         self._biotac_pose = mount_pose(self.params) @ self.params.mount.biotac_in_mount()
+        self.reset()
+
+    def reset(self) -> None:
+        """Back to the state a new scene starts in (no tools, both arms at home): the same model and data
+        values as a scene built afresh, for a fraction of the build's cost (about 1 s at the 2 mm mesh)."""
         for arm in ARMS:
             self.attach_tool(arm, None)
             self.set_joints(arm, self.home_joints(arm))

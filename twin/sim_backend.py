@@ -15,6 +15,7 @@ replays their batched results through the same backend.
 from __future__ import annotations
 
 import copy
+import math
 from collections.abc import Callable
 from dataclasses import dataclass
 from typing import Protocol
@@ -104,6 +105,13 @@ class SimBackend:
         self.time_s = start_time_s
         self.joint_offsets = {arm: np.asarray((joint_offsets or {}).get(arm, np.zeros(7)), float) for arm in ARMS}
         self.true_biotac_pose = np.asarray(true_biotac_pose, dtype=float)
+        self._biotac_from_robot = np.linalg.inv(self.true_biotac_pose)
+        self._velocity = {arm: velocity_limits(arm) for arm in ARMS}
+        self._limits = {arm: joint_limits(arm) for arm in ARMS}
+        self._placed: dict[str, bytes | None] = dict.fromkeys(ARMS)
+        """The joints (their bytes) whose true joints each arm was last placed at in the scene."""
+        self._tip_poses: dict[str, np.ndarray] = {}
+        """Each arm's tip pose in the biotac frame while its joints and tool stay as they are."""
         self._sensor_in_biotac = np.linalg.inv(scene.biotac_pose) @ scene.ft_sensor_pose
         self._joints = {arm: scene.joints(arm) for arm in ARMS}
         self._targets = {arm: self._joints[arm].copy() for arm in ARMS}
@@ -122,6 +130,7 @@ class SimBackend:
         """Mount `tool` (indenter name, "pin" or None) on `arm`; a new indenter starts from the rest skin."""
         check_arm(arm)
         self.scene.attach_tool(arm, tool)
+        self._tip_poses.pop(arm, None)
         self._tools[arm] = tool
         if tool is not None and tool != "pin":
             self._stepper = self._solver(tool)
@@ -134,7 +143,7 @@ class SimBackend:
         """Set the joint target (rad); outside the joint limits is refused with BackendError."""
         check_arm(arm)
         q = np.asarray(joints, dtype=float)
-        limits = joint_limits(arm)
+        limits = self._limits[arm]
         if q.shape != (7,) or not np.all(np.isfinite(q)):
             raise BackendError(f"joint target for {arm} must be 7 finite numbers, got {q!r}")
         if np.any(q < limits[:, 0]) or np.any(q > limits[:, 1]):
@@ -146,11 +155,13 @@ class SimBackend:
         if dt < 0:
             raise ValueError(f"dt must be >= 0, got {dt!r}")
         for arm in ARMS:
-            step = np.clip(
-                self._targets[arm] - self._joints[arm], -velocity_limits(arm) * dt, velocity_limits(arm) * dt
-            )
-            self._joints[arm] = self._joints[arm] + step
-            self.scene.set_joints(arm, self._true_joints(arm))
+            target, joints = self._targets[arm], self._joints[arm]
+            if target.tobytes() == joints.tobytes():  # at rest: the clipped step is +0.0
+                self._joints[arm] = joints + 0.0
+            else:
+                reach = self._velocity[arm] * dt
+                self._joints[arm] = joints + np.clip(target - joints, -reach, reach)
+            self._place(arm)
         self.time_s += dt
         arm = self._stepper_arm
         if arm is not None and np.max(np.abs(self._targets[arm] - self._joints[arm])) <= self.settings.rest_tolerance:
@@ -176,8 +187,17 @@ class SimBackend:
         At a joint limit the offset would carry the model past its range by a few mrad; the true arm
         stops at its hard limit there, so the value is clipped.
         """
-        limits = joint_limits(arm)
+        limits = self._limits[arm]
         return np.clip(self._joints[arm] + self.joint_offsets[arm], limits[:, 0], limits[:, 1])
+
+    def _place(self, arm: str) -> None:
+        """Put the scene's arm at its true joints; MuJoCo's kinematics run only when the joints differ (bit for
+        bit) from those the arm was last placed for (a resting arm, most of every pause, costs none)."""
+        joints = self._joints[arm].tobytes()
+        if joints != self._placed[arm]:
+            self.scene.set_joints(arm, self._true_joints(arm))
+            self._placed[arm] = joints
+            self._tip_poses.pop(arm, None)
 
     def _measured_wrench(self) -> np.ndarray:
         """Noise-free F/T reading now: the clean load history through the plant's measurement effects."""
@@ -194,11 +214,13 @@ class SimBackend:
     # -- simulation state ------------------------------------------------------------------------
     def tip_pose_biotac(self, arm: str) -> np.ndarray:
         """True 4x4 pose of `arm`'s tool tip in the biotac frame."""
-        return np.linalg.inv(self.true_biotac_pose) @ self.scene.tool_pose(arm)
+        if arm not in self._tip_poses:
+            self._tip_poses[arm] = self._biotac_from_robot @ self.scene.tool_pose(arm)
+        return self._tip_poses[arm].copy()
 
     def _solve_if_moved(self, arm: str) -> None:
         pose = self.tip_pose_biotac(arm)
-        moved = self._last_tip is None or np.linalg.norm(pose[:3, 3] - self._last_tip) > self.settings.pose_tolerance
+        moved = self._last_tip is None or _norm(pose[:3, 3] - self._last_tip) > self.settings.pose_tolerance
         relaxing = (
             self._stepper.relaxes
             and bool(self.solve_log)
@@ -245,6 +267,12 @@ class SimBackend:
         weight_biotac = self.true_biotac_pose[:3, :3].T @ (self.settings.mounted_mass * GRAVITY)
         weight = ft_load(weight_biotac, self._sensor_in_biotac[:3, 3], self._sensor_in_biotac)
         return ft_load(force_biotac, point_biotac, self._sensor_in_biotac) + weight
+
+
+def _norm(vector: np.ndarray) -> float:
+    """The Euclidean norm of a 1-D float array, as `np.linalg.norm` computes it (sqrt of its dot with itself,
+    the same bits) without its per-call overhead (it is asked every sample)."""
+    return math.sqrt(vector.dot(vector))
 
 
 def held_impedance(electrodes: ElectrodeModel) -> ElectrodeModel:

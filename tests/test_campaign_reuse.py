@@ -1,0 +1,76 @@
+"""What a campaign worker reuses between trajectories changes nothing: a reset testbed scene is a new scene
+(model and data, bit for bit), and a trajectory simulated on a worker whose scene another trajectory used
+is recorded exactly as on a worker of its own."""
+
+from dataclasses import replace
+
+import numpy as np
+
+from twin.backend import ARMS
+from twin.campaign import QUICK_CONFIG, CampaignWorker, plan_campaign, simulate_trajectory
+from twin.campaign_batched import ScheduleRecorder
+from twin.controller import Recording
+from twin.plant import make_plant
+from twin.protocol import QUICK_SETTINGS
+from twin.scene import TestbedScene
+
+CONFIG = replace(
+    QUICK_CONFIG,
+    sensors=(2,),
+    indenters=("sphere_medium",),
+    settings=replace(QUICK_SETTINGS, normal_depth=0.4e-3, angled_depth=0.2e-3, pause_s=0.1),
+)
+"""Two short trajectories (one normal, one angled) on one sensor, 2 mm mesh."""
+
+
+def _state(scene: TestbedScene) -> dict[str, np.ndarray]:
+    """Every model field a tool changes and every data field the kinematics fill, plus the tool poses."""
+    model, data = scene.model, scene.data
+    state = {
+        name: np.array(getattr(model, name))
+        for name in ("geom_contype", "geom_conaffinity", "geom_rgba", "site_pos", "site_quat")
+    }
+    state |= {name: np.array(getattr(data, name)) for name in ("qpos", "xpos", "xmat", "site_xpos", "site_xmat")}
+    for arm in ARMS:
+        state[f"{arm}_tool_pose"] = scene.tool_pose(arm)
+        state[f"{arm}_tool"] = np.asarray(str(scene.tool(arm)))
+    return state
+
+
+def test_a_reset_scene_is_a_new_scene() -> None:
+    used = TestbedScene(QUICK_CONFIG.scene)
+    for arm, tool in zip(ARMS, ("sphere_medium", "pin"), strict=True):
+        used.attach_tool(arm, tool)
+        used.set_joints(arm, used.home_joints(arm) + 0.05)
+    dirty = _state(used)
+    used.reset()
+    fresh = _state(TestbedScene(QUICK_CONFIG.scene))
+    assert any(not np.array_equal(dirty[k], fresh[k]) for k in fresh)  # the use did change the scene
+    for key, expected in fresh.items():
+        np.testing.assert_array_equal(_state(used)[key], expected, err_msg=key)
+
+
+def _record(worker: CampaignWorker, job, slot: int) -> tuple[Recording, list]:
+    recorders: list[ScheduleRecorder] = []
+
+    def recorder(indenter: str) -> ScheduleRecorder:
+        recorders.append(ScheduleRecorder(worker.sensor(job.sensor_id)[0], indenter))
+        return recorders[-1]
+
+    recording = simulate_trajectory(worker, job, slot, recorder)[1]
+    return recording, [r.schedule() for r in recorders]
+
+
+def test_a_trajectory_on_a_reused_testbed_is_recorded_as_on_a_new_one() -> None:
+    plant = make_plant([2], 0)
+    jobs = [job for job in plan_campaign(CONFIG, plant).planned if job.kept]
+    assert len(jobs) == 2
+    reused = CampaignWorker(CONFIG, plant)
+    _record(reused, jobs[0], 0)  # the worker's scene now carries the first trajectory's tool and joints
+    again, again_schedules = _record(reused, jobs[1], 1)
+    alone, alone_schedules = _record(CampaignWorker(CONFIG, plant), jobs[1], 1)
+    assert len(alone.time) > 100 and alone.complete
+    for name in ("time", "joints", "wrench", "electrodes", "pdc", "depth_command", "increment"):
+        np.testing.assert_array_equal(getattr(again, name), getattr(alone, name), err_msg=name)
+    assert len(again_schedules) == len(alone_schedules) == 1
+    assert again_schedules[0].same_as(alone_schedules[0]) and len(alone_schedules[0].times) > 3
