@@ -150,8 +150,7 @@ def test_nan_forces_are_counted_and_warned_never_dropped_in_silence(
     warning = "2 of 8 rows have NaN or infinite forces"
     scored = runner.invoke(app, ["learn", "eval", str(checkpoint), "--data", str(path), "--on", "all"])
     assert scored.exit_code == 0 and warning in scored.output, scored.output
-    for name in ("twin.cli.analysis.model_or_nominal", "twin.cli.calibrate.model_or_nominal"):
-        monkeypatch.setattr(name, _stop_before_fe)
+    monkeypatch.setattr("twin.cli.common.model_or_nominal", _stop_before_fe)
     monkeypatch.setattr("twin.analysis.diagnose.diagnose", _stop_before_fe)
     readers = (["compare", str(path), "--out", str(tmp_path / "r")], ["validate", str(path)], ["diagnose", str(path)])
     for command in readers:

@@ -9,16 +9,7 @@ from typing import Annotated
 import typer
 from rich.table import Table
 
-from twin.cli.common import (
-    DeviceOption,
-    analysis_predictor,
-    err_console,
-    guarded,
-    load_datasets,
-    model_or_nominal,
-    out_console,
-    progress_bar,
-)
+from twin.cli.common import DeviceOption, analysis_inputs, err_console, out_console, progress_bar
 
 analysis_app = typer.Typer(help="Compare the model with measurements.")
 
@@ -56,9 +47,7 @@ def compare_command(
     from twin.analysis.compare import compare
     from twin.analysis.report import DEFAULT_TITLE, write_report
 
-    predictor = analysis_predictor(device)
-    data = guarded(lambda: load_datasets(datasets))
-    twin_model = guarded(lambda: model_or_nominal(model, data[0].mesh_max_edge))
+    predictor, data, twin_model = analysis_inputs(datasets, model, device)
     total = sum(len(d.trajectories) for d in data)
     with progress_bar() as progress:
         task = progress.add_task(f"replaying on {device}", total=total)

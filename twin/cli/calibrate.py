@@ -10,16 +10,7 @@ import numpy as np
 import typer
 from rich.table import Table
 
-from twin.cli.common import (
-    DeviceOption,
-    analysis_predictor,
-    err_console,
-    guarded,
-    load_datasets,
-    model_or_nominal,
-    out_console,
-    progress_bar,
-)
+from twin.cli.common import DeviceOption, analysis_inputs, err_console, guarded, out_console, progress_bar
 
 calibrate_app = typer.Typer()
 
@@ -65,9 +56,7 @@ def calibrate(
     from twin.analysis.calibrate import CalibrationSettings
     from twin.analysis.calibrate import calibrate as run_calibration
 
-    predictor = analysis_predictor(device)
-    data = guarded(lambda: load_datasets(datasets))
-    base = guarded(lambda: model_or_nominal(model, data[0].mesh_max_edge))
+    predictor, data, base = analysis_inputs(datasets, model, device)
     chosen = guarded(lambda: _trajectory_choice(data, trajectory, indenter))
     err_console.print(f"calibrating on {[(t.sensor_id, t.trajectory_id) for t in chosen]} (sensor, trajectory) ...")
     with progress_bar() as progress:
@@ -114,9 +103,7 @@ def validate(
     from twin.analysis.validate import plot_validation
     from twin.analysis.validate import validate as run_validation
 
-    predictor = analysis_predictor(device)
-    data = guarded(lambda: load_datasets(datasets))
-    twin_model = guarded(lambda: model_or_nominal(model, data[0].mesh_max_edge))
+    predictor, data, twin_model = analysis_inputs(datasets, model, device)
     with progress_bar() as progress:
         task = progress.add_task(f"replaying on {device}", total=sum(len(d.trajectories) for d in data))
         result = guarded(

@@ -222,6 +222,18 @@ def load_datasets(paths: list[Path]) -> list[CampaignData]:
     return datasets
 
 
+def analysis_inputs(
+    datasets: list[Path], model_path: Path | None, device: str
+) -> tuple[Predictor, list[CampaignData], TwinModel]:
+    """What compare, calibrate and validate start from: the predictor on the warp `device` (checked first), the
+    campaign files (`load_datasets`) and the `--model` JSON or the nominal model at the data's mesh size. Bad
+    input: one-line message and exit code 2."""
+    predictor = analysis_predictor(device)
+    data = guarded(lambda: load_datasets(datasets))
+    model = guarded(lambda: model_or_nominal(model_path, data[0].mesh_max_edge))
+    return predictor, data, model
+
+
 def campaign_config(
     quick: bool, sensors: str | None, indenters: str | None, seed: int, mesh_mm: float | None
 ) -> CampaignConfig:
