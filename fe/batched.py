@@ -320,7 +320,7 @@ class BatchedShell:
             "frozen_stress": z((B, len(tri)), wp.mat22d),
             "friction": per_batch([p.friction for p in params]),
             "offset": per_batch(offsets),
-            "thickness": per_batch([p.thickness for p in params]),
+            "layer_mu": per_batch([p.long_term_fraction * p.mu_nh for p in params]),
             "kappa": wp.float64(cs.penalty_stiffness),
             "min_stretch": wp.float64(cs.min_stretch),
             "slip_eps": wp.float64(cs.slip_length),

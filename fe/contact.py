@@ -11,7 +11,8 @@ vanishes there), stiffening as lam^-3 towards lam = 0. Below `ContactSettings.mi
 as its second-order Taylor expansion there (finite and convex for any gap, so Newton never meets a
 non-finite energy), and `fe.batched_stepper.BatchedStepper` refuses any converged state that reaches it.
 h = 0 (a zero-thickness membrane, e.g. `fe.dome`) keeps the one-sided quadratic penalty kappa A_v g^2 / 2
-(kappa in Pa/m). mu (Pa) is the skin's current (relaxation-scaled) modulus mu t / t of each system.
+(kappa in Pa/m). mu (Pa) is each system's long-term modulus (1 - g) mu_NH (`layer_mu`): the layer keeps no
+viscoelastic branch of its own, so a relaxing skin ends exactly as the long-term elastic one.
 
 Friction is lagged Coulomb with IPC smoothing: E_f = mu_fr lambda f0(|u_T|), lambda the normal force (N) of
 the law above and n the contact normal of the last lagging pass, u_T the slip over the increment projected
@@ -123,8 +124,7 @@ def core_contact_kernel(
     vertex_area: wp.array(dtype=wp.float64),
     offset: wp.float64,
     kappa: wp.float64,
-    mu_t: wp.array(dtype=wp.float64),
-    thickness: wp.array(dtype=wp.float64),
+    layer_mu: wp.array(dtype=wp.float64),
     min_stretch: wp.float64,
     energy: wp.array2d(dtype=wp.float64),
     gradient: wp.array2d(dtype=wp.vec3d),
@@ -135,7 +135,7 @@ def core_contact_kernel(
     active: wp.array(dtype=wp.int32),
 ):
     """Frictionless contact of skin vertex v with the core mesh: the inner half-layer (thickness `offset` m)
-    squeezed by the `layer_response` law (modulus mu_t[b] / thickness[b] Pa).
+    squeezed by the `layer_response` law (modulus layer_mu[b] Pa).
 
     The closest-face search is limited to offset + 1 mm from the core (a vertex farther out is reported at
     1 m), beyond any closure of the half-layer; a smaller radius prunes the BVH
@@ -166,7 +166,7 @@ def core_contact_kernel(
     if g >= zero:
         return
     n = wp.vec3d(dn[1], dn[2], dn[3])
-    law = layer_response(g, offset, mu_t[b] / thickness[b], vertex_area[v], kappa, min_stretch)
+    law = layer_response(g, offset, layer_mu[b], vertex_area[v], kappa, min_stretch)
     energy[b, v] = law[0]
     wp.atomic_add(gradient, b, v, n * law[1])
     h = wp.float64(1e-9)
@@ -205,8 +205,7 @@ def indenter_contact_kernel(
     translation_start: wp.array(dtype=wp.vec3d),
     offset: wp.array(dtype=wp.float64),
     kappa: wp.float64,
-    mu_t: wp.array(dtype=wp.float64),
-    thickness: wp.array(dtype=wp.float64),
+    layer_mu: wp.array(dtype=wp.float64),
     min_stretch: wp.float64,
     friction: wp.array(dtype=wp.float64),
     lagged_force: wp.array2d(dtype=wp.float64),
@@ -240,7 +239,7 @@ def indenter_contact_kernel(
     grad = wp.vec3d()
     H = wp.mat33d()
     if g < zero:
-        law = layer_response(g, offset[b], mu_t[b] / thickness[b], vertex_area[v], kappa, min_stretch)
+        law = layer_response(g, offset[b], layer_mu[b], vertex_area[v], kappa, min_stretch)
         e = law[0]
         grad = n * law[1]
         if want_hessian != 0:
@@ -311,8 +310,7 @@ def lag_candidates(
     vertex_area: wp.array(dtype=wp.float64),
     offset: wp.array(dtype=wp.float64),
     kappa: wp.float64,
-    mu_t: wp.array(dtype=wp.float64),
-    thickness: wp.array(dtype=wp.float64),
+    layer_mu: wp.array(dtype=wp.float64),
     min_stretch: wp.float64,
     lagged_force: wp.array2d(dtype=wp.float64),
     candidate: wp.array2d(dtype=wp.float64),
@@ -321,7 +319,7 @@ def lag_candidates(
     """Normal force (N) of each vertex on the indenter of batch b from its gap (m), by `layer_response`;
     stats[b] = (largest change from the lagged force, largest force)."""
     b, v = wp.tid()
-    law = layer_response(gap[b, v], offset[b], mu_t[b] / thickness[b], vertex_area[v], kappa, min_stretch)
+    law = layer_response(gap[b, v], offset[b], layer_mu[b], vertex_area[v], kappa, min_stretch)
     f = -law[1]
     candidate[b, v] = f
     wp.atomic_max(stats, b, 0, wp.abs(f - lagged_force[b, v]))
