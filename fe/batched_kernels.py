@@ -3,6 +3,8 @@ friction lagging, all over a leading batch axis b (positions m, forces N, pressu
 
 import warp as wp
 
+wp.set_module_options({"enable_backward": False})  # no adjoint kernels: nothing differentiates them
+
 
 @wp.func
 def _add_entry(a: wp.array2d(dtype=wp.float64), b: int, i: int, out: wp.array2d(dtype=wp.float64), column: int):

@@ -18,6 +18,8 @@ import warp as wp
 
 from fe.wptypes import mat1818d, vec6i, vec12d
 
+wp.set_module_options({"enable_backward": False})  # no adjoint kernels: nothing differentiates them
+
 mat318d = wp.types.matrix(shape=(3, 18), dtype=wp.float64)
 """d theta_i / d (18 stencil coordinates) of a triangle's three hinge angles."""
 

@@ -16,6 +16,8 @@ from dataclasses import dataclass
 import numpy as np
 import warp as wp
 
+wp.set_module_options({"enable_backward": False})  # no adjoint kernels: nothing differentiates them
+
 CG_RUNNING, CG_CONVERGED, CG_NEGATIVE_CURVATURE, CG_ITERATION_LIMIT = 1, 0, -1, -2
 """Per-column states of `BatchedCG.solve` (CG_NEGATIVE_CURVATURE also marks a non-finite curvature or
 right-hand side: no usable solution)."""

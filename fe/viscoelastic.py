@@ -28,6 +28,8 @@ import warp as wp
 from fe.membrane import deformation_gradient, edge_gradient
 from fe.wptypes import mat32d, mat99d
 
+wp.set_module_options({"enable_backward": False})  # no adjoint kernels: nothing differentiates them
+
 if TYPE_CHECKING:
     from fe.batched import BatchedShell
 

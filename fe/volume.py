@@ -9,6 +9,8 @@ import warp as wp
 
 from fe.wptypes import mat99d
 
+wp.set_module_options({"enable_backward": False})  # no adjoint kernels: nothing differentiates them
+
 
 @wp.func
 def _skew(v: wp.vec3d) -> wp.mat33d:
