@@ -1,9 +1,13 @@
 """The `twin` command tree is the one README.md and docs/*.md name: every command they name exists, and every
-command the CLI has is named there (README and the docs are the contract of the CLI's commands)."""
+command the CLI has is named there (README and the docs are the contract of the CLI's commands); the tree is
+built without loading a solver, so `twin --help` answers at once."""
 
 from __future__ import annotations
 
+import json
 import re
+import subprocess
+import sys
 from pathlib import Path
 
 import typer
@@ -72,3 +76,20 @@ def test_every_command_is_named_in_the_docs() -> None:
     groups = {c[0] for c in commands if len(c) == 2}
     undocumented = commands - named_commands(_docs_text(), groups)
     assert not undocumented, f"commands neither README.md nor docs/*.md names: {sorted(undocumented)}"
+
+
+HEAVY = ("fe", "warp", "trimesh", "torch", "scipy", "h5py", "mujoco", "matplotlib", "rerun")
+"""Top-level packages that only a command's body may import (the FE and its solvers, learning, files, plots)."""
+
+
+def test_the_command_tree_loads_no_solver() -> None:
+    """`twin --help` in a fresh interpreter: the commands import their heavy modules when they run."""
+    code = (
+        "import json, sys\nfrom twin.cli import app\n"
+        "try:\n    app(['--help'], prog_name='twin')\nexcept SystemExit:\n    pass\n"
+        f"print(json.dumps(sorted({{m.split('.')[0] for m in sys.modules}} & {set(HEAVY)!r})))"
+    )
+    result = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=120, cwd=ROOT)
+    assert result.returncode == 0, result.stderr
+    assert "fe" in result.stdout and "campaign" in result.stdout, "the help lists the commands"
+    assert json.loads(result.stdout.strip().splitlines()[-1]) == []

@@ -9,11 +9,13 @@ minute of work, and `--resume` keeps the trajectories that ended in an earlier f
 options (model, mesh, force limit, cut-backs, speed; another is refused, naming what differs).
 """
 
+from __future__ import annotations
+
 import json
 import time
 from collections.abc import Callable
 from pathlib import Path
-from typing import Annotated
+from typing import TYPE_CHECKING, Annotated
 
 import numpy as np
 import typer
@@ -27,7 +29,9 @@ from twin.cli.common import guarded as _guarded
 from twin.cli.common import inflated_twin_model as _inflated_twin_model
 from twin.cli.common import out_console as _out
 from twin.cli.common import progress_bar as _progress
-from twin.fe_batch_results import POSES_FILE_KEYS, BatchResults, read_poses
+
+if TYPE_CHECKING:
+    from twin.fe_batch_results import BatchResults
 
 FLUSH_S = 60.0
 """Seconds between the writes of the trajectories ended so far during a run."""
@@ -65,6 +69,7 @@ def batch(
     from fe.batched import InflatedSkin
     from fe.batched_runner import PoseTrajectory, run_trajectories
     from fe.trajectory_sets import press_travels, random_paths, round_robin, to_trajectories
+    from twin.fe_batch_results import POSES_FILE_KEYS, BatchResults, read_poses
 
     if slots < 1 or trajectories < 1 or depth_mm < 0 or step_mm <= 0 or force_limit <= 0 or speed_mm_s <= 0:
         raise typer.BadParameter("--slots and --trajectories must be >= 1, --depth-mm >= 0, the rest > 0")
