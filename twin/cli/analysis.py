@@ -11,7 +11,7 @@ from rich.table import Table
 
 from twin.cli.common import DeviceOption, analysis_inputs, err_console, out_console, progress_bar
 
-analysis_app = typer.Typer(help="Compare the model with measurements.")
+analysis_app = typer.Typer()
 
 
 def _print_overall(summary: dict, out: Path) -> None:

@@ -9,7 +9,7 @@ import typer
 
 from twin.cli.common import err_console, guarded
 
-export_app = typer.Typer(help="Export for other simulators.")
+export_app = typer.Typer()
 
 
 @export_app.command("export")

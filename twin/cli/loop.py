@@ -1,4 +1,4 @@
-"""`twin diagnose`, `twin improve`, `twin history`: find the missing effect, add it, watch the error fall."""
+"""`twin diagnose`, `improve`, `history`, `effects`, `demo`: find the missing effect, add it, watch the error fall."""
 
 import json
 from pathlib import Path

@@ -9,7 +9,7 @@ import typer
 
 from twin.cli.common import err_console, guarded
 
-view_app = typer.Typer(help="Rerun views.")
+view_app = typer.Typer()
 
 
 def _check_save(save: Path | None) -> None:
