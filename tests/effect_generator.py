@@ -1,4 +1,5 @@
-"""An independent generator of measurement effects: applied to a campaign file's raw F/T streams.
+"""An independent generator of measurement effects (an F/T calibration map, a stream delay): applied to a
+campaign file's raw F/T streams.
 
 Written apart from `twin.plant`, `twin.effects` and `twin.analysis` (it imports none of them): it reads
 the file with h5py, changes each trajectory's full-rate F/T force reading (`raw/<id>/wrench`, sensor
@@ -12,6 +13,7 @@ rows, so a file it writes is what the testbed would have written had the sensor 
 from __future__ import annotations
 
 import shutil
+from collections.abc import Callable
 from pathlib import Path
 
 import h5py
@@ -41,6 +43,28 @@ def apply_ft_map(source: Path, out: Path, mapping: np.ndarray) -> Path:
     (sensor frame: reading = mapping @ true force, the bias included, as a miscalibrated sensor reads)
     and its force rows recomputed. Raises when the recomputation does not reproduce the source rows."""
     mapping = np.asarray(mapping, dtype=float)
+
+    def change(wrench: np.ndarray) -> np.ndarray:
+        wrench[:, :3] = wrench[:, :3] @ mapping.T
+        return wrench
+
+    return _apply(source, out, change)
+
+
+def apply_ft_delay(source: Path, out: Path, samples: int) -> Path:
+    """Copy `source` to `out` with every trajectory's F/T reading (force and torque) lagging the other
+    streams by `samples` whole samples (the first reading held until then, as a stream that starts late
+    reads) and its force rows recomputed."""
+
+    def change(wrench: np.ndarray) -> np.ndarray:
+        return np.concatenate([np.repeat(wrench[:1], samples, axis=0), wrench[: len(wrench) - samples]])
+
+    return _apply(source, out, change)
+
+
+def _apply(source: Path, out: Path, change: Callable[[np.ndarray], np.ndarray]) -> Path:
+    """Copy `source` to `out`, replace each trajectory's raw wrench (T, 6) by change(wrench) and recompute
+    its force rows; raises when the recomputation does not reproduce the source rows first."""
     shutil.copyfile(source, out)
     with h5py.File(out, "r+") as f:
         meta = f["trajectories"]
@@ -54,7 +78,7 @@ def apply_ft_map(source: Path, out: Path, mapping: np.ndarray) -> Path:
             again = _rows_force(time, wrench, increment, rotation)
             if again.shape != (n, 3) or np.abs(again - forces[first : first + n]).max() > ROWS_AGREE_N:
                 raise RuntimeError(f"trajectory {tid}: the recomputed rows do not match the file's")
-            wrench[:, :3] = wrench[:, :3] @ mapping.T
+            wrench = change(wrench)
             raw["wrench"][...] = wrench
             forces[first : first + n] = _rows_force(time, wrench, increment, rotation)
         rows[...] = forces

@@ -13,7 +13,7 @@ import pytest
 
 from twin.analysis.diagnose import Diagnosis
 from twin.analysis.significance import noise_test, ratio_threshold
-from twin.analysis.verdict import Candidate, order_candidates, parameters_at_bound, verdict
+from twin.analysis.verdict import NOTHING_BEYOND_NUISANCES, Candidate, order_candidates, parameters_at_bound, verdict
 
 CHANNELS = 4
 
@@ -100,3 +100,13 @@ def test_nothing_only_when_the_base_residual_passes_the_test() -> None:
 def test_parameters_at_a_bound_are_found() -> None:
     assert parameters_at_bound("ft_crosstalk", {"zx": 0.2, "zy": -0.08, "xy": -0.2}) == ["xy", "zx"]
     assert parameters_at_bound("ft_gain", {"scale": 0.88}) == []
+
+
+def test_a_residual_at_the_noise_once_the_nuisances_are_fitted_is_nothing_beyond_them() -> None:
+    weak = _candidate("ft_gain", 50.0, 1.0, 1.0, True)
+    outcome, reason, tied = verdict(1.0, True, 1.02, [weak], beyond_nuisances=True)
+    assert outcome == NOTHING_BEYOND_NUISANCES == "nothing beyond the nuisances" and tied == []
+    assert "nuisances fitted" in reason
+    # Without the nuisance stage the same residual is plain "nothing"; above the noise, candidates decide.
+    assert verdict(1.0, True, 1.02, [weak])[0] == "nothing"
+    assert verdict(1.5, False, 1.02, [weak], beyond_nuisances=True)[0] == "ft_gain"

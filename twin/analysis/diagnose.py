@@ -36,11 +36,10 @@ from dataclasses import dataclass, field, replace
 import numpy as np
 from scipy.optimize import lsq_linear, minimize, minimize_scalar
 
-from assets.indenters import get_indenter
-from twin.analysis.compare import FORCE_CHANNELS, noise_estimate, time_in_increment
-from twin.analysis.data import CampaignData, TrajectoryRecord
-from twin.analysis.predict import Predictor, TwinModel, measured_force_fullrate, measured_pdc_fullrate
-from twin.analysis.significance import NoiseTest, noise_test
+from twin.analysis.data import CampaignData
+from twin.analysis.nuisances import NUISANCE_EFFECTS, fit_nuisances
+from twin.analysis.predict import Predictor, TwinModel
+from twin.analysis.residual import CHANNELS, Base, Residual, base_residual
 from twin.analysis.verdict import Candidate, order_candidates, parameters_at_bound, verdict
 from twin.effects import EFFECTS, Effect
 
@@ -49,21 +48,9 @@ NOISE_TOLERANCE = 1.3
 rank ahead of those that are not. Naming uses the noise test (`twin.analysis.significance`) instead."""
 BACKTRACKS = 2
 """Halvings of a refit step that does not lower the misfit before the refit stops there."""
-CHANNELS = (*FORCE_CHANNELS, "pdc")
-"""Residual channels, in the order of the last axis of every signal array."""
-PDC_GAIN_PRIOR = 0.05
-"""Relative 1-sigma spread of a sensor's PDC gain about nominal (the plant's unit-to-unit prior)."""
-
-
-@dataclass(frozen=True)
-class Residual:
-    """Whitened, offset-projected full-rate force residual and the bookkeeping to build it."""
-
-    values: np.ndarray  # (N,) whitened residual
-    trajectory_index: np.ndarray  # (N,) index into the trajectory list
-    indenter: np.ndarray  # (N,) indenter name per sample
-    covariates: dict[str, np.ndarray]  # (N,) each; "axis" indexes CHANNELS
-    sigma: np.ndarray  # (4,) noise per channel (N, N, N, counts)
+STEP_TOLERANCE = 0.05
+"""A refit stops once a step moves every parameter by less than this fraction of its scale (its
+finite-difference step): smaller steps change the fit by far less than the noise, at an fe replay set each."""
 
 
 @dataclass
@@ -73,10 +60,11 @@ class Diagnosis:
     base_rms: float  # whitened RMS of the base residual (1 = noise)
     signatures: dict[str, float]
     candidates: list[Candidate]
-    verdict: str  # "nothing", an effect name, "ambiguous" or "unexplained"
+    verdict: str  # "nothing", "nothing beyond the nuisances", an effect name, "ambiguous" or "unexplained"
     reason: str
     tied: list[str] = field(default_factory=list)  # with "ambiguous": the effects that explain it equally
     rms_threshold: float = float("nan")  # the noise test's whitened RMS threshold on these data
+    nuisances: dict | None = None  # the nuisance stage's summary (`NuisanceFit.to_dict`) when it ran
 
     def to_dict(self) -> dict:
         """JSON-ready form (the `twin diagnose --json` shape)."""
@@ -88,6 +76,7 @@ class Diagnosis:
             "tied": self.tied,
             "signatures": self.signatures,
             "candidates": [dict(c.__dict__) for c in self.candidates],
+            "nuisances": self.nuisances,
         }
 
     def to_json(self) -> str:
@@ -104,164 +93,6 @@ def strict_json(value: object) -> object:
     if isinstance(value, float | np.floating):
         return float(value) if np.isfinite(value) else None
     return value
-
-
-def _fullrate_prediction(predictor: Predictor, model: TwinModel, trajectories: list[TrajectoryRecord]) -> list:
-    """Per trajectory (T, 4): predicted tared force x, y, z (N) and PDC (counts); the model's missing replays
-    solved as one batch first (`Predictor.prefetch`)."""
-    predictor.prefetch(model, trajectories)
-    out = []
-    for t in trajectories:
-        p = predictor.predict(model, t)
-        out.append(np.column_stack([p.force_fullrate, p.pdc_fullrate]))
-    return out
-
-
-def _measured(trajectory: TrajectoryRecord) -> np.ndarray:
-    """(T, 4) measured tared force x, y, z (N) and PDC (counts)."""
-    return np.column_stack([measured_force_fullrate(trajectory), measured_pdc_fullrate(trajectory)])
-
-
-class GainNuisance:
-    """Profiles each sensor's PDC gain (prior `PDC_GAIN_PRIOR`) out of whitened residual vectors.
-
-    With n the whitened base PDC prediction of a sensor's samples, a relative gain error g adds g n to
-    the residual; minimising |r - g n|^2 + (g / prior)^2 over g leaves r - n (n.r) / (n.n + prior^-2).
-    """
-
-    def __init__(self, base: np.ndarray, axis: np.ndarray, sensor: np.ndarray) -> None:
-        pdc = CHANNELS.index("pdc")
-        self._groups = []
-        for s in np.unique(sensor):
-            index = np.flatnonzero((axis == pdc) & (sensor == s))
-            n = np.nan_to_num(base[index])
-            self._groups.append((index, n, float(n @ n) + PDC_GAIN_PRIOR**-2))
-
-    def penalty(self, projected: np.ndarray) -> float:
-        """Prior cost sum (g / prior)^2 of the gains profiled out of a projected residual (N,).
-
-        For the projected vector v = P r, n.v = prior^-2 g, so the cost is (n.v)^2 prior^2."""
-        return float(sum(np.nansum(n * projected[index]) ** 2 * PDC_GAIN_PRIOR**2 for index, n, _ in self._groups))
-
-    def chi2(self, projected: np.ndarray) -> float:
-        """Profiled chi-square of a projected whitened residual: its squares plus the gains' prior cost."""
-        return float(np.nansum(projected**2)) + self.penalty(projected)
-
-    def project(self, values: np.ndarray) -> np.ndarray:
-        """The vector (N,) or the columns of (N, k) with the gain directions profiled out."""
-        out = np.array(values, dtype=float)
-        for index, n, denominator in self._groups:
-            part = out[index]
-            gain = np.nansum(n[:, None] * part.reshape(len(index), -1), axis=0) / denominator
-            out[index] = part - (n[:, None] * gain).reshape(part.shape)
-        return out
-
-
-def build_residual(
-    trajectories: list[TrajectoryRecord], predicted: list[np.ndarray], sigma: np.ndarray
-) -> tuple[Residual, list[np.ndarray]]:
-    """The whitened residual (channel gains not yet profiled) and each trajectory's mask of samples
-    used (valid predictions)."""
-    values, index, indenter, masks = [], [], [], []
-    names = (
-        "depth",
-        "time_in_increment",
-        "time",
-        "axis",
-        "angled",
-        "sensor",
-        "indenter_size",
-        "location_x",
-        "location_y",
-        "predicted_pdc",
-    )
-    cov: dict[str, list] = {k: [] for k in names}
-    k = len(CHANNELS)
-    for i, (t, p) in enumerate(zip(trajectories, predicted, strict=True)):
-        valid = np.isfinite(p).all(axis=1)
-        masks.append(valid)
-        r = (_measured(t) - p)[valid] / sigma
-        r = r - r.mean(axis=0)
-        values.append(r.ravel())
-        n = valid.sum()
-        index.append(np.full(k * n, i))
-        indenter.append(np.full(k * n, t.indenter, dtype=object))
-        cov["depth"].append(np.repeat(t.raw.depth_command[valid], k))
-        cov["time_in_increment"].append(np.repeat(time_in_increment(t)[valid], k))
-        cov["time"].append(np.repeat(t.raw.time[valid], k))
-        cov["axis"].append(np.tile(np.arange(k), n))
-        cov["angled"].append(np.full(k * n, not t.normal))
-        cov["sensor"].append(np.full(k * n, t.sensor_id))
-        cov["indenter_size"].append(np.full(k * n, get_indenter(t.indenter).dims[0]))
-        cov["location_x"].append(np.full(k * n, t.touch_point[0]))
-        cov["location_y"].append(np.full(k * n, t.touch_point[1]))
-        cov["predicted_pdc"].append(np.repeat(p[valid, CHANNELS.index("pdc")], k))
-    residual = Residual(
-        np.concatenate(values),
-        np.concatenate(index),
-        np.concatenate(indenter),
-        {k: np.concatenate(v) for k, v in cov.items()},
-        sigma,
-    )
-    return residual, masks
-
-
-def _whitened(predicted: list[np.ndarray], masks: list[np.ndarray], sigma: np.ndarray) -> np.ndarray:
-    """Whitened, offset-projected predictions on the base model's sample set (for differences).
-
-    Samples where this prediction failed (fe not converged) are NaN; fits and scores skip them.
-    """
-    out = []
-    for p, m in zip(predicted, masks, strict=True):
-        w = p[m] / sigma
-        out.append((w - np.nanmean(w, axis=0)).ravel())
-    return np.concatenate(out)
-
-
-@dataclass(frozen=True)
-class _Base:
-    """Everything the base model's residual needs: trajectories, noise, residual, masks, whitened base
-    prediction and the PDC-gain nuisance projector."""
-
-    trajectories: list[TrajectoryRecord]
-    sigma: np.ndarray
-    residual: Residual
-    masks: list[np.ndarray]
-    prediction: np.ndarray
-    nuisance: GainNuisance
-
-    def shifted(self, predictor: Predictor, model: TwinModel) -> np.ndarray:
-        """Profiled change of the whitened prediction from the base to `model` (NaN where it failed)."""
-        predicted = _whitened(_fullrate_prediction(predictor, model, self.trajectories), self.masks, self.sigma)
-        return self.nuisance.project(predicted - self.prediction)
-
-    def noise_test(self, values: np.ndarray) -> NoiseTest:
-        """The noise test (`twin.analysis.significance`) of a whitened residual on this residual's samples
-        (NaN skipped): the nuisances are each trajectory's channel offsets and each sensor's PDC gain,
-        and each channel's noise was estimated from every trajectory's successive differences."""
-        axis = self.residual.covariates["axis"]
-        finite = np.isfinite(values)
-        channels = range(len(CHANNELS))
-        squares = [float(np.sum(values[finite & (axis == c)] ** 2)) for c in channels]
-        counts = [int(np.sum(finite & (axis == c))) for c in channels]
-        differences = sum(len(t.raw.time) - 1 for t in self.trajectories)
-        nuisances = len(CHANNELS) * len(self.trajectories) + len(np.unique(self.residual.covariates["sensor"]))
-        return noise_test(squares, counts, [differences] * len(CHANNELS), nuisances)
-
-
-def _base_residual(datasets: list[CampaignData], model: TwinModel, predictor: Predictor) -> _Base:
-    trajectories = [t for d in datasets for t in d.trajectories]
-    if not trajectories:
-        raise ValueError("the datasets hold no trajectories")
-    noise = noise_estimate(trajectories)
-    quantum = 1.0 / np.sqrt(12.0)  # PDC counts are integers: never trust less noise than rounding gives
-    sigma = np.array([max(noise[c], 1e-9) for c in FORCE_CHANNELS] + [max(noise["pdc"], quantum)])
-    predicted = _fullrate_prediction(predictor, model, trajectories)
-    residual, masks = build_residual(trajectories, predicted, sigma)
-    base = _whitened(predicted, masks, sigma)
-    nuisance = GainNuisance(base, residual.covariates["axis"], residual.covariates["sensor"])
-    residual = replace(residual, values=nuisance.project(residual.values))
-    return _Base(trajectories, sigma, residual, masks, base, nuisance)
 
 
 def signatures(residual: Residual) -> dict[str, float]:
@@ -296,20 +127,26 @@ class Linearisation:
 
 
 def linearise(
-    effect: Effect, model: TwinModel, point: dict[str, float], predictor: Predictor, base: _Base
+    effect: Effect, model: TwinModel, point: dict[str, float], predictor: Predictor, base: Base
 ) -> Linearisation:
     """Linearise the profiled whitened prediction change from the base to `model` with the effect at
-    `point`, by forward differences of each parameter's scale (backward at its upper bound)."""
+    `point`, by forward differences of each parameter's scale (backward at its upper bound). A probed
+    parameter at its probe value, where stepping it back to its off value turns the effect off, differs
+    back to that off point instead: the model as given, whose replays the base already holds (a relaxing
+    fraction's column costs no fe replay)."""
     offset = base.shifted(predictor, model.with_effects({effect.name: point}))
     columns = []
     for p in effect.parameters:
         step = p.scale if point[p.name] + p.scale <= p.upper else -p.scale
+        probed = effect.probe.get(p.name) == point[p.name] != p.off
+        if probed and effect.is_off({**point, p.name: p.off}) and effect.is_off(model.effects.get(effect.name)):
+            step = p.off - point[p.name]
         changed = model.with_effects({effect.name: {**point, p.name: point[p.name] + step}})
         columns.append((base.shifted(predictor, changed) - offset) / step)
     return Linearisation(point, offset, np.column_stack(columns))
 
 
-def sensitivity(effect: Effect, model: TwinModel, predictor: Predictor, base: _Base) -> Linearisation:
+def sensitivity(effect: Effect, model: TwinModel, predictor: Predictor, base: Base) -> Linearisation:
     """Linearise the effect where its fit is best begun: at the model's values, or, when the effect is
     off there and declares a probe (parameters that act only once it is on), at the probe; and when it is
     off and declares starts (values across its range), at the start or the first linearisation's fit,
@@ -355,30 +192,40 @@ def diagnose(
     candidates: list[str] | None = None,
     top: int = 3,
     on_progress: Callable[[str, str], None] | None = None,
+    nuisances: bool = False,
 ) -> Diagnosis:
     """Rank the library's effects (off in `model`) by how well each explains the residual; the first
     `top` of the ranking are refitted and judged held out about their refit (`twin.analysis.verdict`).
+    With `nuisances`, the standard unknowns of a real campaign (`twin.analysis.nuisances`: registration
+    per arm, skin per sensor) are fitted first, candidates are ranked on what remains (their signatures
+    less what the nuisances can absorb) and are never the nuisance effects themselves.
     on_progress(stage, effect) is called before each candidate's sensitivity ("evidence") and refit
-    ("refit")."""
+    ("refit"), and with ("nuisances", what) during the nuisance fit."""
     if top < 0:
         raise ValueError(f"the number of candidates to refit must be >= 0, got {top}")
     report = on_progress or (lambda stage, name: None)
     predictor = predictor or Predictor()
-    base = _base_residual(datasets, model, predictor)
+    fitted = fit_nuisances(datasets, model, predictor, lambda text: report("nuisances", text)) if nuisances else None
+    base = fitted.base if fitted is not None else base_residual(datasets, model, predictor)
     residual = base.residual
     r = residual.values
     n = len(r)
     chi2 = base.nuisance.chi2(r)
     excess = chi2 - n
     base_rms = float(np.sqrt(chi2 / n))
-    names = candidates if candidates is not None else [k for k in EFFECTS if k not in model.effects]
+    excluded = set(model.effects) | (set(NUISANCE_EFFECTS) if fitted is not None else set())
+    names = candidates if candidates is not None else [k for k in EFFECTS if k not in excluded]
     ranked: list[tuple[Candidate, Linearisation]] = []
     for name in names:
         effect = EFFECTS[name]
         report("evidence", name)
         lin = sensitivity(effect, model, predictor, base)
-        delta = _linear_fit(effect, lin.point, lin.jac, r - lin.offset)
-        drop = chi2 - base.nuisance.chi2(r - lin.offset - lin.jac @ delta)
+        scored = lin
+        if fitted is not None:  # what a joint refit with the nuisances would leave of the effect's signature
+            fitted.confounding(name, lin.jac)
+            scored = replace(lin, offset=fitted.project(lin.offset), jac=fitted.project(lin.jac))
+        delta = _linear_fit(effect, scored.point, scored.jac, r - scored.offset)
+        drop = chi2 - base.nuisance.chi2(r - scored.offset - scored.jac @ delta)
         candidate = Candidate(
             name=name,
             kind=effect.kind,
@@ -387,7 +234,7 @@ def diagnose(
             evidence=drop - len(delta) * np.log(n),
             explained_fraction=drop / excess if excess > 0 else 0.0,
         )
-        candidate.heldout_rms = _heldout(effect, lin, r, residual.indenter)[0]
+        candidate.heldout_rms = _heldout(effect, scored, r, residual.indenter)[0]
         ranked.append((candidate, lin))
     # Evidence can be fooled by a flexible effect that fits every indenter its own way: those that
     # also predict left-out indenters to within the tolerance rank ahead of those that do not.
@@ -400,8 +247,10 @@ def diagnose(
     ordered = order_candidates([c for c, _ in ranked])
     base_test = base.noise_test(r)
     threshold = base_test.rms_threshold
-    outcome, reason, tied = verdict(base_rms, base_test.is_noise, threshold, ordered)
-    return Diagnosis(base_rms, signatures(residual), ordered, outcome, reason, tied, threshold)
+    is_noise = base_test.is_noise and (fitted is None or fitted.heldout_is_noise)
+    outcome, reason, tied = verdict(base_rms, is_noise, threshold, ordered, fitted is not None)
+    summary = fitted.to_dict() if fitted is not None else None
+    return Diagnosis(base_rms, signatures(residual), ordered, outcome, reason, tied, threshold, summary)
 
 
 def generalises(candidate: Candidate) -> bool:
@@ -427,7 +276,7 @@ def _heldout(
     return _rms(left_out), left_out
 
 
-def _judge_heldout(candidate: Candidate, model: TwinModel, predictor: Predictor, base: _Base) -> None:
+def _judge_heldout(candidate: Candidate, model: TwinModel, predictor: Predictor, base: Base) -> None:
     """Held-out RMS about the refitted values (the effect linearised again there: one fe replay per
     parameter for a physics effect) and whether that held-out residual passes the noise test; and which
     refitted parameters sit at a bound."""
@@ -455,12 +304,13 @@ def _identifiability(candidate: Candidate, jac: np.ndarray) -> None:
 
 
 def _refit(
-    candidate: Candidate, model: TwinModel, predictor: Predictor, base: _Base, lin: Linearisation, iterations: int = 3
+    candidate: Candidate, model: TwinModel, predictor: Predictor, base: Base, lin: Linearisation, iterations: int = 3
 ) -> None:
     """Damped Gauss-Newton: linear steps re-predicted nonlinearly each time, the first with the given J; a
     step that does not lower the misfit is halved (up to `BACKTRACKS` times, one prediction each) and
-    the iterations stop when none does; a physics effect whose residual still fails the noise test is
-    linearised again where it stands (one fe replay per parameter), a measurement effect keeps J (its
+    the iterations stop when none does or when a step is below `STEP_TOLERANCE`; a physics effect stops
+    once its residual passes the noise test, and otherwise is linearised again where it stands (one fe
+    replay per parameter); a measurement effect keeps J (its
     predictions reuse cached fe replays) and, unless linear in its parameters, ends with a nonlinear
     least-squares polish. When the result fits worse than the model's own values of the effect (the
     starting point), those are kept."""
@@ -486,8 +336,12 @@ def _refit(
         if not _rms(trial_residual) < _rms(residual):
             break
         values, residual = trial, trial_residual
-        more = iteration + 1 < iterations
-        if more and effect.kind == "physics" and not base.noise_test(residual).is_noise:
+        small = all(abs(d) < STEP_TOLERANCE * p.scale for d, p in zip(delta, effect.parameters, strict=True))
+        if small or iteration + 1 == iterations:
+            break
+        if effect.kind == "physics":
+            if base.noise_test(residual).is_noise:
+                break  # at the noise floor: a further step would fit noise, at an fe replay set a step
             lin = linearise(effect, model, values, predictor, base)
     if effect.kind == "measurement" and not effect.linear:
         values, residual = _polish(effect, values, misfit)
@@ -547,7 +401,7 @@ def fit_effect(
     effect = EFFECTS.get(name)
     if effect is None:
         raise ValueError(f"unknown effect {name!r}; the library has {sorted(EFFECTS)}")
-    base = _base_residual(datasets, model, predictor)
+    base = base_residual(datasets, model, predictor)
     residual = base.residual
     lin = sensitivity(effect, model, predictor, base)
     candidate = Candidate(name, effect.kind, {}, 0.0, 0.0, 0.0)

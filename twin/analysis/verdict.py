@@ -17,6 +17,8 @@ from twin.effects import EFFECTS
 EVIDENCE_MARGIN = 10.0
 """The best candidate's evidence (2 ln Bayes factor, BIC approximation) must exceed the runner-up's by
 this much to be named alone: "very strong" on the Kass-Raftery scale. Below it the two are tied."""
+NOTHING_BEYOND_NUISANCES = "nothing beyond the nuisances"
+"""The verdict when the residual reaches the noise once the nuisances (`twin.analysis.nuisances`) are fitted."""
 CLOSEST_SHOWN = 3
 """How many candidates an "unexplained" verdict lists."""
 
@@ -74,12 +76,22 @@ def order_candidates(candidates: list[Candidate]) -> list[Candidate]:
     return refitted + rest
 
 
-def verdict(base_rms: float, base_is_noise: bool, rms_threshold: float, candidates: list[Candidate]) -> tuple:
+def verdict(
+    base_rms: float,
+    base_is_noise: bool,
+    rms_threshold: float,
+    candidates: list[Candidate],
+    beyond_nuisances: bool = False,
+) -> tuple:
     """(verdict, reason, tied) for candidates ordered by `order_candidates`: "nothing" (the base residual
-    passes the noise test), an effect's name, "ambiguous" (`tied` names those that explain the data
-    equally well, best first) or "unexplained"."""
+    passes the noise test), `NOTHING_BEYOND_NUISANCES` (so it does after the nuisances were fitted:
+    `beyond_nuisances`; and held out), an effect's name, "ambiguous" (`tied` names those that explain the
+    data equally well, best first) or "unexplained"."""
     if base_is_noise:
-        return "nothing", f"the residual ({base_rms:.2f}x the noise) passes the noise test ({rms_threshold:.3f}x)", []
+        passes = f"the residual ({base_rms:.2f}x the noise) passes the noise test ({rms_threshold:.3f}x)"
+        if beyond_nuisances:
+            return NOTHING_BEYOND_NUISANCES, f"with the nuisances fitted, {passes}, and held out", []
+        return "nothing", passes, []
     if not candidates or max(c.evidence for c in candidates) <= 0:
         return "unexplained", "no candidate effect explains a significant part of the residual", []
     named = [c for c in candidates if c.refitted and c.heldout_is_noise and c.identifiable]

@@ -1,0 +1,65 @@
+"""Nuisances first (issue 20): on a realistic plant the standard unknowns are fitted before any effect is
+sought; a null ends "nothing beyond the nuisances" and a hidden effect is still named.
+
+The plant is this repository's default realistic one (`make_plant` defaults: 5 % unit-to-unit skin
+spread, 10 % friction, simulated registration with the arms' joint offsets, mount placement error, F/T
+bias), on the tiny campaign of `conftest.tiny_campaign_file` (sensor 2, sphere_medium, one normal and
+one angled path on one arm). The hidden effect, a stream delay of whole samples, is applied to the null
+campaign's raw F/T streams by `effect_generator`, code apart from the plant and the analysis.
+"""
+
+from pathlib import Path
+
+import numpy as np
+import pytest
+from conftest import tiny_campaign_file
+from effect_generator import apply_ft_delay
+
+from twin.analysis.data import load_campaign
+from twin.analysis.diagnose import diagnose
+from twin.analysis.nuisances import NUISANCE_EFFECTS
+from twin.analysis.predict import Predictor, TwinModel
+from twin.analysis.verdict import NOTHING_BEYOND_NUISANCES
+from twin.plant import make_plant
+
+SEED = 11
+DELAY_SAMPLES = 8
+"""The generated stream delay (samples at the campaign's 100 Hz: 80 ms, inside the hidden draws' 40-120 ms)."""
+
+
+@pytest.fixture(scope="module")
+def predictor() -> Predictor:
+    return Predictor()
+
+
+@pytest.fixture(scope="module")
+def realistic_null(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    return tiny_campaign_file(tmp_path_factory.mktemp("realistic"), make_plant([2], SEED))
+
+
+def test_a_realistic_null_is_nothing_beyond_the_nuisances(realistic_null: Path, predictor: Predictor) -> None:
+    data = load_campaign(realistic_null)
+    model = TwinModel(mesh_max_edge=data.mesh_max_edge)
+    plain = diagnose([data], model, predictor, candidates=[], top=0)
+    assert plain.base_rms > 2.0 * plain.rms_threshold, "the nuisances must show without their fit"
+    found = diagnose([data], model, predictor, top=1, nuisances=True)
+    summary = found.nuisances
+    assert found.verdict == NOTHING_BEYOND_NUISANCES, found.reason
+    assert summary["heldout_is_noise"] and summary["rms_after"] <= found.rms_threshold, summary
+    assert summary["rms_before"] == pytest.approx(plain.base_rms, rel=1e-9)
+    assert {"sensor 2 skin_modulus.scale", "sensor 2 left registration_offset.dx"} <= set(summary["values"])
+    assert not {c.name for c in found.candidates} & set(NUISANCE_EFFECTS), "nuisances are not candidates"
+    assert "ft_gain" in summary["cannot_tell_apart"], summary["confounded"]
+
+
+def test_a_hidden_delay_on_a_realistic_plant_is_named(
+    realistic_null: Path, predictor: Predictor, tmp_path: Path
+) -> None:
+    delayed = load_campaign(apply_ft_delay(realistic_null, tmp_path / "delayed.hdf5", DELAY_SAMPLES))
+    model = TwinModel(mesh_max_edge=delayed.mesh_max_edge)
+    found = diagnose([delayed], model, predictor, top=1, nuisances=True)
+    assert found.verdict == "time_delay", found.reason
+    seconds = found.candidates[0].refit_parameters["seconds"]
+    rate = delayed.trajectories[0].rate_hz
+    assert seconds == pytest.approx(DELAY_SAMPLES / rate, abs=0.01)
+    assert np.isfinite(found.nuisances["rms_after"]) and found.nuisances["rms_after"] > found.rms_threshold

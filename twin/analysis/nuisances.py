@@ -1,0 +1,410 @@
+"""Nuisances first: the standard unknowns of every real campaign, fitted before a missing effect is sought.
+
+A real testbed never matches the nominal model exactly even when nothing is missing from it: each arm's
+registration leaves the indenter path off by a fraction of a millimetre to a millimetre and a half
+(paper: 0.5-1.5 mm), and each BioTac's skin has its own thickness, modulus and friction (unit-to-unit
+spread; the paper calibrates t_s, mu_NH and mu_fr per sensor). These are fitted here, as the paper
+calibrates them, and diagnosis then ranks candidate effects on what remains:
+
+- `registration_offset` (dx, dy, dz; m, biotac frame) per (sensor, arm): the arms are registered apart;
+- `skin_thickness`, `skin_modulus`, `indenter_friction` (scale factors) per sensor.
+
+The F/T bias is removed by taring and each trajectory's channel offsets are projected out of the
+residual (`twin.analysis.residual`), as is each sensor's PDC gain: those nuisances need no fit. The
+mount's pose is what registration measures (its holes); what registration gets wrong of it is the
+per-arm offset.
+
+The fit is damped Gauss-Newton on the whitened residual with a Gaussian prior on each nuisance about the
+model's own value (`PRIORS`, wide: about twice the spread a real campaign shows), finite-difference
+sensitivities (a registration column replays only that arm's trajectories), and, when the result is not
+yet at the noise, the registration tried again from `REGISTRATION_STARTS` (each arm picks its best)
+because a large offset is nonlinear. Whether the nuisances explain the data is judged held out: each
+trajectory is predicted by the nuisances fitted (linearised at the fit) without it. Which candidate
+effects the campaign cannot tell apart from the nuisances is the fraction of each effect's signature that
+lies in the span of the nuisances' signatures (`confounded`).
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+from dataclasses import dataclass, field, replace
+
+import numpy as np
+from scipy.optimize import lsq_linear
+
+from twin.analysis.data import CampaignData, TrajectoryRecord
+from twin.analysis.predict import Predictor, TwinModel
+from twin.analysis.residual import Base, base_residual
+from twin.effects import EFFECTS
+
+SKIN_NUISANCES = ("skin_thickness", "skin_modulus", "indenter_friction")
+"""Per-sensor skin nuisances (each a scale factor on a skin parameter)."""
+REGISTRATION = "registration_offset"
+"""The per-arm registration nuisance."""
+NUISANCE_EFFECTS = (*SKIN_NUISANCES, REGISTRATION)
+"""Library effects the nuisance stage fits; diagnosis does not offer them as missing effects."""
+PRIORS = {"skin_thickness": 0.1, "skin_modulus": 0.1, "indenter_friction": 0.3, REGISTRATION: 1.5e-3}
+"""1-sigma prior of each nuisance about the model's value (scale factors: relative; registration: m per
+axis), about twice a real campaign's spread (5 % skin, 10 % friction, registration 0.5-1.5 mm)."""
+REGISTRATION_STARTS = tuple(
+    np.array(v) for v in ((1e-3, 0, 0), (-1e-3, 0, 0), (0, 1e-3, 0), (0, -1e-3, 0), (0, 0, 1e-3), (0, 0, -1e-3))
+)
+"""Registration offsets (m) also tried, per arm, when the fit from the model's values is not at the noise."""
+ITERATIONS = 4
+"""Gauss-Newton iterations of one fit (each a finite-difference sensitivity: one replay set per parameter)."""
+BACKTRACKS = 2
+"""Halvings of a step that does not lower the cost."""
+USABLE_ROWS = 0.9
+"""A sensitivity column whose replay reached fewer than this fraction of the samples is not used."""
+CONFOUNDED_FRACTION = 0.9
+"""An effect whose signature lies this much (fraction of its squared norm) in the span of the nuisances'
+signatures cannot be told apart from them on this campaign."""
+
+
+@dataclass(frozen=True)
+class Slot:
+    """One fitted nuisance parameter: an effect's parameter for one sensor (skin) or one (sensor, arm)."""
+
+    effect: str
+    parameter: str
+    sensor: int
+    arm: str | None  # None: every arm of the sensor (skin nuisances)
+
+    @property
+    def label(self) -> str:
+        """`sensor 2 left registration_offset.dx` style name."""
+        where = f"sensor {self.sensor}" + (f" {self.arm}" if self.arm else "")
+        return f"{where} {self.effect}.{self.parameter}"
+
+    def applies(self, trajectory: TrajectoryRecord) -> bool:
+        """Whether this parameter acts on `trajectory`."""
+        return trajectory.sensor_id == self.sensor and self.arm in (None, trajectory.arm)
+
+
+@dataclass(frozen=True)
+class NuisanceValues:
+    """Values of the nuisance slots; `model_for` is the model of one trajectory (a `ModelFor`)."""
+
+    slots: tuple[Slot, ...]
+    values: tuple[float, ...]
+
+    def model_for(self, model: TwinModel, trajectory: TrajectoryRecord) -> TwinModel:
+        """`model` with the nuisances of `trajectory`'s sensor and arm merged into its effects."""
+        effects: dict[str, dict[str, float]] = {}
+        for slot, value in zip(self.slots, self.values, strict=True):
+            if slot.applies(trajectory):
+                effects.setdefault(slot.effect, {})[slot.parameter] = value
+        return model.with_effects(effects)
+
+    def moved(self, delta: np.ndarray) -> NuisanceValues:
+        """Values moved by `delta` and clipped to each parameter's bounds."""
+        bounds = np.array([_bounds(s) for s in self.slots])
+        moved = np.clip(np.array(self.values) + delta, bounds[:, 0], bounds[:, 1])
+        return NuisanceValues(self.slots, tuple(float(v) for v in moved))
+
+    def as_dict(self) -> dict[str, float]:
+        """{slot label: value} (SI units, scale factors dimensionless)."""
+        return {s.label: v for s, v in zip(self.slots, self.values, strict=True)}
+
+
+def _parameter(slot: Slot):
+    return next(p for p in EFFECTS[slot.effect].parameters if p.name == slot.parameter)
+
+
+def _bounds(slot: Slot) -> tuple[float, float]:
+    p = _parameter(slot)
+    return p.lower, p.upper
+
+
+def _prior_sigma(slot: Slot) -> float:
+    """1-sigma prior in the parameter's units (a relative prior times the off value for scale factors)."""
+    p = _parameter(slot)
+    return PRIORS[slot.effect] * (p.off if p.off else 1.0)
+
+
+def model_values(slots: tuple[Slot, ...], model: TwinModel) -> NuisanceValues:
+    """The model's own value of each slot (the off value where the model lacks the effect)."""
+    return NuisanceValues(
+        slots, tuple(EFFECTS[s.effect].values(model.effects.get(s.effect))[s.parameter] for s in slots)
+    )
+
+
+def nuisance_slots(trajectories: list[TrajectoryRecord]) -> tuple[Slot, ...]:
+    """The slots a campaign has: skin scales per sensor, registration offsets per (sensor, arm) used."""
+    slots = []
+    for sensor in sorted({t.sensor_id for t in trajectories}):
+        for effect in SKIN_NUISANCES:
+            slots += [Slot(effect, p.name, sensor, None) for p in EFFECTS[effect].parameters]
+        for arm in sorted({t.arm for t in trajectories if t.sensor_id == sensor}):
+            slots += [Slot(REGISTRATION, p.name, sensor, arm) for p in EFFECTS[REGISTRATION].parameters]
+    return tuple(slots)
+
+
+@dataclass
+class NuisanceFit:
+    """The fitted nuisances, the residual at them and how well they explain the data (whitened RMS, 1 =
+    noise)."""
+
+    values: NuisanceValues
+    base: Base  # the residual at the fitted nuisances (its model_for applies them)
+    jacobian: np.ndarray  # (N, k) profiled whitened sensitivity at the fit, columns in slot order
+    rms_before: float  # the model without nuisances fitted
+    rms_after: float
+    heldout_rms: float  # each trajectory predicted by the nuisances fitted without it
+    heldout_is_noise: bool
+    is_noise: bool  # the in-sample residual passes the noise test (fitted parameters counted)
+    correlation: list[list[float]]
+    at_bound: list[str]
+    confounded: dict[str, float] = field(default_factory=dict)  # effect -> fraction in the nuisance span
+
+    def project(self, columns: np.ndarray) -> np.ndarray:
+        """Columns (N, k) (or a vector) with their least-squares component on the nuisance signatures
+        removed (rows with a NaN anywhere are left NaN): what a joint refit with the nuisances leaves."""
+        matrix = np.asarray(columns, dtype=float)
+        flat = matrix.reshape(len(matrix), -1)
+        rows = np.isfinite(flat).all(axis=1) & np.isfinite(self.jacobian).all(axis=1)
+        out = np.full_like(flat, np.nan)
+        coefficients = np.linalg.lstsq(self.jacobian[rows], flat[rows], rcond=1e-10)[0]
+        out[rows] = flat[rows] - self.jacobian[rows] @ coefficients
+        return out.reshape(matrix.shape)
+
+    def confounding(self, effect: str, jac: np.ndarray) -> float:
+        """The largest fraction of the squared norm of one of `effect`'s signature columns that lies in
+        the nuisances' span; recorded in `confounded`."""
+        rows = np.isfinite(jac).all(axis=1) & np.isfinite(self.jacobian).all(axis=1)
+        left = self.project(np.where(rows[:, None], jac, np.nan))[rows]
+        total = np.sum(jac[rows] ** 2, axis=0)
+        fraction = float(np.max(1.0 - np.sum(left**2, axis=0) / np.maximum(total, 1e-300)))
+        self.confounded[effect] = fraction
+        return fraction
+
+    def cannot_tell_apart(self) -> list[str]:
+        """Effects whose signature lies at least `CONFOUNDED_FRACTION` in the nuisances' span."""
+        return sorted(k for k, v in self.confounded.items() if v >= CONFOUNDED_FRACTION)
+
+    def to_dict(self) -> dict:
+        """JSON-ready summary (the `nuisances` block of `twin diagnose --json`)."""
+        return {
+            "values": self.values.as_dict(),
+            "rms_before": self.rms_before,
+            "rms_after": self.rms_after,
+            "heldout_rms": self.heldout_rms,
+            "heldout_is_noise": self.heldout_is_noise,
+            "is_noise": self.is_noise,
+            "correlation": self.correlation,
+            "at_bound": self.at_bound,
+            "confounded": dict(self.confounded),
+            "cannot_tell_apart": self.cannot_tell_apart(),
+        }
+
+
+def fit_nuisances(
+    datasets: list[CampaignData],
+    model: TwinModel,
+    predictor: Predictor,
+    report: Callable[[str], None] = lambda _: None,
+) -> NuisanceFit:
+    """Fit the nuisances of `datasets` about `model` (see the module docstring)."""
+    nominal = base_residual(datasets, model, predictor)
+    slots = nuisance_slots(nominal.trajectories)
+    prior = model_values(slots, model)
+    fitted = _gauss_newton(nominal, model, predictor, prior, prior, report)
+    if not nominal.noise_test(fitted.residual, len(slots)).is_noise:
+        report("registration starts")
+        starts = _best_starts(nominal, model, predictor, fitted)
+        fitted = min(fitted, _gauss_newton(nominal, model, predictor, starts, prior, report), key=lambda f: f.cost)
+    base = base_residual(datasets, model, predictor, fitted.values.model_for, len(slots), nominal.sigma)
+    same_samples = all(np.array_equal(a, b) for a, b in zip(base.masks, nominal.masks, strict=True))
+    jac = fitted.jac if fitted.jac is not None and same_samples else _jacobian(base, model, predictor, fitted.values)
+    heldout = _leave_one_trajectory_out(base, jac, fitted.values, prior)
+    at_bound = [s.label for s, v in zip(slots, fitted.values.values, strict=True) if v in _bounds(s)]
+    return NuisanceFit(
+        fitted.values,
+        base,
+        jac,
+        _profiled_rms(nominal, nominal.residual.values),
+        _profiled_rms(base, base.residual.values),
+        _rms(heldout),
+        base.noise_test(heldout, 0).is_noise,
+        base.noise_test(base.residual.values).is_noise,
+        _correlation(jac, slots),
+        at_bound,
+    )
+
+
+@dataclass(frozen=True)
+class _State:
+    values: NuisanceValues
+    residual: np.ndarray  # profiled whitened residual of the nominal base's samples
+    cost: float  # chi-square plus the priors' cost
+    jac: np.ndarray | None = None  # the last sensitivity the fit used (at the point before its last step)
+
+
+def _state(
+    nominal: Base, model: TwinModel, predictor: Predictor, values: NuisanceValues, start: NuisanceValues
+) -> _State:
+    shifted = _shifted(nominal, model, predictor, values)
+    residual = nominal.residual.values - shifted
+    return _State(values, residual, nominal.nuisance.chi2(residual) + _prior_cost(values, start))
+
+
+def _shifted(base: Base, model: TwinModel, predictor: Predictor, values: NuisanceValues) -> np.ndarray:
+    """Profiled change of the whitened prediction from `base` to the model with `values` (NaN where the
+    fe replay failed)."""
+    moved = Base(
+        base.trajectories, base.sigma, base.residual, base.masks, base.prediction, base.nuisance, values.model_for
+    )
+    return moved.shifted(predictor, model)
+
+
+def _prior_cost(values: NuisanceValues, start: NuisanceValues) -> float:
+    return float(
+        sum(
+            ((v - s) / _prior_sigma(slot)) ** 2
+            for slot, v, s in zip(values.slots, values.values, start.values, strict=True)
+        )
+    )
+
+
+def _jacobian(base: Base, model: TwinModel, predictor: Predictor, values: NuisanceValues) -> np.ndarray:
+    """(N, k) finite-difference sensitivity of `base`'s profiled whitened prediction to each slot: forward
+    (backward at an upper bound), and the other way too when the first step's replay fails on samples the
+    current values reach (the one that fails on fewer is kept); `base` must be the residual at `values` or
+    the nominal one (differences only)."""
+    here = _shifted(base, model, predictor, values)
+    columns = []
+    for i, slot in enumerate(values.slots):
+        p = _parameter(slot)
+        tried = []
+        for step in (p.scale, -p.scale) if values.values[i] + p.scale <= p.upper else (-p.scale,):
+            if not p.lower <= values.values[i] + step <= p.upper:
+                continue
+            delta = np.zeros(len(values.slots))
+            delta[i] = step
+            tried.append((_shifted(base, model, predictor, values.moved(delta)) - here) / step)
+            if np.isfinite(tried[-1]).sum() == np.isfinite(here).sum():
+                break
+        columns.append(max(tried, key=lambda c: np.isfinite(c).sum()))
+    return _usable(np.column_stack(columns))
+
+
+def _usable(jac: np.ndarray) -> np.ndarray:
+    """`jac` with every column finite on fewer than `USABLE_ROWS` of the rows where some column is finite set
+    to zero (a replay that failed early: no sensitivity is known there, and its few rows would decide the fit)."""
+    reached = np.isfinite(jac).any(axis=1)
+    out = jac.copy()
+    for i in range(jac.shape[1]):
+        if np.isfinite(jac[reached, i]).mean() < USABLE_ROWS:
+            out[:, i] = np.where(reached, 0.0, np.nan)
+    return out
+
+
+def _step(jac: np.ndarray, residual: np.ndarray, state: NuisanceValues, start: NuisanceValues) -> np.ndarray:
+    """The bounded Gauss-Newton step with the priors as extra rows, in each parameter's units."""
+    rows = np.isfinite(jac).all(axis=1) & np.isfinite(residual)
+    scale = np.array([_parameter(s).scale for s in state.slots])
+    sigma = np.array([_prior_sigma(s) for s in state.slots])
+    current, prior_mean = np.array(state.values), np.array(start.values)
+    matrix = np.vstack([jac[rows] * scale, np.diag(scale / sigma)])
+    target = np.concatenate([residual[rows], (prior_mean - current) / sigma])
+    bounds = np.array([_bounds(s) for s in state.slots])
+    fit = lsq_linear(matrix, target, bounds=((bounds[:, 0] - current) / scale, (bounds[:, 1] - current) / scale))
+    return fit.x * scale
+
+
+def _gauss_newton(
+    nominal: Base,
+    model: TwinModel,
+    predictor: Predictor,
+    start: NuisanceValues,
+    prior: NuisanceValues,
+    report: Callable[[str], None],
+) -> _State:
+    """Damped Gauss-Newton from `start`, the priors centred on `prior` (the model's values); stops at the
+    noise, after `ITERATIONS` or when a step (halved up to `BACKTRACKS` times) does not lower the cost."""
+    state = _state(nominal, model, predictor, start, prior)
+    for iteration in range(ITERATIONS):
+        report(f"iteration {iteration + 1}: RMS {_rms(state.residual):.2f}x the noise")
+        if nominal.noise_test(state.residual, len(start.slots)).is_noise:
+            break
+        jac = _jacobian(nominal, model, predictor, state.values)
+        delta = _step(jac, state.residual, state.values, prior)
+        trial = _state(nominal, model, predictor, state.values.moved(delta), prior)
+        for _ in range(BACKTRACKS):
+            if trial.cost < state.cost:
+                break
+            delta = delta / 2.0
+            trial = _state(nominal, model, predictor, state.values.moved(delta), prior)
+        if not trial.cost < state.cost:
+            break
+        state = replace(trial, jac=jac)
+    return state
+
+
+def _best_starts(nominal: Base, model: TwinModel, predictor: Predictor, fitted: _State) -> NuisanceValues:
+    """The fitted values with each arm's registration replaced by whichever of its fit and
+    `REGISTRATION_STARTS` leaves that arm's trajectories the least squared residual (one replay set per
+    start: every arm is moved to the same start at once)."""
+    slots, values = fitted.values.slots, np.array(fitted.values.values)
+    arms = sorted({(s.sensor, s.arm) for s in slots if s.effect == REGISTRATION})
+    index = nominal.residual.trajectory_index
+    best = {arm: (_arm_cost(fitted.residual, index, nominal, arm), None) for arm in arms}
+    for offset in REGISTRATION_STARTS:
+        trial = values.copy()
+        for i, s in enumerate(slots):
+            if s.effect == REGISTRATION:
+                trial[i] = offset["xyz".index(s.parameter[-1])]
+        moved = NuisanceValues(slots, tuple(float(v) for v in trial))
+        residual = nominal.residual.values - _shifted(nominal, model, predictor, moved)
+        for arm in arms:
+            cost = _arm_cost(residual, index, nominal, arm)
+            if cost < best[arm][0]:
+                best[arm] = (cost, offset)
+    for i, s in enumerate(slots):
+        offset = best[(s.sensor, s.arm)][1] if s.effect == REGISTRATION else None
+        if offset is not None:
+            values[i] = offset["xyz".index(s.parameter[-1])]
+    return NuisanceValues(slots, tuple(float(v) for v in values))
+
+
+def _arm_cost(residual: np.ndarray, index: np.ndarray, base: Base, arm: tuple[int, str]) -> float:
+    """Sum of squares of the residual on one (sensor, arm)'s trajectories (a failed replay costs infinity)."""
+    mine = np.isin(index, [i for i, t in enumerate(base.trajectories) if (t.sensor_id, t.arm) == arm])
+    values = residual[mine]
+    return float(np.sum(values**2)) if np.isfinite(values).all() else float("inf")
+
+
+def _leave_one_trajectory_out(base: Base, jac: np.ndarray, fitted: NuisanceValues, prior: NuisanceValues) -> np.ndarray:
+    """Each trajectory's residual predicted by the nuisances fitted (linearised at the fit, priors kept)
+    without it (N,)."""
+    residual = base.residual.values
+    index = base.residual.trajectory_index
+    out = np.full_like(residual, np.nan)
+    for i in range(len(base.trajectories)):
+        test = index == i
+        train_jac = np.where(test[:, None], np.nan, jac)
+        delta = _step(train_jac, np.where(test, np.nan, residual), fitted, prior)
+        out[test] = residual[test] - jac[test] @ delta
+    return out
+
+
+def _correlation(jac: np.ndarray, slots: tuple[Slot, ...]) -> list[list[float]]:
+    """Correlations of the fitted nuisances (from the scaled J^T J with the priors)."""
+    rows = np.isfinite(jac).all(axis=1)
+    scale = np.array([_parameter(s).scale for s in slots])
+    sigma = np.array([_prior_sigma(s) for s in slots])
+    scaled = jac[rows] * scale
+    info = scaled.T @ scaled + np.diag((scale / sigma) ** 2)
+    cov = np.linalg.inv(info)
+    d = np.sqrt(np.diag(cov))
+    return (cov / np.outer(d, d)).round(4).tolist()
+
+
+def _rms(values: np.ndarray) -> float:
+    """Whitened RMS, skipping samples without a prediction (NaN)."""
+    return float(np.sqrt(np.nanmean(values**2)))
+
+
+def _profiled_rms(base: Base, values: np.ndarray) -> float:
+    """Whitened RMS with the PDC gains' prior cost, as diagnosis reports a base residual."""
+    return float(np.sqrt(base.nuisance.chi2(values) / np.sum(np.isfinite(values))))

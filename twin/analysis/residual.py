@@ -1,0 +1,237 @@
+"""The whitened full-rate residual that diagnosis, the nuisance stage and the noise test work on.
+
+Four full-rate channels of every sample where the model converged: the tared force (N, biotac frame;
+x, y, z) and the tared PDC (counts), each measured minus predicted, whitened by the noise estimated from
+the data itself, with each trajectory's constant offset projected out (the tare sample carries one noise
+draw the model cannot know; this is also where a real F/T sensor's bias goes). A real sensor's PDC gain is
+unknown to about 5 %, so each sensor's PDC gain is a nuisance parameter with that prior, profiled out of
+the residual and of every sensitivity. For a model that lacks nothing, the whitened residual has unit
+variance.
+
+A trajectory may be predicted by its own variant of the model (`ModelFor`): the nuisance stage
+(`twin.analysis.nuisances`) gives each arm its registration offset and each sensor its skin.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+from dataclasses import dataclass, replace
+
+import numpy as np
+
+from assets.indenters import get_indenter
+from twin.analysis.compare import FORCE_CHANNELS, noise_estimate, time_in_increment
+from twin.analysis.data import CampaignData, TrajectoryRecord
+from twin.analysis.predict import Predictor, TwinModel, measured_force_fullrate, measured_pdc_fullrate
+from twin.analysis.significance import NoiseTest, noise_test
+
+CHANNELS = (*FORCE_CHANNELS, "pdc")
+"""Residual channels, in the order of the last axis of every signal array."""
+PDC_GAIN_PRIOR = 0.05
+"""Relative 1-sigma spread of a sensor's PDC gain about nominal (the plant's unit-to-unit prior)."""
+
+ModelFor = Callable[[TwinModel, TrajectoryRecord], TwinModel]
+"""The model that predicts one trajectory, given the campaign's model (the identity without nuisances)."""
+
+
+def same_model(model: TwinModel, trajectory: TrajectoryRecord) -> TwinModel:
+    """Every trajectory is predicted by the campaign's model itself."""
+    return model
+
+
+@dataclass(frozen=True)
+class Residual:
+    """Whitened, offset-projected full-rate force residual and the bookkeeping to build it."""
+
+    values: np.ndarray  # (N,) whitened residual
+    trajectory_index: np.ndarray  # (N,) index into the trajectory list
+    indenter: np.ndarray  # (N,) indenter name per sample
+    covariates: dict[str, np.ndarray]  # (N,) each; "axis" indexes CHANNELS
+    sigma: np.ndarray  # (4,) noise per channel (N, N, N, counts)
+
+
+def fullrate_prediction(
+    predictor: Predictor, model: TwinModel, trajectories: list[TrajectoryRecord], model_for: ModelFor = same_model
+) -> list[np.ndarray]:
+    """Per trajectory (T, 4): predicted tared force x, y, z (N) and PDC (counts), each trajectory by
+    model_for(model, trajectory); the missing replays of each distinct model solved as one batch first
+    (`Predictor.prefetch`)."""
+    models = [model_for(model, t) for t in trajectories]
+    groups: dict[str, tuple[TwinModel, list[TrajectoryRecord]]] = {}
+    for m, t in zip(models, trajectories, strict=True):
+        groups.setdefault(m.key(), (m, []))[1].append(t)
+    for m, members in groups.values():
+        predictor.prefetch(m, members)
+    out = []
+    for m, t in zip(models, trajectories, strict=True):
+        p = predictor.predict(m, t)
+        out.append(np.column_stack([p.force_fullrate, p.pdc_fullrate]))
+    return out
+
+
+def measured(trajectory: TrajectoryRecord) -> np.ndarray:
+    """(T, 4) measured tared force x, y, z (N) and PDC (counts)."""
+    return np.column_stack([measured_force_fullrate(trajectory), measured_pdc_fullrate(trajectory)])
+
+
+class GainNuisance:
+    """Profiles each sensor's PDC gain (prior `PDC_GAIN_PRIOR`) out of whitened residual vectors.
+
+    With n the whitened base PDC prediction of a sensor's samples, a relative gain error g adds g n to
+    the residual; minimising |r - g n|^2 + (g / prior)^2 over g leaves r - n (n.r) / (n.n + prior^-2).
+    """
+
+    def __init__(self, base: np.ndarray, axis: np.ndarray, sensor: np.ndarray) -> None:
+        pdc = CHANNELS.index("pdc")
+        self._groups = []
+        for s in np.unique(sensor):
+            index = np.flatnonzero((axis == pdc) & (sensor == s))
+            n = np.nan_to_num(base[index])
+            self._groups.append((index, n, float(n @ n) + PDC_GAIN_PRIOR**-2))
+
+    def penalty(self, projected: np.ndarray) -> float:
+        """Prior cost sum (g / prior)^2 of the gains profiled out of a projected residual (N,).
+
+        For the projected vector v = P r, n.v = prior^-2 g, so the cost is (n.v)^2 prior^2."""
+        return float(sum(np.nansum(n * projected[index]) ** 2 * PDC_GAIN_PRIOR**2 for index, n, _ in self._groups))
+
+    def chi2(self, projected: np.ndarray) -> float:
+        """Profiled chi-square of a projected whitened residual: its squares plus the gains' prior cost."""
+        return float(np.nansum(projected**2)) + self.penalty(projected)
+
+    def project(self, values: np.ndarray) -> np.ndarray:
+        """The vector (N,) or the columns of (N, k) with the gain directions profiled out."""
+        out = np.array(values, dtype=float)
+        for index, n, denominator in self._groups:
+            part = out[index]
+            gain = np.nansum(n[:, None] * part.reshape(len(index), -1), axis=0) / denominator
+            out[index] = part - (n[:, None] * gain).reshape(part.shape)
+        return out
+
+
+def build_residual(
+    trajectories: list[TrajectoryRecord], predicted: list[np.ndarray], sigma: np.ndarray
+) -> tuple[Residual, list[np.ndarray]]:
+    """The whitened residual (channel gains not yet profiled) and each trajectory's mask of samples
+    used (valid predictions)."""
+    values, index, indenter, masks = [], [], [], []
+    names = (
+        "depth",
+        "time_in_increment",
+        "time",
+        "axis",
+        "angled",
+        "sensor",
+        "indenter_size",
+        "location_x",
+        "location_y",
+        "predicted_pdc",
+    )
+    cov: dict[str, list] = {k: [] for k in names}
+    k = len(CHANNELS)
+    for i, (t, p) in enumerate(zip(trajectories, predicted, strict=True)):
+        valid = np.isfinite(p).all(axis=1)
+        masks.append(valid)
+        r = (measured(t) - p)[valid] / sigma
+        r = r - r.mean(axis=0)
+        values.append(r.ravel())
+        n = valid.sum()
+        index.append(np.full(k * n, i))
+        indenter.append(np.full(k * n, t.indenter, dtype=object))
+        cov["depth"].append(np.repeat(t.raw.depth_command[valid], k))
+        cov["time_in_increment"].append(np.repeat(time_in_increment(t)[valid], k))
+        cov["time"].append(np.repeat(t.raw.time[valid], k))
+        cov["axis"].append(np.tile(np.arange(k), n))
+        cov["angled"].append(np.full(k * n, not t.normal))
+        cov["sensor"].append(np.full(k * n, t.sensor_id))
+        cov["indenter_size"].append(np.full(k * n, get_indenter(t.indenter).dims[0]))
+        cov["location_x"].append(np.full(k * n, t.touch_point[0]))
+        cov["location_y"].append(np.full(k * n, t.touch_point[1]))
+        cov["predicted_pdc"].append(np.repeat(p[valid, CHANNELS.index("pdc")], k))
+    residual = Residual(
+        np.concatenate(values),
+        np.concatenate(index),
+        np.concatenate(indenter),
+        {k: np.concatenate(v) for k, v in cov.items()},
+        sigma,
+    )
+    return residual, masks
+
+
+def whitened(predicted: list[np.ndarray], masks: list[np.ndarray], sigma: np.ndarray) -> np.ndarray:
+    """Whitened, offset-projected predictions on the base model's sample set (for differences).
+
+    Samples where this prediction failed (fe not converged) are NaN; fits and scores skip them.
+    """
+    out = []
+    for p, m in zip(predicted, masks, strict=True):
+        w = p[m] / sigma
+        out.append((w - np.nanmean(w, axis=0)).ravel())
+    return np.concatenate(out)
+
+
+@dataclass(frozen=True)
+class Base:
+    """Everything the base model's residual needs: trajectories, noise, residual, masks, whitened base
+    prediction, the PDC-gain nuisance projector, the model of each trajectory and how many nuisance
+    parameters were fitted to reach it (they reduce the noise test's degrees of freedom)."""
+
+    trajectories: list[TrajectoryRecord]
+    sigma: np.ndarray
+    residual: Residual
+    masks: list[np.ndarray]
+    prediction: np.ndarray
+    nuisance: GainNuisance
+    model_for: ModelFor = same_model
+    fitted: int = 0
+
+    def shifted(self, predictor: Predictor, model: TwinModel) -> np.ndarray:
+        """Profiled change of the whitened prediction from the base to `model` (NaN where it failed)."""
+        predicted = fullrate_prediction(predictor, model, self.trajectories, self.model_for)
+        return self.nuisance.project(whitened(predicted, self.masks, self.sigma) - self.prediction)
+
+    def noise_test(self, values: np.ndarray, fitted: int | None = None) -> NoiseTest:
+        """The noise test (`twin.analysis.significance`) of a whitened residual on this residual's samples
+        (NaN skipped): the nuisances are each trajectory's channel offsets, each sensor's PDC gain and the
+        `fitted` parameters (default: those fitted to reach this base), and each channel's noise was
+        estimated from every trajectory's successive differences."""
+        axis = self.residual.covariates["axis"]
+        finite = np.isfinite(values)
+        channels = range(len(CHANNELS))
+        squares = [float(np.sum(values[finite & (axis == c)] ** 2)) for c in channels]
+        counts = [int(np.sum(finite & (axis == c))) for c in channels]
+        differences = sum(len(t.raw.time) - 1 for t in self.trajectories)
+        sensors = len(np.unique(self.residual.covariates["sensor"]))
+        nuisances = len(CHANNELS) * len(self.trajectories) + sensors + (self.fitted if fitted is None else fitted)
+        return noise_test(squares, counts, [differences] * len(CHANNELS), nuisances)
+
+
+def base_residual(
+    datasets: list[CampaignData],
+    model: TwinModel,
+    predictor: Predictor,
+    model_for: ModelFor = same_model,
+    fitted: int = 0,
+    sigma: np.ndarray | None = None,
+) -> Base:
+    """The residual of `model` (each trajectory by model_for(model, trajectory)) on every trajectory of
+    `datasets`; the noise estimated from the data unless `sigma` (4,) is given."""
+    trajectories = [t for d in datasets for t in d.trajectories]
+    if not trajectories:
+        raise ValueError("the datasets hold no trajectories")
+    if sigma is None:
+        sigma = noise_sigma(trajectories)
+    predicted = fullrate_prediction(predictor, model, trajectories, model_for)
+    residual, masks = build_residual(trajectories, predicted, sigma)
+    base = whitened(predicted, masks, sigma)
+    nuisance = GainNuisance(base, residual.covariates["axis"], residual.covariates["sensor"])
+    residual = replace(residual, values=nuisance.project(residual.values))
+    return Base(trajectories, sigma, residual, masks, base, nuisance, model_for, fitted)
+
+
+def noise_sigma(trajectories: list[TrajectoryRecord]) -> np.ndarray:
+    """(4,) noise sigma of force x, y, z (N) and PDC (counts) from successive differences, never below the
+    rounding noise of integer PDC counts."""
+    noise = noise_estimate(trajectories)
+    quantum = 1.0 / np.sqrt(12.0)
+    return np.array([max(noise[c], 1e-9) for c in FORCE_CHANNELS] + [max(noise["pdc"], quantum)])
