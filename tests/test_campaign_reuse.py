@@ -1,16 +1,19 @@
-"""What a campaign worker reuses between trajectories changes nothing: a reset testbed scene is a new scene
-(model and data, bit for bit), and a trajectory simulated on a worker whose scene another trajectory used
-is recorded exactly as on a worker of its own."""
+"""What the campaign's protocol passes save changes nothing: a reset testbed scene is a new scene (model and
+data, bit for bit); a trajectory simulated on a worker whose scene another trajectory used is recorded
+exactly as on a worker of its own; a schedule pass without electrode counts draws the same noise stream, so
+its schedule and every other reading are those of a pass with them."""
 
 from dataclasses import replace
 
 import numpy as np
+import pytest
 
 from twin.backend import ARMS
 from twin.campaign import QUICK_CONFIG, CampaignWorker, plan_campaign, simulate_trajectory
 from twin.campaign_batched import ScheduleRecorder
 from twin.controller import Recording
-from twin.plant import make_plant
+from twin.planning import PlannedTrajectory
+from twin.plant import Plant, make_plant
 from twin.protocol import QUICK_SETTINGS
 from twin.scene import TestbedScene
 
@@ -50,27 +53,53 @@ def test_a_reset_scene_is_a_new_scene() -> None:
         np.testing.assert_array_equal(_state(used)[key], expected, err_msg=key)
 
 
-def _record(worker: CampaignWorker, job, slot: int) -> tuple[Recording, list]:
+@pytest.fixture(scope="module")
+def planned() -> tuple[Plant, list[PlannedTrajectory]]:
+    plant = make_plant([2], 0)
+    jobs = [job for job in plan_campaign(CONFIG, plant).planned if job.kept]
+    assert len(jobs) == 2
+    return plant, jobs
+
+
+def _record(
+    worker: CampaignWorker, job: PlannedTrajectory, slot: int, electrode_counts: bool = True
+) -> tuple[Recording, list, dict]:
+    """The recording, the schedules and the final noise-stream state of a schedule pass over `job`."""
     recorders: list[ScheduleRecorder] = []
 
     def recorder(indenter: str) -> ScheduleRecorder:
         recorders.append(ScheduleRecorder(worker.sensor(job.sensor_id)[0], indenter))
         return recorders[-1]
 
-    recording = simulate_trajectory(worker, job, slot, recorder)[1]
-    return recording, [r.schedule() for r in recorders]
+    backend, recording = simulate_trajectory(worker, job, slot, recorder, electrode_counts)
+    return recording, [r.schedule() for r in recorders], backend.rng.bit_generator.state
 
 
-def test_a_trajectory_on_a_reused_testbed_is_recorded_as_on_a_new_one() -> None:
-    plant = make_plant([2], 0)
-    jobs = [job for job in plan_campaign(CONFIG, plant).planned if job.kept]
-    assert len(jobs) == 2
+def test_a_trajectory_on_a_reused_testbed_is_recorded_as_on_a_new_one(
+    planned: tuple[Plant, list[PlannedTrajectory]],
+) -> None:
+    plant, jobs = planned
     reused = CampaignWorker(CONFIG, plant)
     _record(reused, jobs[0], 0)  # the worker's scene now carries the first trajectory's tool and joints
-    again, again_schedules = _record(reused, jobs[1], 1)
-    alone, alone_schedules = _record(CampaignWorker(CONFIG, plant), jobs[1], 1)
+    again, again_schedules, _ = _record(reused, jobs[1], 1)
+    alone, alone_schedules, _ = _record(CampaignWorker(CONFIG, plant), jobs[1], 1)
     assert len(alone.time) > 100 and alone.complete
     for name in ("time", "joints", "wrench", "electrodes", "pdc", "depth_command", "increment"):
         np.testing.assert_array_equal(getattr(again, name), getattr(alone, name), err_msg=name)
     assert len(again_schedules) == len(alone_schedules) == 1
     assert again_schedules[0].same_as(alone_schedules[0]) and len(alone_schedules[0].times) > 3
+
+
+def test_a_schedule_pass_without_electrode_counts_draws_the_same_noise(
+    planned: tuple[Plant, list[PlannedTrajectory]],
+) -> None:
+    plant, jobs = planned
+    worker = CampaignWorker(CONFIG, plant)
+    full, full_schedules, full_stream = _record(worker, jobs[0], 0)
+    bare, bare_schedules, bare_stream = _record(worker, jobs[0], 0, electrode_counts=False)
+    assert bare_stream == full_stream  # as many draws, so the same stream after every reading
+    for name in ("time", "joints", "wrench", "depth_command", "increment"):
+        np.testing.assert_array_equal(getattr(bare, name), getattr(full, name), err_msg=name)
+    assert np.isnan(bare.electrodes).all() and np.isnan(bare.pdc).all()
+    assert np.isfinite(full.electrodes).all() and np.ptp(full.electrodes[:, 0]) > 0  # noisy counts
+    assert bare_schedules[0].same_as(full_schedules[0])

@@ -352,11 +352,16 @@ robot<-biotac 4x4 of its arm, and the parts folder."""
 
 
 def simulate_trajectory(
-    worker: CampaignWorker, job: PlannedTrajectory, slot: int, solver: Callable[[str], SkinSolver] | None = None
+    worker: CampaignWorker,
+    job: PlannedTrajectory,
+    slot: int,
+    solver: Callable[[str], SkinSolver] | None = None,
+    electrode_counts: bool = True,
 ) -> tuple[SimBackend, Recording]:
     """Run one trajectory's protocol on the worker's testbed, reset (its own noise stream and clock); the skin
-    solved by `solver` (default: the sensor's fe stepper, one solve at a time). Returns the backend (its
-    `solve_log`) and the recording."""
+    solved by `solver` (default: the sensor's fe stepper, one solve at a time); electrode and PDC readings
+    left out (NaN) unless `electrode_counts` (`SimBackend`). Returns the backend (its `solve_log`) and the
+    recording."""
     config, sid, spec = worker.config, job.sensor_id, job.spec
     model, electrodes = worker.sensor(sid)
     scene = worker.scene()
@@ -373,6 +378,7 @@ def simulate_trajectory(
         effects=worker.plant.effects,
         joint_offsets={arm: worker.plant.joint_offset(arm) for arm in ARMS},
         solver=solver,
+        electrode_counts=electrode_counts,
     )
     return backend, execute(backend, spec, job.arm, job.joint_path, config.settings)
 

@@ -7,7 +7,7 @@ before anything is solved. `BatchedRunner` works in three passes:
    `ScheduleRecorder` as its skin, which notes the pose (indenter body -> biotac frame, m) and the time (s)
    of every solve the backend asks for (each increment's pose once the arm rests; with a viscoelastic skin
    the held pose every `twin.sim_backend.RELAXATION_SOLVE_INTERVAL_S` as well) and answers with the rest
-   state;
+   state; electrode and PDC counts are not computed (their noise is drawn: the stream stays the same);
 2. fe (in this process, on the warp device): per sensor, every schedule is a timed `PoseTrajectory` of one
    batched run (`fe.batched_runner.run_trajectories`: each system on its own clock, failed steps cut back as
    the one-at-a-time stepper does), which ends a trajectory at its first increment that fails or whose
@@ -156,7 +156,7 @@ def plan_schedule(
         recorders.append(ScheduleRecorder(model, indenter))
         return recorders[-1]
 
-    simulate_trajectory(worker, job, slot, recorder)
+    simulate_trajectory(worker, job, slot, recorder, electrode_counts=False)  # its recording is not kept
     if len(recorders) > 1:
         raise RuntimeError(f"trajectory {job.spec.trajectory_id} attached {len(recorders)} indenters, not one")
     schedule = recorders[0].schedule() if recorders else ScheduleRecorder(model, job.spec.indenter).schedule()

@@ -22,7 +22,7 @@ from typing import Protocol
 
 import numpy as np
 
-from fe.electrodes import ElectrodeModel
+from fe.electrodes import N_ELECTRODES, ElectrodeModel
 from fe.indentation import IncrementResult
 from fe.sensor import BioTacModel
 from twin.backend import ARMS, BackendError, Sample, check_arm
@@ -74,6 +74,9 @@ class SimBackend:
     joint_offsets: arm -> (7,) real joint zero offsets (rad): joints are commanded and read in the
     nominal model, while the arm's true shape (MuJoCo, the tool pose) is the model at joints + offset.
     solver: indenter name -> the `SkinSolver` of a newly attached indenter (default `fe_model.stepper`).
+    electrode_counts: False for a run whose electrode and PDC readings nobody reads (the batched campaign's
+    schedule pass): they are NaN, not computed, while their noise is drawn all the same (as many normals as
+    `ElectrodeModel.counts` and `pdc_counts` draw), so every other reading is that of a backend computing them.
     """
 
     def __init__(
@@ -90,6 +93,7 @@ class SimBackend:
         effects: EffectValues | None = None,
         joint_offsets: dict[str, np.ndarray] | None = None,
         solver: Callable[[str], SkinSolver] | None = None,
+        electrode_counts: bool = True,
     ) -> None:
         if fe_model.reference is None:
             raise ValueError("the fe model must be inflated before it drives a SimBackend")
@@ -101,6 +105,7 @@ class SimBackend:
         self._held_electrodes = held_impedance(electrodes)
         self.noise = noise
         self.rng = rng
+        self.electrode_counts = electrode_counts
         self.settings = settings
         self.time_s = start_time_s
         self.joint_offsets = {arm: np.asarray((joint_offsets or {}).get(arm, np.zeros(7)), float) for arm in ARMS}
@@ -174,6 +179,9 @@ class SimBackend:
             [self.noise.force * self.rng.standard_normal(3), self.noise.torque * self.rng.standard_normal(3)]
         )
         wrench = self._measured_wrench() + self.sensor.ft_bias + wrench_noise
+        if not self.electrode_counts:
+            self.rng.standard_normal(N_ELECTRODES + 1)  # the electrodes' noise, then the PDC's
+            return Sample(self.time_s, joints, wrench, np.full(N_ELECTRODES, np.nan), np.nan)
         electrodes = self._held_electrodes.counts(self._clean["vertices"], self.time_s, self.rng)
         pdc = self.electrodes.pdc_counts(self._clean["pressure"], self.rng)
         return Sample(self.time_s, joints, wrench, electrodes, float(pdc))
