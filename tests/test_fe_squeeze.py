@@ -10,10 +10,12 @@ half the closure to balance its two half-layers (the solve finds that, starting 
 
 import numpy as np
 import pytest
+import warp as wp
 
 from assets.indenters import KIND_BOX, Indenter
 from fe.batched import InflatedSkin
 from fe.batched_stepper import BatchedStepper
+from fe.contact import layer_response
 from fe.dome import disk_mesh
 from fe.params import SkinParameters
 
@@ -87,3 +89,34 @@ def test_squeezing_past_the_floor_is_refused(squeezed: tuple[list, np.ndarray, f
     last = squeezed[0][-1]
     assert not last.converged
     assert "inadmissible" in last.message and "half-thickness" in last.message, last.message
+
+
+@wp.kernel
+def _law(g: wp.array(dtype=wp.float64), h: wp.float64, out: wp.array(dtype=wp.vec3d)):
+    i = wp.tid()
+    one = wp.float64(1.0)
+    out[i] = layer_response(g[i], h, wp.float64(MU), one, wp.float64(1e11), wp.float64(0.25))
+
+
+def test_the_law_per_vertex_is_the_layer_energy_and_its_derivatives_across_the_floor() -> None:
+    """Per unit area: energy h (mu/2)(lam^2 + 2/lam - 3) above the floor (numpy, from the formula), its slope and
+    curvature by central differences everywhere, continuous through lam = 1 and the floor lam = 0.25."""
+    lam = np.r_[np.linspace(0.05, 1.2, 2301), 0.25, 1.0]
+    g, step = (lam - 1.0) * H, 1e-9
+    rows = np.concatenate([g - step, g, g + step])
+    out = wp.zeros(len(rows), dtype=wp.vec3d, device="cpu")
+    wp.launch(_law, len(rows), [wp.array(rows, dtype=wp.float64, device="cpu"), wp.float64(H), out], device="cpu")
+    minus, law, plus = np.split(out.numpy(), 3)
+    neo = (lam >= 0.25) & (lam < 1.0)
+    expected = H * MU / 2 * (lam[neo] ** 2 + 2 / lam[neo] - 3)  # cancels to ~1e-16 of H mu near lam = 1
+    assert np.allclose(law[neo, 0], expected, rtol=1e-12, atol=1e-14 * H * MU)
+    assert np.all(law[lam >= 1.0] == 0.0)
+    assert np.allclose(law[neo, 1], MU * (lam[neo] - lam[neo] ** -2), rtol=1e-12)  # nominal stress (Pa)
+    scale = np.abs(law[:, 1:]).max(axis=0)
+    assert np.allclose((plus[:, 0] - minus[:, 0]) / (2 * step), law[:, 1], atol=1e-6 * scale[0])
+    smooth = np.abs(g) > step  # the stiffness jumps from 0 to 3 mu / h at lam = 1 (C1 there, not C2)
+    curvature = (plus[smooth, 1] - minus[smooth, 1]) / (2 * step)
+    assert np.allclose(curvature, law[smooth, 2], atol=1e-5 * scale[1])
+    below = lam < 0.25
+    assert np.all(np.isfinite(law)) and np.all(np.diff(law[np.argsort(lam), 1]) >= 0.0)  # convex, finite
+    assert np.all(law[below, 2] == law[lam == 0.25, 2][0])  # quadratic past the floor
