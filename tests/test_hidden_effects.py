@@ -54,6 +54,10 @@ CONFOUNDED = {
     "skin's force in sample slightly better (evidence 214450.8 against 213699.8) and ranks first; only it is "
     "refitted here (top=1) and its held-out residual, 2.37x with yx and zx at their bounds, fails the noise test, "
     "so the verdict is 'unexplained' rather than the map; skin_thickness, second, is not refitted",
+    "skin_relaxation": "on seed 5's points (2026-11-26, run alone at commits 1a5094d and 9424c0b) the 3x3 "
+    "ft_calibration map ranks first in sample (evidence 771244 against 769451) and is the only candidate refitted "
+    "here (top=1): 1.24x refitted, 2.19x held out, so the verdict is 'unexplained'; the hidden relaxation (fraction "
+    "0.34, 0.34 s) is linearised at its probe (0.15, 1 s), far from its size",
     "ft_crosstalk": "on seed 5's points (full suite, 2026-11-26) the crosstalk refit brings the error down "
     "but its parameters are not identifiable from these six trajectories, so the verdict is 'unexplained' "
     "(base RMS 1.54x the noise) rather than a named cause that might not generalise",
