@@ -169,18 +169,19 @@ class SimBackend:
             self._place(arm)
         self.time_s += dt
         arm = self._stepper_arm
-        if arm is not None and np.max(np.abs(self._targets[arm] - self._joints[arm])) <= self.settings.rest_tolerance:
+        if arm is not None and np.abs(self._targets[arm] - self._joints[arm]).max() <= self.settings.rest_tolerance:
             self._solve_if_moved(arm)
 
     def read(self) -> Sample:
         """Noisy readings of every channel at the current simulated time."""
-        joints = {arm: self._joints[arm] + self.noise.encoder * self.rng.standard_normal(7) for arm in ARMS}
-        wrench_noise = np.concatenate(
-            [self.noise.force * self.rng.standard_normal(3), self.noise.torque * self.rng.standard_normal(3)]
-        )
+        # one draw for the encoders (7 a arm), the force (3) and the torque (3), the same normals as a draw each
+        # (without its electrode counts, the electrodes' 19 and the PDC's one as well)
+        z = self.rng.standard_normal(len(ARMS) * 7 + 6 + (0 if self.electrode_counts else N_ELECTRODES + 1))
+        joints = {arm: self._joints[arm] + self.noise.encoder * z[7 * i : 7 * i + 7] for i, arm in enumerate(ARMS)}
+        k = len(ARMS) * 7
+        wrench_noise = np.concatenate([self.noise.force * z[k : k + 3], self.noise.torque * z[k + 3 : k + 6]])
         wrench = self._measured_wrench() + self.sensor.ft_bias + wrench_noise
         if not self.electrode_counts:
-            self.rng.standard_normal(N_ELECTRODES + 1)  # the electrodes' noise, then the PDC's
             return Sample(self.time_s, joints, wrench, np.full(N_ELECTRODES, np.nan), np.nan)
         electrodes = self._held_electrodes.counts(self._clean["vertices"], self.time_s, self.rng)
         pdc = self.electrodes.pdc_counts(self._clean["pressure"], self.rng)
