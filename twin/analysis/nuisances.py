@@ -209,7 +209,7 @@ def fit_nuisances(
     slots = nuisance_slots(nominal.trajectories)
     prior = model_values(slots, model)
     fitted = _gauss_newton(nominal, model, predictor, prior, prior, report)
-    if not nominal.noise_test(fitted.residual, len(slots)).is_noise:
+    if not (np.isfinite(fitted.cost) and nominal.noise_test(fitted.residual, len(slots)).is_noise):
         report("registration starts")
         starts = _best_starts(nominal, model, predictor, fitted)
         fitted = min(fitted, _gauss_newton(nominal, model, predictor, starts, prior, report), key=lambda f: f.cost)
@@ -243,8 +243,12 @@ class _State:
 def _state(
     nominal: Base, model: TwinModel, predictor: Predictor, values: NuisanceValues, start: NuisanceValues
 ) -> _State:
+    """The residual at `values` and its cost; infinite where the replay fails on samples the nominal model
+    reaches (a fit must not buy a lower chi-square by losing samples)."""
     shifted = _shifted(nominal, model, predictor, values)
     residual = nominal.residual.values - shifted
+    if np.isnan(residual).any():
+        return _State(values, residual, float("inf"))
     return _State(values, residual, nominal.nuisance.chi2(residual) + _prior_cost(values, start))
 
 
@@ -325,7 +329,7 @@ def _gauss_newton(
     state = _state(nominal, model, predictor, start, prior)
     for iteration in range(ITERATIONS):
         report(f"iteration {iteration + 1}: RMS {_rms(state.residual):.2f}x the noise")
-        if nominal.noise_test(state.residual, len(start.slots)).is_noise:
+        if np.isfinite(state.cost) and nominal.noise_test(state.residual, len(start.slots)).is_noise:
             break
         jac = _jacobian(nominal, model, predictor, state.values)
         delta = _step(jac, state.residual, state.values, prior)
