@@ -26,6 +26,8 @@ import warp as wp
 
 from fe.indenter_sdf import indenter_sdf, indenter_sdf_grad
 
+wp.set_module_options({"enable_backward": False})  # no adjoint kernels: nothing differentiates them
+
 _TINY = wp.constant(wp.float64(1e-30))
 
 
