@@ -11,7 +11,8 @@ import json
 import numpy as np
 import pytest
 
-from twin.analysis.diagnose import Diagnosis
+from twin.analysis.diagnose import Diagnosis, diagnose
+from twin.analysis.predict import TwinModel
 from twin.analysis.significance import noise_test, ratio_threshold
 from twin.analysis.verdict import NOTHING_BEYOND_NUISANCES, Candidate, order_candidates, parameters_at_bound, verdict
 
@@ -110,3 +111,8 @@ def test_a_residual_at_the_noise_once_the_nuisances_are_fitted_is_nothing_beyond
     # Without the nuisance stage the same residual is plain "nothing"; above the noise, candidates decide.
     assert verdict(1.0, True, 1.02, [weak])[0] == "nothing"
     assert verdict(1.5, False, 1.02, [weak], beyond_nuisances=True)[0] == "ft_gain"
+
+
+def test_a_nuisance_effect_cannot_also_be_a_candidate() -> None:
+    with pytest.raises(ValueError, match="cannot be candidates"):
+        diagnose([], TwinModel(), None, ["time_delay", "skin_modulus"], nuisances=True)

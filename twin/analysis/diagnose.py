@@ -203,6 +203,8 @@ def diagnose(
     ("refit"), and with ("nuisances", what) during the nuisance fit."""
     if top < 0:
         raise ValueError(f"the number of candidates to refit must be >= 0, got {top}")
+    if nuisances and set(candidates or ()) & set(NUISANCE_EFFECTS):
+        raise ValueError(f"with the nuisances fitted, {sorted(NUISANCE_EFFECTS)} cannot be candidates")
     report = on_progress or (lambda stage, name: None)
     predictor = predictor or Predictor()
     fitted = fit_nuisances(datasets, model, predictor, lambda text: report("nuisances", text)) if nuisances else None
