@@ -1,5 +1,8 @@
 """Which effect is missing? Residual signatures, score-type evidence, held-out refits, identifiability.
 
+The residual is built in `twin.analysis.residual`; with `nuisances`, the standard unknowns of a real
+campaign are fitted first (`twin.analysis.nuisances`) and candidates are ranked on what remains.
+
 The residual holds four full-rate channels of every sample where the model converged: the tared
 force (N, biotac frame; x, y, z) and the tared PDC (counts), each whitened by the noise estimated from
 the data itself, with each trajectory's constant offset projected out (the tare sample carries one
