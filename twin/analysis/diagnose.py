@@ -247,6 +247,8 @@ def diagnose(
     for candidate, lin in ranked[:top]:
         report("refit", candidate.name)
         _identifiability(candidate, lin.jac)
+        if fitted is not None and candidate.name in fitted.cannot_tell_apart():
+            candidate.identifiable = False  # never named: the nuisances could be what it fits
         _refit(candidate, model, predictor, base, lin)
         _judge_heldout(candidate, model, predictor, base)
     ordered = order_candidates([c for c, _ in ranked])
@@ -254,6 +256,8 @@ def diagnose(
     threshold = base_test.rms_threshold
     is_noise = base_test.is_noise and (fitted is None or fitted.heldout_is_noise)
     outcome, reason, tied = verdict(base_rms, is_noise, threshold, ordered, fitted is not None)
+    if fitted is not None and fitted.cannot_tell_apart():
+        reason += f"; these data cannot tell {', '.join(fitted.cannot_tell_apart())} from the nuisances"
     summary = fitted.to_dict() if fitted is not None else None
     return Diagnosis(base_rms, signatures(residual), ordered, outcome, reason, tied, threshold, summary)
 
