@@ -1,17 +1,19 @@
 """What the campaign's protocol passes save changes nothing: a reset testbed scene is a new scene (model and
 data, bit for bit); a trajectory simulated on a worker whose scene another trajectory used is recorded
-exactly as on a worker of its own; a schedule pass without electrode counts draws the same noise stream, so
-its schedule and every other reading are those of a pass with them."""
+exactly as on a worker of its own; a campaign planned on a pool's workers (the pool that runs it next) is the
+plan made in one process; a schedule pass without electrode counts draws the same noise stream, so its
+schedule and every other reading are those of a pass with them."""
 
-from dataclasses import replace
+from dataclasses import fields, replace
 
 import numpy as np
 import pytest
 
 from twin.backend import ARMS
-from twin.campaign import QUICK_CONFIG, CampaignWorker, plan_campaign, simulate_trajectory
+from twin.campaign import QUICK_CONFIG, CampaignPlan, CampaignWorker, plan_campaign, simulate_trajectory
 from twin.campaign_batched import ScheduleRecorder
 from twin.controller import Recording
+from twin.executors import LocalExecutor
 from twin.planning import PlannedTrajectory
 from twin.plant import Plant, make_plant
 from twin.protocol import QUICK_SETTINGS
@@ -54,11 +56,32 @@ def test_a_reset_scene_is_a_new_scene() -> None:
 
 
 @pytest.fixture(scope="module")
-def planned() -> tuple[Plant, list[PlannedTrajectory]]:
+def plan() -> tuple[Plant, CampaignPlan]:
     plant = make_plant([2], 0)
-    jobs = [job for job in plan_campaign(CONFIG, plant).planned if job.kept]
+    return plant, plan_campaign(CONFIG, plant)
+
+
+@pytest.fixture(scope="module")
+def planned(plan: tuple[Plant, CampaignPlan]) -> tuple[Plant, list[PlannedTrajectory]]:
+    plant, made = plan
+    jobs = [job for job in made.planned if job.kept]
     assert len(jobs) == 2
     return plant, jobs
+
+
+def test_a_campaign_planned_on_workers_is_the_plan_made_here(plan: tuple[Plant, CampaignPlan]) -> None:
+    plant, here = plan
+    with LocalExecutor(2) as executor:
+        there = plan_campaign(CONFIG, plant, executor)
+    assert len(there.planned) == len(here.planned) >= 2
+    for a, b in zip(here.planned, there.planned, strict=True):
+        assert (a.sensor_id, a.arm, a.dropped) == (b.sensor_id, b.arm, b.dropped)
+        np.testing.assert_array_equal(a.joint_path, b.joint_path)
+        for field in fields(a.spec):
+            np.testing.assert_array_equal(getattr(a.spec, field.name), getattr(b.spec, field.name), err_msg=field.name)
+    assert here.registration.keys() == there.registration.keys()
+    for key, transform in here.registration.items():
+        np.testing.assert_array_equal(there.registration[key], transform)
 
 
 def _record(

@@ -33,8 +33,11 @@ KILL_AFTER_SOLVES = 3
 
 
 def _die_mid_trajectory(attempts_dir: str, task: Callable[..., Any], job: tuple) -> Any:
-    """Run the task, logging each attempt; the first attempt of trajectory KILLED ends its worker process
-    (`os._exit`) right after its KILL_AFTER_SOLVES-th fe solve, before any part file is written."""
+    """Run the task, logging each attempt of a trajectory (planning tasks run as they are); the first attempt
+    of trajectory KILLED ends its worker process (`os._exit`) right after its KILL_AFTER_SOLVES-th fe solve,
+    before any part file is written."""
+    if not hasattr(job[0], "spec"):  # a planning task
+        return task(*job)
     name = f"{job[0].sensor_id}-{job[0].spec.trajectory_id}"
     attempt = sum(not p.name.endswith(".done") for p in Path(attempts_dir).glob(f"{name}.*")) + 1
     (Path(attempts_dir) / f"{name}.{attempt}").touch()

@@ -33,7 +33,7 @@ from twin.controller import Recording, execute
 from twin.dataset import assemble_sensor_file, part_path, read_part, write_part
 from twin.effects import apply_path, apply_skin
 from twin.executors import Executor, LocalExecutor
-from twin.planning import PlannedTrajectory, plan_for_sensor, plan_statistics, scene_tool_tip
+from twin.planning import PlannedTrajectory, plan_statistics, plan_trajectory, scene_tool_tip
 from twin.plant import Plant, make_plant, rigid_transform
 from twin.processing import process
 from twin.protocol import QUICK_SETTINGS, ProtocolSettings, TrajectorySpec, plan_specs
@@ -120,14 +120,15 @@ def true_biotac_pose(plant: Plant, sensor_id: int, scene: TestbedScene) -> np.nd
     return true_mount_pose(plant, sensor_id, scene) @ seat
 
 
-def plan_campaign(config: CampaignConfig, plant: Plant | None = None) -> CampaignPlan:
-    """Sample the trajectories, register each sensor, and plan joint paths (dropping what cannot run)."""
+def plan_campaign(config: CampaignConfig, plant: Plant | None = None, executor: Executor | None = None) -> CampaignPlan:
+    """Sample the trajectories, register each sensor, and plan joint paths (dropping what cannot run): here,
+    or each trajectory's on a worker of `executor` (set up by `init_worker(config, plant)`), the same plan."""
     plant = plant if plant is not None else make_plant(list(config.sensors), config.seed)
     geometry = make_biotac(config.mesh_max_edge)
     nominal = inflated_model(geometry, config.nominal)
     specs = plan_specs(nominal, list(config.indenters), config.settings, config.seed)
     scene = TestbedScene(config.scene)
-    planned, registration, errors = [], {}, {}
+    jobs, registration, errors = [], {}, {}
     for sid in config.sensors:
         mount = true_mount_pose(plant, sid, scene)
         for k, arm in enumerate(ARMS):
@@ -144,9 +145,9 @@ def plan_campaign(config: CampaignConfig, plant: Plant | None = None) -> Campaig
             registration[(sid, arm)] = result.transform  # the estimate, never the plant's truth
             errors[(sid, arm)] = result.error_rms
         wanted = set(config.indenters_for(sid))
-        sensor_specs = [s for s in specs if s.indenter in wanted]
         per_arm = {arm: registration[(sid, arm)] for arm in ARMS}
-        planned += plan_for_sensor(scene, sensor_specs, sid, per_arm)
+        jobs += [(spec, sid, per_arm) for spec in specs if spec.indenter in wanted]
+    planned = _plan_trajectories(jobs, scene, executor, (config, plant))
     for round_ in range(1, config.settings.replacement_rounds + 1):
         uncovered = _uncovered(config, planned)
         if not uncovered:
@@ -155,11 +156,37 @@ def plan_campaign(config: CampaignConfig, plant: Plant | None = None) -> Campaig
             nominal, sorted({name for _, name in uncovered}), config.settings, config.seed + round_, len(specs)
         )
         specs += extra
+        jobs = []
         for sid in sorted({s for s, _ in uncovered}):
             names = {name for s, name in uncovered if s == sid}
             per_arm = {arm: registration[(sid, arm)] for arm in ARMS}
-            planned += plan_for_sensor(scene, [s for s in extra if s.indenter in names], sid, per_arm)
+            jobs += [(spec, sid, per_arm) for spec in extra if spec.indenter in names]
+        planned += _plan_trajectories(jobs, scene, executor, (config, plant))
     return CampaignPlan(config, specs, planned, registration, errors)
+
+
+PlanJob = tuple[TrajectorySpec, int, dict[str, np.ndarray]]
+"""A trajectory to plan: its spec, its sensor id and the sensor's estimated robot<-biotac 4x4 per arm."""
+
+
+def _plan_trajectories(
+    jobs: list[PlanJob], scene: TestbedScene, executor: Executor | None, setup_args: tuple[CampaignConfig, Plant]
+) -> list[PlannedTrajectory]:
+    """`plan_trajectory` of every job, in their order: on `scene` here, or on the executor's workers."""
+    if executor is None:
+        return [plan_trajectory(scene, *job) for job in jobs]
+    indexed = [(k, *job) for k, job in enumerate(jobs)]
+    found = dict(executor.map_unordered(_plan_task, indexed, init_worker, setup_args))
+    if len(found) != len(jobs):
+        raise RuntimeError(f"the executor planned {len(found)} of {len(jobs)} trajectories")
+    return [found[k] for k in range(len(jobs))]
+
+
+def _plan_task(
+    index: int, spec: TrajectorySpec, sensor_id: int, registration: dict[str, np.ndarray]
+) -> tuple[int, PlannedTrajectory]:
+    """Executor task (after `init_worker`): the job's index and its plan, on the worker's reset testbed."""
+    return index, plan_trajectory(process_worker().scene(), spec, sensor_id, registration)
 
 
 def _uncovered(config: CampaignConfig, planned: list[PlannedTrajectory]) -> set[tuple[int, str]]:
@@ -487,32 +514,32 @@ def run_campaign(
     options = campaign_options(config, plant)
     claim_parts(parts_dir, options, restart)
     _check_part_digests(parts_dir, options_digest(options))
-    plan = plan_campaign(config, plant)
-    jobs = [job for job in plan.planned if job.kept]
-    slots = {}
-    for job in jobs:
-        slots[(job.sensor_id, job.spec.trajectory_id)] = sum(1 for key in slots if key[0] == job.sensor_id)
-    todo = [j for j in jobs if not part_path(parts_dir, j.sensor_id, j.spec.trajectory_id).exists()]
-    done, incomplete = len(jobs) - len(todo), 0
-    if on_progress:
-        on_progress(done, len(jobs))
     own_executor = executor is None
     executor = executor if executor is not None else LocalExecutor(max(1, workers))
-    tasks = [
-        (j, slots[(j.sensor_id, j.spec.trajectory_id)], plan.registration[(j.sensor_id, j.arm)], str(parts_dir))
-        for j in todo
-    ]
-
-    def finished(sensor_id: int, trajectory_id: int, complete: bool) -> None:
-        nonlocal done, incomplete
-        incomplete += not complete
-        if on_trajectory:
-            on_trajectory(sensor_id, read_part(part_path(parts_dir, sensor_id, trajectory_id)))
-        done += 1
+    try:  # one pool (one start-up a worker) plans and runs the trajectories
+        plan = plan_campaign(config, plant, executor)
+        jobs = [job for job in plan.planned if job.kept]
+        slots = {}
+        for job in jobs:
+            slots[(job.sensor_id, job.spec.trajectory_id)] = sum(1 for key in slots if key[0] == job.sensor_id)
+        todo = [j for j in jobs if not part_path(parts_dir, j.sensor_id, j.spec.trajectory_id).exists()]
+        done, incomplete = len(jobs) - len(todo), 0
         if on_progress:
             on_progress(done, len(jobs))
+        tasks = [
+            (j, slots[(j.sensor_id, j.spec.trajectory_id)], plan.registration[(j.sensor_id, j.arm)], str(parts_dir))
+            for j in todo
+        ]
 
-    try:
+        def finished(sensor_id: int, trajectory_id: int, complete: bool) -> None:
+            nonlocal done, incomplete
+            incomplete += not complete
+            if on_trajectory:
+                on_trajectory(sensor_id, read_part(part_path(parts_dir, sensor_id, trajectory_id)))
+            done += 1
+            if on_progress:
+                on_progress(done, len(jobs))
+
         runner(tasks, config, plant, executor, finished)
     finally:
         if own_executor:

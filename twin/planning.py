@@ -83,29 +83,26 @@ def _collides(scene: TestbedScene, spec: TrajectorySpec, arm: str, path: np.ndar
         scene.attach_tool(arm, None)
 
 
-def plan_for_sensor(
-    scene: TestbedScene, specs: list[TrajectorySpec], sensor_id: int, registration: dict[str, np.ndarray]
-) -> list[PlannedTrajectory]:
-    """Joint paths for every spec on one sensor; `registration` maps arm -> estimated robot<-biotac 4x4."""
-    planned = []
-    for spec in specs:
-        arm = scene.arm_for_point(spec.point)
-        biotac_to_robot = registration[arm]
-        outcome = PlannedTrajectory(sensor_id, spec, arm, None, "unreachable")
-        for roll in ROLLS:
-            candidate = _rolled(spec, roll)
-            path = _joint_path(
-                candidate, arm, biotac_to_robot, scene.home_joints(arm), scene_tool_tip(scene, spec.indenter)
-            )
-            if path is None:
-                continue
-            if _collides(scene, candidate, arm, path):
-                outcome = PlannedTrajectory(sensor_id, candidate, arm, None, "collision")
-                continue
-            outcome = PlannedTrajectory(sensor_id, candidate, arm, path, None)
-            break
-        planned.append(outcome)
-    return planned
+def plan_trajectory(
+    scene: TestbedScene, spec: TrajectorySpec, sensor_id: int, registration: dict[str, np.ndarray]
+) -> PlannedTrajectory:
+    """The joint path of one spec on one sensor, or why it was dropped; `registration` maps arm -> estimated
+    robot<-biotac 4x4. `scene` must hold both arms at home without tools (it is left so)."""
+    arm = scene.arm_for_point(spec.point)
+    biotac_to_robot = registration[arm]
+    outcome = PlannedTrajectory(sensor_id, spec, arm, None, "unreachable")
+    for roll in ROLLS:
+        candidate = _rolled(spec, roll)
+        path = _joint_path(
+            candidate, arm, biotac_to_robot, scene.home_joints(arm), scene_tool_tip(scene, spec.indenter)
+        )
+        if path is None:
+            continue
+        if _collides(scene, candidate, arm, path):
+            outcome = PlannedTrajectory(sensor_id, candidate, arm, None, "collision")
+            continue
+        return PlannedTrajectory(sensor_id, candidate, arm, path, None)
+    return outcome
 
 
 def plan_statistics(planned: list[PlannedTrajectory]) -> dict:
