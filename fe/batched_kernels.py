@@ -114,23 +114,6 @@ def combine(
 
 
 @wp.kernel
-def lag_candidates(
-    gap: wp.array2d(dtype=wp.float64),
-    vertex_area: wp.array(dtype=wp.float64),
-    kappa: wp.float64,
-    lagged_force: wp.array2d(dtype=wp.float64),
-    candidate: wp.array2d(dtype=wp.float64),
-    stats: wp.array2d(dtype=wp.float64),
-):
-    """Penalty normal force (N) per vertex from its gap; stats[b] = (max change from the lagged one, max force)."""
-    b, v = wp.tid()
-    f = kappa * vertex_area[v] * wp.max(-gap[b, v], wp.float64(0.0))
-    candidate[b, v] = f
-    wp.atomic_max(stats, b, 0, wp.abs(f - lagged_force[b, v]))
-    wp.atomic_max(stats, b, 1, f)
-
-
-@wp.kernel
 def lag_apply(
     changed: wp.array(dtype=wp.int32),
     candidate: wp.array2d(dtype=wp.float64),

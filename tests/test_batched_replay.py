@@ -48,7 +48,7 @@ def _assert_same(single: list[Prediction], batched: list[Prediction], tolerance:
     for one, many in zip(single, batched, strict=True):
         np.testing.assert_array_equal(one.converged, many.converged)
         scale = np.nanmax(np.linalg.norm(one.increment_force, axis=1))
-        assert scale > 0.1  # the path presses the skin
+        assert scale > 0.05  # the path presses the skin
         reached = one.converged
         np.testing.assert_allclose(many.increment_force[reached], one.increment_force[reached], atol=tolerance * scale)
         assert np.isnan(many.increment_force[~reached]).all() and np.isnan(many.increment_pressure[~reached]).all()
@@ -91,7 +91,7 @@ def test_a_batched_replay_stops_at_the_first_failure_like_the_single_one(
     """With Newton allowed only a few iterations the skin fails where the indenter first presses: both ways
     keep the increments before it and nothing after."""
     inflated_skin = BioTacModel.inflated_skin
-    impatient = NewtonSettings(max_iterations=8)
+    impatient = NewtonSettings(max_iterations=4)
     monkeypatch.setattr(BioTacModel, "inflated_skin", lambda self: replace(inflated_skin(self), newton=impatient))
     single, batched = _both_ways(TwinModel(mesh_max_edge=data.mesh_max_edge), data)
     for one in single:

@@ -32,7 +32,7 @@ PATHS = [  # indenter, point (m), angle (deg), azimuth (deg)
 ]
 STEPS = np.array([-0.2e-3, 0.0, 0.3e-3, 0.6e-3])
 """Tip travel (m) past first touch; the first pose is out of contact."""
-CAPPED_NEWTON = 6
+CAPPED_NEWTON = 4
 """A Newton iteration cap under which the full steps fail (the uncapped ones take more)."""
 
 
@@ -306,11 +306,11 @@ def test_an_indenter_on_the_clamped_rim_moves_no_fixed_vertex(
     """A cylinder pressed across the proximal rim, where the skin is clamped (x = -15 mm): the batched path
     keeps the fixed vertices in place, so the indenter meets them as the one-trajectory stepper does (the warm
     start once pushed them out of the indenter, and the solve, which moves only free DOFs, left them there);
-    once the indenter sinks into a clamped vertex's skin beyond the admissible penetration (the rigid base),
-    both report the increment not converged, naming the clamped vertex, instead of the penalty's force."""
+    once the indenter squeezes a clamped vertex's skin below the admissible stretch (onto the rigid base), both
+    report the increment not converged, naming the clamped vertex."""
     model: BioTacModel = request.getfixturevalue(fixture)
     name, point = "cylinder_short_small", np.array([-12.5e-3, 0.0, -8e-3])
-    travels = np.array([-0.2e-3, 0.0, 0.1e-3, 0.15e-3, 0.3e-3])  # admissible to ~0.2 mm here
+    travels = np.array([-0.2e-3, 0.0, 0.1e-3, 0.3e-3, 0.5e-3, 0.7e-3])  # admissible to ~0.6 mm here
     path = model.plan_trajectory(get_indenter(name), point, 0.0, 0.0, 1e-3, 1e-3)
     tips = path.touch_point + travels[:, None] * path.direction
     stepper, cpu = model.stepper(name), []
