@@ -20,6 +20,7 @@ from twin.analysis.diagnose import diagnose
 from twin.analysis.nuisances import NUISANCE_EFFECTS
 from twin.analysis.predict import Predictor, TwinModel
 from twin.analysis.verdict import NOTHING_BEYOND_NUISANCES
+from twin.cli.loop import _print_nuisances
 from twin.plant import make_plant
 
 SEED = 11
@@ -39,7 +40,9 @@ def realistic_null(tmp_path_factory: pytest.TempPathFactory) -> Path:
     return tiny_campaign_file(tmp_path_factory.mktemp("realistic"), make_plant([2], SEED))
 
 
-def test_a_realistic_null_is_nothing_beyond_the_nuisances(realistic_null: Path, predictor: Predictor) -> None:
+def test_a_realistic_null_is_nothing_beyond_the_nuisances(
+    realistic_null: Path, predictor: Predictor, capsys: pytest.CaptureFixture[str]
+) -> None:
     data = load_campaign(realistic_null)
     model = TwinModel(mesh_max_edge=data.mesh_max_edge)
     plain = diagnose([data], model, predictor, candidates=[], top=0)
@@ -54,6 +57,9 @@ def test_a_realistic_null_is_nothing_beyond_the_nuisances(realistic_null: Path, 
     # One point, two paths: more fluid (pretension) looks like a stiffer, thinner skin; a delay does not.
     assert "fill_volume" in summary["cannot_tell_apart"], summary["confounded"]
     assert summary["confounded"]["time_delay"] < 0.5, summary["confounded"]
+    _print_nuisances(summary)  # what `twin diagnose --nuisances` prints of it
+    printed = capsys.readouterr().out
+    assert f"{summary['rms_before']:.2f} -> {summary['rms_after']:.2f}" in printed and "fill_volume" in printed
 
 
 def test_a_hidden_delay_on_a_realistic_plant_is_named(

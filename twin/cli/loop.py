@@ -50,6 +50,14 @@ def diagnose(
         int, typer.Option("--refit-top", min=0, help="How many of the best-ranked candidates are refitted.")
     ] = 3,
     device: DeviceOption = "cpu",
+    nuisances: Annotated[
+        bool,
+        typer.Option(
+            "--nuisances",
+            help="First fit the standard unknowns of a real campaign (registration per arm, skin per sensor, F/T "
+            "bias; docs/analysis.md) and rank candidates on what remains.",
+        ),
+    ] = False,
 ) -> None:
     """Rank candidate effects by how much of the model-vs-measurement residual each explains."""
     from twin.analysis.diagnose import diagnose as run_diagnosis
@@ -63,9 +71,13 @@ def diagnose(
         task = progress.add_task("diagnosing", total=steps + min(refit_top, steps))
 
         def report(stage: str, name: str) -> None:
-            progress.update(task, description=f"{stage} {name}", advance=1)
+            progress.update(task, description=f"{stage} {name}", advance=0 if stage == "nuisances" else 1)
 
-        result = guarded(lambda: run_diagnosis(data, twin_model, predictor, top=refit_top, on_progress=report))
+        result = guarded(
+            lambda: run_diagnosis(
+                data, twin_model, predictor, top=refit_top, on_progress=report, nuisances=nuisances
+            )
+        )
     if as_json:
         print(result.to_json())
         return
@@ -83,8 +95,23 @@ def diagnose(
     out_console.print(
         f"residual RMS = {result.base_rms:.2f} x noise (noise test: {result.rms_threshold:.3f} x noise on these data)"
     )
+    if result.nuisances is not None:
+        _print_nuisances(result.nuisances)
     out_console.print(table)
     out_console.print(f"verdict: [bold]{result.verdict}[/bold] - {result.reason}")
+
+
+def _print_nuisances(fit: dict) -> None:
+    """The nuisance stage of `twin diagnose --nuisances`: fitted values and the residual before / after."""
+    held = "-" if fit["heldout_rms"] is None else f"{fit['heldout_rms']:.2f}"
+    out_console.print(
+        f"nuisances fitted first: RMS {fit['rms_before']:.2f} -> {fit['rms_after']:.2f} x noise (held out {held})"
+    )
+    bound = set(fit["at_bound"])
+    values = ", ".join(f"{k}={v:.4g}{' (at bound)' if k in bound else ''}" for k, v in fit["values"].items())
+    out_console.print(f"  {values}")
+    if fit["cannot_tell_apart"]:
+        out_console.print(f"  these data cannot tell {', '.join(fit['cannot_tell_apart'])} from the nuisances")
 
 
 @loop_app.command()
