@@ -29,6 +29,7 @@ from fe.indenter_sdf import indenter_sdf, indenter_sdf_grad
 wp.set_module_options({"enable_backward": False})  # no adjoint kernels: nothing differentiates them
 
 _TINY = wp.constant(wp.float64(1e-30))
+_UNBOUNDED = wp.constant(wp.float32(1.0e6))  # m: a search radius beyond any mesh
 
 
 @wp.func
@@ -102,10 +103,12 @@ def core_distance(
     max_dist: wp.float32,
 ) -> wp.vec4d:
     """(signed distance m, unit gradient) of p to the core mesh; the closest face is found in float32,
-    the closest point on it is recomputed in float64. Distance 1 m when no face is within `max_dist` (m)."""
+    the closest point on it is recomputed in float64. The search first looks within `max_dist` (m), which
+    prunes the BVH; a point with no face that close (far outside, or deep inside the core) is searched again
+    without a bound, so its distance and side (angle-weighted pseudo-normal sign) are always the true ones."""
     q = wp.mesh_query_point_sign_normal(core, wp.vec3(p), max_dist)
     if not q.result:
-        return wp.vec4d(wp.float64(1.0), wp.float64(0.0), wp.float64(0.0), wp.float64(0.0))
+        q = wp.mesh_query_point_sign_normal(core, wp.vec3(p), _UNBOUNDED)
     tri = core_triangles[q.face]
     cp = closest_point_on_triangle(p, core_vertices[tri[0]], core_vertices[tri[1]], core_vertices[tri[2]])
     diff = p - cp
@@ -139,12 +142,14 @@ def core_contact_kernel(
     """Frictionless contact of skin vertex v with the core mesh: the inner half-layer (thickness `offset` m)
     squeezed by the `layer_response` law (modulus layer_mu[b] Pa).
 
-    The closest-face search is limited to offset + 1 mm from the core (a vertex farther out is reported at
-    1 m), beyond any closure of the half-layer; a smaller radius prunes the BVH
-    search (half the cost of 5 mm). The search is skipped where it cannot find contact: the signed distance
-    is 1-Lipschitz, so a vertex that has moved less than its gap at its last search (`queried_at`,
-    `queried_gap`, kept per vertex between evaluations) is still out of contact, and its gap is reported as
-    that lower bound (+inf for vertices never searched: the clamped ones).
+    The closest-face search looks within offset + 1 mm of the core first (a small radius prunes the BVH
+    search: half the cost of 5 mm) and, where that finds nothing, without a bound (`core_distance`): a
+    vertex deeper inside the core than that gets its true negative gap (squeezed past the floor, so the
+    stepper refuses the state) instead of looking far outside. The search is skipped where it cannot find
+    contact: the signed distance is 1-Lipschitz, so a vertex outside the core that has moved less than its
+    gap at its last search (`queried_at`, `queried_gap`, kept per vertex between evaluations) is still out
+    of contact, and its gap is reported as that lower bound (+inf for vertices never searched: the clamped
+    ones). A vertex inside keeps a negative `queried_gap`: it is searched at every evaluation.
     The Hessian includes the curvature of the distance field (non-zero where the closest point is on a
     mesh edge or vertex) by central differences of its gradient.
     """
@@ -163,7 +168,7 @@ def core_contact_kernel(
     dn = core_distance(core, core_vertices, core_triangles, p, reach)
     g = dn[0] - offset
     queried_at[b, v] = p
-    queried_gap[b, v] = wp.min(g, wp.float64(1.0e-3))  # no face within reach: farther than 1 mm
+    queried_gap[b, v] = g  # exact: a bound for the skip only where positive (outside the core)
     gap[b, v] = g
     if g >= zero:
         return
