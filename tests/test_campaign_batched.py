@@ -41,10 +41,12 @@ CONFIG = replace(
     QUICK_CONFIG,
     sensors=(2,),
     indenters=("sphere_medium",),
-    settings=replace(QUICK_SETTINGS, normal_depth=0.8e-3, angled_depth=0.4e-3, pause_s=0.2, force_limit=0.18),
+    settings=replace(QUICK_SETTINGS, normal_depth=0.8e-3, angled_depth=0.4e-3, pause_s=0.2, force_limit=0.25),
 )
 """A normal 0.8 mm and an angled 0.4 mm press of sphere_medium on sensor 2 (2 mm mesh, 0.2 s pauses), stopped
-above 0.18 N measured (the normal press reaches about 0.35 N of fe force by 0.5 mm)."""
+above 0.25 N measured (the normal press reaches about 0.32 N of fe force by 0.5 mm and 0.54 N by 0.8 mm with the
+layer contact law, in steps of ~0.075 N: the batch ends it at 0.39 N, where half of it measured plus the noise
+stays below the limit)."""
 PLANT = make_plant(
     [2],
     0,
