@@ -27,6 +27,7 @@ from scipy.spatial.transform import Rotation, Slerp
 
 from assets.indenters import Indenter, get_indenter
 from fe.batched import BatchedShell, InflatedSkin, NewtonBatch, get_rows, put_rows
+from fe.indenter_sdf import head_radius
 from fe.results import IncrementResult
 from fe.viscoelastic import SkinRelaxation
 
@@ -187,6 +188,10 @@ class BatchedStepper:
         self._dt = np.zeros(B)
         self._depth, self._admitted_at = np.zeros(B), np.zeros(B)
         self._increment_travel = np.zeros((B, 3))
+        self._half = np.array(
+            [s.params.thickness / 2 if s.indenter_offset is None else s.indenter_offset for s in self.skins]
+        )
+        """(B,) half-layer (m) of each skin on the indenter's side (0: a zero-thickness membrane)."""
 
     # -- state -------------------------------------------------------------------------------------
     def reset(self, which: np.ndarray | None = None) -> None:
@@ -291,7 +296,7 @@ class BatchedStepper:
         put_rows(shell.x_trial, rows, self.x[rows])
         free_now = np.zeros(self.batch, dtype=bool)
         free_ref = np.zeros(self.batch, dtype=bool)
-        free_now[rows] = shell.proximity(shell.x_trial, rows)[0].min(axis=1) >= 0.0
+        free_now[rows], pressed = self._sweep(rows)
         free_ref[rows] = shell.proximity(self._reference_w, rows)[0].min(axis=1) >= 0.0
         relaxed = np.ones(self.batch, dtype=bool)
         if self.relaxation is not None:
@@ -302,6 +307,16 @@ class BatchedStepper:
         released = which & free_now & self.in_contact & free_ref & (self.relaxation is None)
         self._release(released)
         solving = which & ~untouched & ~released
+        refused = {}
+        for k in np.flatnonzero(solving[rows]):
+            i, half = int(rows[k]), self._half[rows[k]]
+            if half > 0.0 and pressed[k] > half:
+                message = (
+                    f"inadmissible: step too large: the indenter's surface moves {pressed[k] * 1e3:.2f} mm "
+                    f"against the skin in one increment (limit: the half-thickness, {half * 1e3:.2f} mm)"
+                )
+                self.failure[i], solving[i] = message, False
+                refused[i] = self._free_result(i, float(depth[i]), message)
         if self.relaxation is not None and solving.any():
             self.relaxation.prepare(np.flatnonzero(solving), self._dt[solving])
         if solving.any():
@@ -309,7 +324,43 @@ class BatchedStepper:
             self._increment_travel[solving] = travel[solving]
             self._admitted_at[solving] = start
             self._start_solves(solving, travel)
-        return {int(i): self._free_result(int(i), float(depth[i])) for i in np.flatnonzero(untouched | released)}
+        free = {int(i): self._free_result(int(i), float(depth[i])) for i in np.flatnonzero(untouched | released)}
+        return free | refused
+
+    def _sweep(self, rows: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Whether the skin of systems `rows` at its last state (in the shell's `x_trial`) stays clear of the
+        indenter along the whole move from its start pose to its new one ((k,) bool), and how far (m) the
+        indenter's surface moves against that skin ((k,)): summed over the sweep's pieces, the largest change
+        of a skin vertex's gap among those touching at either end of the piece. Poses are sampled (rotations
+        by slerp, tips on the line) every half-thickness or less of the travel bound |dt| + |dtheta| r_head
+        (`fe.indenter_sdf.head_radius`), so the skin is not passed unseen between samples; the shell's poses
+        are left at the new ones."""
+        shell = self.shell
+        start_r, start_t = self._start_rotation[rows], self._start_translation[rows]
+        turn = Rotation.from_matrix(self.pose_rotation[rows] @ np.transpose(start_r, (0, 2, 1))).as_rotvec()
+        shift = self.pose_translation[rows] - start_t
+        radius = np.array([head_radius(*shell.indenters[i]) for i in rows])
+        bound = np.linalg.norm(shift, axis=1) + np.linalg.norm(turn, axis=1) * radius
+        spacing = np.where(self._half[rows] > 0.0, self._half[rows], np.inf)
+        pieces = np.maximum(np.ceil(bound / spacing), 1).astype(int)
+        clear, pressed = np.ones(len(rows), dtype=bool), np.zeros(len(rows))
+        rotation, translation = self.pose_rotation.copy(), self.pose_translation.copy()
+        before = None
+        for step in range(int(pieces.max()) + 1):
+            f = np.minimum(step / pieces, 1.0)
+            rotation[rows] = Rotation.from_rotvec(f[:, None] * turn).as_matrix() @ start_r
+            translation[rows] = start_t + f[:, None] * shift
+            shell.set_poses(rotation, translation, self._start_rotation, self._start_translation)
+            gap = shell.proximity(shell.x_trial, rows)[0]
+            if before is not None:
+                live = step <= pieces
+                clear &= ~live | (gap.min(axis=1) >= 0.0)
+                touching = (gap < 0.0) | (before < 0.0)
+                moved = np.where(touching, np.abs(gap - before), 0.0).max(axis=1)
+                pressed += np.where(live, moved, 0.0)
+            before = gap
+        shell.set_poses(self.pose_rotation, self.pose_translation, self._start_rotation, self._start_translation)
+        return clear, pressed
 
     def _clock(self, which: np.ndarray, times: np.ndarray | None) -> np.ndarray:
         """Time steps (B,) s since each `which` system's last step, validating and recording `times`."""
@@ -443,8 +494,7 @@ class BatchedStepper:
         never refuse."""
         settings, skin = self.skin.contact, self.skins[i]
         free = ~self.shell.fixed.all(axis=1)  # clamped vertices sit on the rigid base: no core contact there
-        half = 0.5 * skin.params.thickness if skin.indenter_offset is None else skin.indenter_offset
-        bodies = [("the indenter", gap, half)]
+        bodies = [("the indenter", gap, self._half[i])]
         if self.shell.has_core:
             bodies.append(("the core", np.where(free, core_gap, np.inf), skin.core_offset))
         for where, gaps, h in bodies:
@@ -495,7 +545,9 @@ class BatchedStepper:
             wall_s=now - self._admitted_at[i],
         )
 
-    def _free_result(self, i: int, depth: float) -> IncrementResult:
+    def _free_result(self, i: int, depth: float, refusal: str = "") -> IncrementResult:
+        """System i's increment that needed no solve: free of the indenter at its last state, or refused
+        before solving (`refusal`, its reason)."""
         return IncrementResult(
             depth=float(depth),
             force=np.zeros(3),
@@ -507,7 +559,7 @@ class BatchedStepper:
             newton_iterations=0,
             residual=float(self._rest_residual[i]),
             equilibrium_error=float(self._rest_balance[i]),
-            converged=True,
-            message="no contact",
+            converged=not refusal,
+            message=refusal or "no contact",
             wall_s=0.0,
         )

@@ -19,12 +19,13 @@ the law above and n the contact normal of the last lagging pass, u_T the slip ov
 on the plane normal to n, and f0 the C1 smoothing of |u| over the slip length eps (m). The indenter moves
 rigidly from pose (R0, t0) to (R, t); the slip of a skin vertex at p relative to the indenter material
 point now under it is u = R0 R^T (p - t) + t0 - x_start, i.e. its motion seen from the indenter's body
-frame. Its SDF is evaluated in its own frame (tip at the origin, body along +z).
+frame. Its SDF is evaluated in its own frame (tip at the origin, body along +z) and covers the whole body,
+head and shank (`fe.indenter_sdf.body_sdf_and_grad`), so the skin cannot slip past the head's back.
 """
 
 import warp as wp
 
-from fe.indenter_sdf import indenter_sdf, indenter_sdf_grad
+from fe.indenter_sdf import body_sdf_and_grad
 
 wp.set_module_options({"enable_backward": False})  # no adjoint kernels: nothing differentiates them
 
@@ -191,12 +192,15 @@ def core_contact_kernel(
 
 @wp.func
 def _sdf_world(kind: int, dims: wp.vec4d, rotation: wp.mat33d, translation: wp.vec3d, p: wp.vec3d) -> wp.float64:
-    return indenter_sdf(kind, dims, wp.transpose(rotation) @ (p - translation))
+    """Signed distance (m) of world point p to the indenter body (head and shank) at pose (rotation, tip)."""
+    return body_sdf_and_grad(kind, dims, wp.transpose(rotation) @ (p - translation))[0]
 
 
 @wp.func
 def _sdf_grad_world(kind: int, dims: wp.vec4d, rotation: wp.mat33d, translation: wp.vec3d, p: wp.vec3d) -> wp.vec3d:
-    return rotation @ indenter_sdf_grad(kind, dims, wp.transpose(rotation) @ (p - translation))
+    """Unit outward gradient (world frame) of `_sdf_world`."""
+    r = body_sdf_and_grad(kind, dims, wp.transpose(rotation) @ (p - translation))
+    return rotation @ wp.vec3d(r[1], r[2], r[3])
 
 
 @wp.kernel
@@ -331,3 +335,22 @@ def lag_candidates(
     candidate[b, v] = f
     wp.atomic_max(stats, b, 0, wp.abs(f - lagged_force[b, v]))
     wp.atomic_max(stats, b, 1, f)
+
+
+@wp.kernel
+def indenter_clearance_kernel(
+    points: wp.array(dtype=wp.vec3d),
+    kind: wp.array(dtype=wp.int32),
+    dims: wp.array(dtype=wp.vec4d),
+    rotation: wp.array(dtype=wp.mat33d),
+    translation: wp.array(dtype=wp.vec3d),
+    active: wp.array(dtype=wp.int32),
+    clearance: wp.array(dtype=wp.float64),
+):
+    """clearance[b] = the smallest signed distance (m) of `points` (sensor frame; e.g. samples of the rigid
+    core's surface) to the indenter body of batch b at its pose: negative where a point is inside it
+    (clearance must start at +inf; systems with active[b] = 0 are left as they are)."""
+    b, k = wp.tid()
+    if active[b] == 0:
+        return
+    wp.atomic_min(clearance, b, _sdf_world(kind[b], dims[b], rotation[b], translation[b], points[k]))

@@ -16,6 +16,7 @@ at least one edge radius (1 mm) inside the head, on a sphere's centre, a cylinde
 ~0.6 mm from the texture); there a sensible one-sided choice is returned.
 """
 
+import numpy as np
 import warp as wp
 
 from assets.indenters import (
@@ -28,6 +29,7 @@ from assets.indenters import (
     KIND_SPHERE,
     KIND_TEXTURE,
     KIND_TORUS,
+    SHANK_RADIUS,
     TEXTURE_FILLET,
     TEXTURE_RIM,
 )
@@ -43,8 +45,8 @@ _HA = wp.constant(wp.int64(HASH_MULTIPLIER))
 _HO = wp.constant(wp.int64(HASH_OFFSET))
 
 
-def _build(real, vec2, vec3, vec4, indenter_sdf_and_grad=None):
-    """Define the warp functions for one float type; passing the previous function adds an overload."""
+def _build(real, vec2, vec3, vec4, indenter_sdf_and_grad=None, body_sdf_and_grad=None):
+    """Define the warp functions for one float type; passing the previous functions adds overloads."""
     fillet = real(TEXTURE_FILLET)
     rim = real(TEXTURE_RIM)
 
@@ -204,11 +206,44 @@ def _build(real, vec2, vec3, vec4, indenter_sdf_and_grad=None):
             return texture(dims, p)
         return vec4(real(1.0), real(0.0), real(0.0), real(-1.0))
 
-    return indenter_sdf_and_grad
+    @wp.func
+    def body_sdf_and_grad(kind: int, dims: vec4, p: vec3) -> vec4:  # noqa: F811
+        """(signed distance, unit outward gradient) of indenter ``kind``'s head united with its shank, a
+        semi-infinite round post on the z axis (radius min(3.6 mm, head radius) for spheres and cylinders,
+        3.6 mm otherwise, from the head's mid-height up; from the top of the ring's tube and 1 mm below the
+        texture plate's top), as `assets.indenters.Indenter.mesh` builds the solid: the body cannot be
+        passed along its axis. Exact outside; inside, the nearer surface's distance."""
+        head = indenter_sdf_and_grad(kind, dims, p)
+        a = dims[0]
+        shank = real(SHANK_RADIUS)
+        base = real(0.0)
+        if kind == _KS or kind == _KCS:
+            shank = wp.min(shank, a)
+            base = a
+        elif kind == _KCF:
+            shank = wp.min(shank, a)
+            base = real(0.5) * dims[1]
+        elif kind == _KB:
+            base = real(0.5) * dims[2]
+        elif kind == _KT:
+            base = dims[2]
+        elif kind == _KX:
+            base = dims[1] + real(1.0e-3)
+        else:
+            return head
+        rad = radial(p[0], p[1])
+        post = rounded_rect(rad[0] - shank, base - p[2], real(0.0))
+        if post[0] < head[0]:
+            return vec4(post[0], post[1] * rad[1], post[1] * rad[2], -post[2])
+        return head
+
+    return indenter_sdf_and_grad, body_sdf_and_grad
 
 
-indenter_sdf_and_grad = _build(wp.float32, wp.vec2, wp.vec3, wp.vec4)
-indenter_sdf_and_grad = _build(wp.float64, wp.vec2d, wp.vec3d, wp.vec4d, indenter_sdf_and_grad)
+indenter_sdf_and_grad, body_sdf_and_grad = _build(wp.float32, wp.vec2, wp.vec3, wp.vec4)
+indenter_sdf_and_grad, body_sdf_and_grad = _build(
+    wp.float64, wp.vec2d, wp.vec3d, wp.vec4d, indenter_sdf_and_grad, body_sdf_and_grad
+)
 
 
 @wp.func
@@ -235,3 +270,19 @@ def indenter_sdf_grad(kind: int, dims: wp.vec4d, p: wp.vec3d) -> wp.vec3d:  # no
     """Unit outward gradient of ``indenter_sdf`` at p (indenter frame), float64."""
     r = indenter_sdf_and_grad(kind, dims, p)
     return wp.vec3d(r[1], r[2], r[3])
+
+
+def head_radius(kind: int, dims: tuple[float, float, float, float]) -> float:
+    """Radius (m) of a ball about the tip holding indenter ``kind``'s pressing head (``dims`` of
+    `assets.indenters.Indenter`): a rotation by theta about the tip moves no head point more than
+    theta times it."""
+    a, b, c, e = dims
+    width, height = {
+        KIND_SPHERE: (a, 2.0 * a),
+        KIND_CYLINDER_FLAT: (a, b),
+        KIND_CYLINDER_SIDE: (max(0.5 * b, a), 2.0 * a),
+        KIND_BOX: (float(np.hypot(a, b)), c),
+        KIND_TORUS: (b, c),
+        KIND_TEXTURE: (float(np.sqrt(2.0)) * e, b + 2.0e-3),
+    }.get(kind, (0.0, 0.0))
+    return float(np.hypot(width, height))

@@ -11,7 +11,9 @@ import trimesh
 import warp as wp
 
 from assets.biotac import make_biotac
+from assets.indenters import get_indenter
 from fe.batched_stepper import BatchedStepper
+from fe.indentation import IndentationStepper
 from fe.params import SkinParameters
 from fe.sensor import BioTacModel
 
@@ -41,3 +43,44 @@ def test_a_skin_vertex_deep_inside_the_core_gets_its_true_negative_gap(biotac: B
     expected = -trimesh.proximity.signed_distance(core, x[free]) - skin.core_offset
     assert np.all(expected < -(skin.core_offset + 1e-3))  # beyond the bounded search
     assert np.allclose(gap, expected, atol=1e-7), (gap, expected)
+
+
+def _press(model: BioTacModel, name: str, depth_mm: float, step_mm: float) -> list:
+    return list(model.indent(name, POINT, depth_mm * 1e-3, step_mm * 1e-3, 0.0))
+
+
+def _same_or_refused(result, reference) -> None:
+    """A converged increment carries the small-step path's force at its depth (5 %); else it says why not."""
+    if result.converged:
+        assert reference.converged and np.isclose(result.depth, reference.depth)
+        assert np.linalg.norm(result.force - reference.force) <= 0.05 * np.linalg.norm(reference.force)
+    else:
+        assert result.message.startswith("inadmissible"), result.message
+
+
+@pytest.mark.parametrize(("name", "depth_mm"), [("sphere_medium", 9.0), ("sphere_large", 5.0)])
+def test_one_large_step_from_touch_does_not_tunnel_through_the_skin(
+    biotac: BioTacModel, name: str, depth_mm: float
+) -> None:
+    """Review F1: one 9 mm step from first touch came back converged at 0 N, "no contact" (the ball passed
+    through the skin). Now it is refused ("step too large", after three halvings) or carries the force of
+    the same press taken in 0.5 mm steps; those steps (within the half-thickness) are never refused so."""
+    path = _press(biotac, name, depth_mm, 0.5)
+    assert not any("step too large" in r.message for r in path)
+    assert path[1].converged and np.linalg.norm(path[1].force) > 0.0
+    one = _press(biotac, name, depth_mm, depth_mm)[-1]
+    reference = min(path, key=lambda r: abs(r.depth - one.depth))
+    _same_or_refused(one, reference)
+
+
+def test_a_ball_pressed_in_and_then_pushed_through_the_skin_is_not_released(biotac: BioTacModel) -> None:
+    """Review F1: a ball 1 mm deep pushed on by 8 mm in one step ended beyond the skin and read 0 N, "no
+    contact", converged (a release judged at the end pose only). Now refused, or the 0.5 mm path's force."""
+    name = "sphere_medium"
+    path = biotac.plan_trajectory(get_indenter(name), POINT, 0.0, 0.0, 1e-3, 1e-3)
+    stepper = IndentationStepper(biotac.inflated_skin(), name, path.touch_point)
+    for depth in (0.0, 0.5, 1.0):
+        assert stepper.step(path.rotation, path.touch_point + depth * 1e-3 * path.direction).converged
+    through = stepper.step(path.rotation, path.touch_point + 9e-3 * path.direction)
+    reference = min(_press(biotac, name, 9.0, 0.5), key=lambda r: abs(r.depth - through.depth))
+    _same_or_refused(through, reference)
