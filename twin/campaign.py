@@ -33,6 +33,7 @@ from twin.controller import Recording, execute
 from twin.dataset import assemble_sensor_file, part_path, read_part, write_part
 from twin.effects import apply_path, apply_skin
 from twin.executors import Executor, LocalExecutor
+from twin.fe_models import inflated_model
 from twin.planning import PlannedTrajectory, plan_statistics, plan_trajectory, scene_tool_tip
 from twin.plant import Plant, make_plant, rigid_transform
 from twin.processing import process
@@ -92,15 +93,6 @@ class CampaignPlan:
         stats = plan_statistics(self.planned)
         stats["registration_error_mm"] = {f"{s}/{a}": v * 1e3 for (s, a), v in self.registration_error.items()}
         return stats
-
-
-def inflated_model(geometry: BioTacGeometry, params: SkinParameters) -> BioTacModel:
-    """A BioTac fe model inflated to the sensor's 15.1 mm thickness; raises if inflation fails."""
-    model = BioTacModel(geometry, params)
-    result = model.inflate()
-    if not result.converged:
-        raise RuntimeError(f"inflation did not converge: {result.message}")
-    return model
 
 
 def true_mount_pose(plant: Plant, sensor_id: int, scene: TestbedScene) -> np.ndarray:

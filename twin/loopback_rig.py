@@ -39,8 +39,9 @@ import numpy as np
 from assets.biotac import make_biotac
 from fe.electrodes import ElectrodeModel
 from twin.backend import ARMS, BackendError
-from twin.campaign import CampaignConfig, inflated_model, true_biotac_pose
+from twin.campaign import CampaignConfig, true_biotac_pose
 from twin.effects import apply_skin
+from twin.fe_models import inflated_model
 from twin.kinematics import forward
 from twin.planning import scene_tool_tip
 from twin.plant import Plant, make_plant

@@ -217,6 +217,7 @@ def run(
             finally:
                 if viewer:
                     viewer.close()
+            pool.close()  # the workers kept between the campaign's maps (an interrupt leaves them to die with us)
         else:
             try:
                 result = guarded(lambda: run_from_config(config, hardware_config, out, None if yes else mount, report))
