@@ -552,6 +552,15 @@ class BatchedShell:
         values = {**self._static, "x": x, "gap": self.buf["indenter_gap"], "normal": self.buf["indenter_normal"]}
         self._launch_indenters(contact.indenter_gap_kernel, values)
 
+    def indenter_clearance(self, points: wp.array, which: np.ndarray) -> np.ndarray:
+        """Smallest signed distance (m) of `points` (N,) (sensor frame) to the indenter body of each `which`
+        system (B,) bool at its pose: (B,), +inf for the others."""
+        clearance = wp.full(self.batch, np.inf, dtype=wp.float64, device=self.device)
+        values = {**self.pose, "kind": self._kind, "dims": self._dims, "points": points, "clearance": clearance}
+        values["active"] = wp.array(np.asarray(which, dtype=np.int32), dtype=wp.int32, device=self.device)
+        launch(contact.indenter_clearance_kernel, (self.batch, len(points)), values, self.device)
+        return clearance.numpy()
+
     def _launch_indenters(self, kernel: wp.Kernel, values: dict) -> None:
         """One launch of an indenter kernel for every system, each with its own indenter shape and pose."""
         values = {**values, **self.pose, "kind": self._kind, "dims": self._dims}

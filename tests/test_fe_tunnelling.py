@@ -84,3 +84,24 @@ def test_a_ball_pressed_in_and_then_pushed_through_the_skin_is_not_released(biot
     through = stepper.step(path.rotation, path.touch_point + 9e-3 * path.direction)
     reference = min(_press(biotac, name, 9.0, 0.5), key=lambda r: abs(r.depth - through.depth))
     _same_or_refused(through, reference)
+
+
+def test_a_large_ball_never_reaches_the_core_through_the_skin(biotac: BioTacModel) -> None:
+    """Review F2: sphere_large in 0.5 mm steps kept converging after the core passed through skin triangles
+    between their vertices, its force falling with depth (24.4 N at 6.0 mm, 23.9 N at 6.5 mm on this mesh)
+    while the ball sat inside the rigid core. Every converged increment must keep the ball's surface
+    (trimesh: distance of its centre to the core, minus its radius) at least both half-layers at the floor
+    from the core, with a force that grows with depth; the press ends refused."""
+    skin, name = biotac.inflated_skin(), "sphere_large"
+    radius = get_indenter(name).dims[0]
+    path = biotac.plan_trajectory(get_indenter(name), POINT, 0.0, 0.0, 1e-3, 1e-3)
+    core = trimesh.Trimesh(skin.core_vertices, skin.core_triangles, process=False)
+    floor = skin.contact.min_stretch * (0.5 * biotac.params.thickness + skin.core_offset)
+    rows = _press(biotac, name, 7.5, 0.5)
+    accepted = [r for r in rows if r.converged]
+    centres = np.array([path.touch_point + r.depth * path.direction + radius * path.rotation[:, 2] for r in accepted])
+    clearance = np.abs(trimesh.proximity.signed_distance(core, centres)) - radius
+    assert np.all(clearance >= floor), clearance
+    magnitudes = [float(np.linalg.norm(r.force)) for r in accepted]
+    assert np.all(np.diff(magnitudes) > 0.0), magnitudes
+    assert not rows[-1].converged and "reached the core through the skin" in rows[-1].message, rows[-1].message
