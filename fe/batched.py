@@ -552,13 +552,17 @@ class BatchedShell:
         values = {**self._static, "x": x, "gap": self.buf["indenter_gap"], "normal": self.buf["indenter_normal"]}
         self._launch_indenters(contact.indenter_gap_kernel, values)
 
-    def indenter_clearance(self, points: wp.array, which: np.ndarray) -> np.ndarray:
-        """Smallest signed distance (m) of `points` (N,) (sensor frame) to the indenter body of each `which`
-        system (B,) bool at its pose: (B,), +inf for the others."""
+    def indenter_clearance(self, parts: wp.array, floor: np.ndarray, which: np.ndarray) -> np.ndarray:
+        """Nearest approach (m) of each `which` system's (B,) bool indenter body to the rigid core at its pose,
+        (B,): exact to the sampling of `fe.contact.indenter_clearance_kernel` (core triangles split in
+        `parts` (T_core,) per edge) where below `floor` (B,) m, a lower bound at least `floor` elsewhere;
+        +inf for the other systems."""
         clearance = wp.full(self.batch, np.inf, dtype=wp.float64, device=self.device)
-        values = {**self.pose, "kind": self._kind, "dims": self._dims, "points": points, "clearance": clearance}
+        values = {**self.pose, "kind": self._kind, "dims": self._dims, "parts": parts, "clearance": clearance}
+        values |= {"core_vertices": self._core_vertices, "core_triangles": self._core_triangles}
+        values["floor"] = wp.array(np.asarray(floor, dtype=np.float64), dtype=wp.float64, device=self.device)
         values["active"] = wp.array(np.asarray(which, dtype=np.int32), dtype=wp.int32, device=self.device)
-        launch(contact.indenter_clearance_kernel, (self.batch, len(points)), values, self.device)
+        launch(contact.indenter_clearance_kernel, (self.batch, len(parts)), values, self.device)
         return clearance.numpy()
 
     def _launch_indenters(self, kernel: wp.Kernel, values: dict) -> None:

@@ -101,21 +101,6 @@ _PULL_TOLERANCE = 0.1
 (friction tilts a pressing force, but never turns it around)."""
 
 
-def _surface_samples(vertices: np.ndarray, triangles: np.ndarray, spacing: float) -> np.ndarray:
-    """Points (N,3) m on a triangle mesh, no farther than `spacing` (m) apart along any edge: each triangle's
-    vertices and the nodes of its regular subdivision into m^2 pieces, m = ceil(longest edge / spacing)."""
-    corners = vertices[triangles]
-    longest = np.linalg.norm(corners - np.roll(corners, 1, axis=1), axis=2).max(axis=1)
-    parts = np.maximum(np.ceil(longest / spacing), 1).astype(int)
-    points = [vertices]
-    for m in np.unique(parts):
-        i, j = np.meshgrid(np.arange(m + 1), np.arange(m + 1), indexing="ij")
-        keep = i + j <= m
-        weights = np.stack([i[keep], j[keep], m - i[keep] - j[keep]], axis=1) / m
-        points.append(np.einsum("sk,tkd->tsd", weights, corners[parts == m]).reshape(-1, 3))
-    return np.concatenate(points)
-
-
 def _check_poses(
     rotation: np.ndarray, translation: np.ndarray, batch: int, active: np.ndarray
 ) -> tuple[np.ndarray, np.ndarray]:
@@ -207,13 +192,19 @@ class BatchedStepper:
             [s.params.thickness / 2 if s.indenter_offset is None else s.indenter_offset for s in self.skins]
         )
         """(B,) half-layer (m) of each skin on the indenter's side (0: a zero-thickness membrane)."""
-        self._core_samples = None
-        """Points (sensor frame, m) of the rigid core's surface, half the rigid-against-rigid floor apart (None:
-        no core, or no layer between it and the indenter)."""
-        floor = skin.contact.min_stretch * (self._half.min() + skin.core_offset)
-        if self.shell.has_core and floor > 0.0:
-            points = _surface_samples(skin.core_vertices, skin.core_triangles, 0.5 * floor)
-            self._core_samples = wp.array(points, dtype=wp.vec3d, device=device)
+        self._core_floor = skin.contact.min_stretch * (self._half + skin.core_offset)
+        """(B,) nearest approach (m) of the rigid indenter to the rigid core that a converged state may show:
+        both half-layers between them at `ContactSettings.min_stretch`."""
+        self._core_parts = None
+        """Per core triangle, how many pieces each of its edges is split into for the rigid-against-rigid check
+        (nodes half the smallest floor apart or closer; None: no core, or no layer between it and the
+        indenter)."""
+        spacing = 0.5 * self._core_floor.min()
+        if self.shell.has_core and spacing > 0.0:
+            corners = skin.core_vertices[skin.core_triangles]
+            longest = np.linalg.norm(corners - np.roll(corners, 1, axis=1), axis=2).max(axis=1)
+            parts = np.maximum(np.ceil(longest / spacing), 1).astype(np.int32)
+            self._core_parts = wp.array(parts, dtype=wp.int32, device=device)
 
     # -- state -------------------------------------------------------------------------------------
     def reset(self, which: np.ndarray | None = None) -> None:
@@ -483,8 +474,9 @@ class BatchedStepper:
         gap_rows = get_rows(shell.buf["indenter_gap"], rows)
         core_gap_rows = get_rows(shell.buf["core_gap"], rows)
         clearance = np.full(self.batch, np.inf)
-        if self._core_samples is not None:
-            clearance = shell.indenter_clearance(self._core_samples, np.isin(np.arange(self.batch), rows))
+        if self._core_parts is not None:
+            finished = np.isin(np.arange(self.batch), rows)
+            clearance = shell.indenter_clearance(self._core_parts, self._core_floor, finished)
         results = {}
         for k, i in enumerate(int(r) for r in rows):
             x, gap = x_rows[k], gap_rows[k]
@@ -519,11 +511,10 @@ class BatchedStepper:
         a zero-thickness contact penetrated deeper than `ContactSettings.max_penetration` of the thickness;
         forces out of balance under a load; or the indenter force pulling the indenter into the skin (it went
         through: force (3,) N on the skin, the press direction being the indenter's -z axis); or the rigid
-        indenter nearer the rigid core than both half-layers at the floor allow (`clearance`, m: the smallest
-        indenter SDF over the core's surface samples): it reached the core through the skin, between skin
-        vertices (issue 17 review F2). Core gaps of
-        vertices whose search was skipped are lower bounds >= 0 (`fe.contact.core_contact_kernel`), so they
-        never refuse."""
+        indenter nearer the rigid core than both half-layers at the floor allow (`clearance`, m, from
+        `fe.batched.BatchedShell.indenter_clearance`): it reached the core through the skin, between skin
+        vertices (issue 17 review F2). Core gaps of vertices whose search was skipped are lower bounds >= 0
+        (`fe.contact.core_contact_kernel`), so they never refuse."""
         settings, skin = self.skin.contact, self.skins[i]
         free = ~self.shell.fixed.all(axis=1)  # clamped vertices sit on the rigid base: no core contact there
         bodies = [("the indenter", gap, self._half[i])]
@@ -542,7 +533,7 @@ class BatchedStepper:
             limit = settings.max_penetration * skin.params.thickness
             if h <= 0.0 and closing > limit:
                 return f"{where} {closing * 1e6:.0f} um into the skin{clamped} (limit {limit * 1e6:.0f} um)"
-        floor = settings.min_stretch * (self._half[i] + skin.core_offset)
+        floor = self._core_floor[i]
         if clearance < floor:
             return (
                 f"the indenter reached the core through the skin ({clearance * 1e3:.2f} mm from it; "

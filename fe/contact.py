@@ -339,7 +339,10 @@ def lag_candidates(
 
 @wp.kernel
 def indenter_clearance_kernel(
-    points: wp.array(dtype=wp.vec3d),
+    core_vertices: wp.array(dtype=wp.vec3d),
+    core_triangles: wp.array(dtype=wp.vec3i),
+    parts: wp.array(dtype=wp.int32),
+    floor: wp.array(dtype=wp.float64),
     kind: wp.array(dtype=wp.int32),
     dims: wp.array(dtype=wp.vec4d),
     rotation: wp.array(dtype=wp.mat33d),
@@ -347,10 +350,32 @@ def indenter_clearance_kernel(
     active: wp.array(dtype=wp.int32),
     clearance: wp.array(dtype=wp.float64),
 ):
-    """clearance[b] = the smallest signed distance (m) of `points` (sensor frame; e.g. samples of the rigid
-    core's surface) to the indenter body of batch b at its pose: negative where a point is inside it
-    (clearance must start at +inf; systems with active[b] = 0 are left as they are)."""
-    b, k = wp.tid()
+    """clearance[b] = a lower bound (m) of the indenter body's signed distance over core triangle t, at
+    least floor[b] unless the triangle is sampled: the SDF at its centroid minus the centroid's distance to
+    its farthest corner (1-Lipschitz); where that is below floor[b], the smallest SDF over the nodes of the
+    triangle's regular subdivision into parts[t]^2 pieces (clearance must start at +inf; systems with
+    active[b] = 0 are left as they are)."""
+    b, t = wp.tid()
     if active[b] == 0:
         return
-    wp.atomic_min(clearance, b, _sdf_world(kind[b], dims[b], rotation[b], translation[b], points[k]))
+    tri = core_triangles[t]
+    p0 = core_vertices[tri[0]]
+    p1 = core_vertices[tri[1]]
+    p2 = core_vertices[tri[2]]
+    third = wp.float64(1.0) / wp.float64(3.0)
+    centre = (p0 + p1 + p2) * third
+    spread = wp.max(wp.length(p0 - centre), wp.max(wp.length(p1 - centre), wp.length(p2 - centre)))
+    bound = _sdf_world(kind[b], dims[b], rotation[b], translation[b], centre) - spread
+    if bound >= floor[b]:
+        wp.atomic_min(clearance, b, bound)
+        return
+    m = parts[t]
+    scale = wp.float64(1.0) / wp.float64(m)
+    least = bound + spread
+    for i in range(m + 1):
+        for j in range(m + 1 - i):
+            u = wp.float64(i) * scale
+            v = wp.float64(j) * scale
+            q = p0 * (wp.float64(1.0) - u - v) + p1 * u + p2 * v
+            least = wp.min(least, _sdf_world(kind[b], dims[b], rotation[b], translation[b], q))
+    wp.atomic_min(clearance, b, least)
