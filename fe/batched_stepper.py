@@ -358,16 +358,18 @@ class BatchedStepper:
         pieces = np.maximum(np.ceil(bound / spacing), 1).astype(int)
         clear, pressed = np.ones(len(rows), dtype=bool), np.zeros(len(rows))
         rotation, translation = self.pose_rotation.copy(), self.pose_translation.copy()
+        # The start pose is needed only to measure a move that could exceed the limit (gap changes <= bound).
+        first = 0 if np.any(bound > spacing) else 1
         before = None
-        for step in range(int(pieces.max()) + 1):
+        for step in range(first, int(pieces.max()) + 1):
             f = np.minimum(step / pieces, 1.0)
             rotation[rows] = Rotation.from_rotvec(f[:, None] * turn).as_matrix() @ start_r
             translation[rows] = start_t + f[:, None] * shift
             shell.set_poses(rotation, translation, self._start_rotation, self._start_translation)
             gap = shell.proximity(shell.x_trial, rows)[0]
+            live = (step >= 1) & (step <= pieces)
+            clear &= ~live | (gap.min(axis=1) >= 0.0)
             if before is not None:
-                live = step <= pieces
-                clear &= ~live | (gap.min(axis=1) >= 0.0)
                 touching = (gap < 0.0) | (before < 0.0)
                 moved = np.where(touching, np.abs(gap - before), 0.0).max(axis=1)
                 pressed += np.where(live, moved, 0.0)

@@ -337,6 +337,48 @@ def lag_candidates(
     wp.atomic_max(stats, b, 1, f)
 
 
+_SPLIT = wp.constant(8)  # sub-triangles per edge screened by their own bound before sampling
+
+
+@wp.func
+def _triangle_bound(
+    kind: int, dims: wp.vec4d, rotation: wp.mat33d, translation: wp.vec3d, p0: wp.vec3d, p1: wp.vec3d, p2: wp.vec3d
+) -> wp.float64:
+    """A lower bound (m) of the indenter SDF over triangle p0 p1 p2: its value at the centroid minus the
+    centroid's distance to the farthest corner (the SDF is 1-Lipschitz)."""
+    centre = (p0 + p1 + p2) / wp.float64(3.0)
+    spread = wp.max(wp.length(p0 - centre), wp.max(wp.length(p1 - centre), wp.length(p2 - centre)))
+    return _sdf_world(kind, dims, rotation, translation, centre) - spread
+
+
+@wp.func
+def _triangle_clearance(
+    kind: int,
+    dims: wp.vec4d,
+    rotation: wp.mat33d,
+    translation: wp.vec3d,
+    p0: wp.vec3d,
+    p1: wp.vec3d,
+    p2: wp.vec3d,
+    parts: int,
+    floor: wp.float64,
+) -> wp.float64:
+    """`_triangle_bound` where that is at least `floor` (m); else the smallest indenter SDF over the nodes
+    of the triangle's regular subdivision into parts^2 pieces."""
+    bound = _triangle_bound(kind, dims, rotation, translation, p0, p1, p2)
+    if bound >= floor:
+        return bound
+    least = wp.float64(1.0e30)
+    scale = wp.float64(1.0) / wp.float64(parts)
+    for i in range(parts + 1):
+        for j in range(parts + 1 - i):
+            u = wp.float64(i) * scale
+            v = wp.float64(j) * scale
+            q = p0 * (wp.float64(1.0) - u - v) + p1 * u + p2 * v
+            least = wp.min(least, _sdf_world(kind, dims, rotation, translation, q))
+    return least
+
+
 @wp.kernel
 def indenter_clearance_kernel(
     core_vertices: wp.array(dtype=wp.vec3d),
@@ -350,32 +392,34 @@ def indenter_clearance_kernel(
     active: wp.array(dtype=wp.int32),
     clearance: wp.array(dtype=wp.float64),
 ):
-    """clearance[b] = a lower bound (m) of the indenter body's signed distance over core triangle t, at
-    least floor[b] unless the triangle is sampled: the SDF at its centroid minus the centroid's distance to
-    its farthest corner (1-Lipschitz); where that is below floor[b], the smallest SDF over the nodes of the
-    triangle's regular subdivision into parts[t]^2 pieces (clearance must start at +inf; systems with
-    active[b] = 0 are left as they are)."""
+    """clearance[b] = min over core triangles t of the indenter body's SDF there (m), to the sampling of
+    `_triangle_clearance` with nodes parts[t] to an edge: a triangle whose bound is below floor[b] is split
+    into up to 8^2 similar pieces, each bounded or sampled in turn (clearance must start at +inf; systems
+    with active[b] = 0 are left as they are)."""
     b, t = wp.tid()
     if active[b] == 0:
         return
     tri = core_triangles[t]
     p0 = core_vertices[tri[0]]
-    p1 = core_vertices[tri[1]]
-    p2 = core_vertices[tri[2]]
-    third = wp.float64(1.0) / wp.float64(3.0)
-    centre = (p0 + p1 + p2) * third
-    spread = wp.max(wp.length(p0 - centre), wp.max(wp.length(p1 - centre), wp.length(p2 - centre)))
-    bound = _sdf_world(kind[b], dims[b], rotation[b], translation[b], centre) - spread
-    if bound >= floor[b]:
-        wp.atomic_min(clearance, b, bound)
+    e1 = core_vertices[tri[1]] - p0
+    e2 = core_vertices[tri[2]] - p0
+    R = rotation[b]
+    tip = translation[b]
+    whole = _triangle_bound(kind[b], dims[b], R, tip, p0, p0 + e1, p0 + e2)
+    if whole >= floor[b]:
+        wp.atomic_min(clearance, b, whole)
         return
-    m = parts[t]
-    scale = wp.float64(1.0) / wp.float64(m)
-    least = bound + spread
-    for i in range(m + 1):
-        for j in range(m + 1 - i):
-            u = wp.float64(i) * scale
-            v = wp.float64(j) * scale
-            q = p0 * (wp.float64(1.0) - u - v) + p1 * u + p2 * v
-            least = wp.min(least, _sdf_world(kind[b], dims[b], rotation[b], translation[b], q))
+    k = wp.min(parts[t], _SPLIT)
+    n = (parts[t] + k - 1) / k
+    d1 = e1 / wp.float64(k)
+    d2 = e2 / wp.float64(k)
+    least = wp.float64(1.0e30)
+    for i in range(k):
+        for j in range(k - i):
+            a = p0 + d1 * wp.float64(i) + d2 * wp.float64(j)
+            up = _triangle_clearance(kind[b], dims[b], R, tip, a, a + d1, a + d2, n, floor[b])
+            least = wp.min(least, up)
+            if i + j < k - 1:
+                down = _triangle_clearance(kind[b], dims[b], R, tip, a + d1, a + d2, a + d1 + d2, n, floor[b])
+                least = wp.min(least, down)
     wp.atomic_min(clearance, b, least)
