@@ -72,12 +72,15 @@ class CutBack:
         """After `system` of `stepper` finished an increment to `self.pose(target)`: True when that was the
         target's result (reached, or failed for good: the caller reports it); False when the system is to step
         to `self.pose(target)` again (a detour reached, or the failed step undone and halved)."""
-        if not converged and self.cuts < self.max_cuts and stepper.can_retreat(system):
+        # A step refused as too large before any solve is halved without using up the cuts: its pieces
+        # shrink with each halving until one is taken (cut-backs must be on, max_cuts > 0).
+        too_large = self.max_cuts > 0 and bool(stepper.too_large[system])
+        if not converged and (self.cuts < self.max_cuts or too_large) and stepper.can_retreat(system):
             rotation, translation = stepper.retreat(system)
             end = self.pose(target)
             start_time = None if end[2] is None else float(np.nan_to_num(stepper.time_s[system]))
             self.detours.insert(0, pose_midpoint((rotation, translation, start_time), end))
-            self.cuts += 1
+            self.cuts += 0 if too_large else 1
             self.total += 1
             return False
         if converged and self.detours:
@@ -192,6 +195,8 @@ class BatchedStepper:
             [s.params.thickness / 2 if s.indenter_offset is None else s.indenter_offset for s in self.skins]
         )
         """(B,) half-layer (m) of each skin on the indenter's side (0: a zero-thickness membrane)."""
+        self.too_large = np.zeros(B, dtype=bool)
+        """Whether each system's last increment was refused as too large a step, before any solve."""
         self._core_floor = skin.contact.min_stretch * (self._half + skin.core_offset)
         """(B,) nearest approach (m) of the rigid indenter to the rigid core that a converged state may show:
         both half-layers between them at `ContactSettings.min_stretch`."""
@@ -292,6 +297,7 @@ class BatchedStepper:
         if np.any(which & self.newton.running):
             raise RuntimeError(f"systems {np.flatnonzero(which & self.newton.running)} are mid-increment")
         rotation, translation = _check_poses(rotation, translation, self.batch, which)
+        self.too_large[which] = False
         self._dt[which] = self._clock(which, times)[which]
         new_origin = which & ~self.has_origin
         self.origin[new_origin] = translation[new_origin]
@@ -328,7 +334,7 @@ class BatchedStepper:
                     f"inadmissible: step too large: the indenter's surface moves {pressed[k] * 1e3:.2f} mm "
                     f"against the skin in one increment (limit: the half-thickness, {half * 1e3:.2f} mm)"
                 )
-                self.failure[i], solving[i] = message, False
+                self.failure[i], solving[i], self.too_large[i] = message, False, True
                 refused[i] = self._free_result(i, float(depth[i]), message)
         if self.relaxation is not None and solving.any():
             self.relaxation.prepare(np.flatnonzero(solving), self._dt[solving])

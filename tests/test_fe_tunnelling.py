@@ -105,3 +105,13 @@ def test_a_large_ball_never_reaches_the_core_through_the_skin(biotac: BioTacMode
     magnitudes = [float(np.linalg.norm(r.force)) for r in accepted]
     assert np.all(np.diff(magnitudes) > 0.0), magnitudes
     assert not rows[-1].converged and "reached the core through the skin" in rows[-1].message, rows[-1].message
+
+
+def test_a_step_refused_as_too_large_is_taken_in_halves_to_the_path_force(biotac: BioTacModel) -> None:
+    """A 3 mm step from first touch (more than the 0.79 mm half-thickness against the skin) is refused before
+    any solve and halved by the cut-back, without using up its cuts, until each piece is within the limit:
+    frictionless, the result is the same equilibrium as the press in 0.5 mm steps (0.1 %)."""
+    path = _press(biotac, "sphere_medium", 3.0, 0.5)
+    one = _press(biotac, "sphere_medium", 3.0, 3.0)[-1]
+    assert path[-1].converged and one.converged and one.depth == pytest.approx(3e-3)
+    assert np.linalg.norm(one.force - path[-1].force) <= 1e-3 * np.linalg.norm(path[-1].force)
