@@ -12,6 +12,7 @@ import warp as wp
 
 from assets.biotac import make_biotac
 from assets.indenters import get_indenter
+from fe.batched_runner import PoseTrajectory, run_trajectories
 from fe.batched_stepper import BatchedStepper
 from fe.indentation import IndentationStepper
 from fe.params import SkinParameters
@@ -115,3 +116,18 @@ def test_a_step_refused_as_too_large_is_taken_in_halves_to_the_path_force(biotac
     one = _press(biotac, "sphere_medium", 3.0, 3.0)[-1]
     assert path[-1].converged and one.converged and one.depth == pytest.approx(3e-3)
     assert np.linalg.norm(one.force - path[-1].force) <= 1e-3 * np.linalg.norm(path[-1].force)
+
+
+def test_the_batched_runner_halves_a_step_too_large_like_the_one_trajectory_stepper(biotac: BioTacModel) -> None:
+    """`run_trajectories`: the 3 mm step from touch beside the same press in 0.5 mm steps, in one batch: three
+    halvings (pieces of 0.375 mm), and the same force at 3 mm (0.1 %)."""
+    path = biotac.plan_trajectory(get_indenter("sphere_medium"), POINT, 0.0, 0.0, 1e-3, 1e-3)
+
+    def trajectory(depths_mm: list[float]) -> PoseTrajectory:
+        tips = [path.touch_point + d * 1e-3 * path.direction for d in depths_mm]
+        return PoseTrajectory("sphere_medium", np.stack([path.rotation] * len(tips)), np.array(tips))
+
+    run = run_trajectories(biotac.inflated_skin(), [trajectory([0.0, 3.0]), trajectory(list(np.arange(7) * 0.5))])
+    jump, steps = run.results[0][-1], run.results[1][-1]
+    assert jump.converged and steps.converged and run.counters["cut_backs"] == 3
+    assert np.linalg.norm(jump.force - steps.force) <= 1e-3 * np.linalg.norm(steps.force)
