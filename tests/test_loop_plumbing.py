@@ -80,7 +80,7 @@ def test_diagnose_json_strict_refit_count_and_progress_per_candidate(
 ) -> None:
     calls: dict = {}
 
-    def fake_diagnose(data, model, predictor=None, top=3, on_progress=None):
+    def fake_diagnose(data, model, predictor=None, top=3, on_progress=None, nuisances=False):
         calls["top"] = top
         for name in ("skin_modulus", "time_delay", "ft_gain"):
             on_progress("evidence", name)
