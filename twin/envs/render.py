@@ -5,7 +5,9 @@
 are overwritten and re-uploaded to the GL context for every frame (so the picture shows the FE's
 deformation), the rigid core under it, and the indenter (translucent) as a mocap body at its pose. The
 force of the indenter on the skin is drawn as an arrow along it ending at the tip, `FORCE_ARROW_M_PER_N`
-long per newton up to 15 mm (its tail inside the indenter). The camera looks at the indenter tip from below the pad,
+long per newton up to 15 mm. Any arrow along the force that ends at the tip lies inside the indenter
+(whose translucent colour blends over it) or inside the opaque skin, so the arrow is drawn in a second
+pass over the finished picture: it is seen wherever it is. The camera looks at the indenter tip from below the pad,
 so the tip is at the frame's centre. `render` returns an (H, W, 3) uint8 frame.
 
 OpenGL: MuJoCo draws offscreen through an EGL or OSMesa context (no display needed). The backend named
@@ -159,21 +161,35 @@ class SkinRenderer:
         mujoco.mjv_updateScene(
             self.model, self.data, self.option, None, self.camera, mujoco.mjtCatBit.mjCAT_ALL, self.scene
         )
-        self._add_arrow(np.asarray(tip, dtype=float), np.asarray(force, dtype=float))
         mujoco.mjr_render(self._viewport, self.scene, self._gpu)
         frame = np.empty((self.height, self.width, 3), dtype=np.uint8)
         mujoco.mjr_readPixels(frame, None, self._viewport, self._gpu)
+        if self._arrow_only(np.asarray(tip, dtype=float), np.asarray(force, dtype=float)):
+            self._overlay_arrow(frame)
         return np.flipud(frame).copy()
 
-    def _add_arrow(self, tip: np.ndarray, force: np.ndarray) -> None:
+    def _overlay_arrow(self, frame: np.ndarray) -> None:
+        """Draw the scene (now the arrow alone, same camera and lights) and copy its pixels over `frame`
+        (rows bottom-up, as read from GL): the arrow is not hidden by the skin or the indenter."""
+        mujoco.mjr_render(self._viewport, self.scene, self._gpu)
+        arrow = np.empty_like(frame)
+        depth = np.empty(frame.shape[:2], dtype=np.float32)
+        mujoco.mjr_readPixels(arrow, depth, self._viewport, self._gpu)
+        drawn = depth < 1.0  # the cleared depth buffer is 1 where nothing was drawn
+        frame[drawn] = arrow[drawn]
+
+    def _arrow_only(self, tip: np.ndarray, force: np.ndarray) -> bool:
+        """Replace the scene's geoms by the force arrow ending at `tip` (m); False (scene unchanged) when
+        the force (N) is too small to draw."""
         length = min(float(np.linalg.norm(force)) * FORCE_ARROW_M_PER_N, FORCE_ARROW_MAX_M)
-        if length < 1e-5 or self.scene.ngeom >= self.scene.maxgeom:
-            return
+        if length < 1e-5:
+            return False
         arrow = force * (length / np.linalg.norm(force))
-        geom = self.scene.geoms[self.scene.ngeom]
+        geom = self.scene.geoms[0]
         mujoco.mjv_initGeom(geom, mujoco.mjtGeom.mjGEOM_ARROW, np.zeros(3), np.zeros(3), np.zeros(9), FORCE_RGBA)
         mujoco.mjv_connector(geom, mujoco.mjtGeom.mjGEOM_ARROW, 4e-4, tip - arrow, tip)
-        self.scene.ngeom += 1
+        self.scene.ngeom = 1
+        return True
 
     def close(self) -> None:
         """Free the GL resources."""
