@@ -192,9 +192,14 @@ def _changed(a: np.ndarray, b: np.ndarray) -> np.ndarray:
     return np.abs(a.astype(int) - b.astype(int)).sum(axis=-1) > 30
 
 
+def _red_mask(frame: np.ndarray) -> np.ndarray:
+    """(H, W) bool: the strongly red pixels (the force arrow's colour; nothing else in the scene is red)."""
+    return (frame[..., 0] > 120) & (frame[..., 1] < 90) & (frame[..., 2] < 90)
+
+
 def _red_pixels(frame: np.ndarray) -> int:
-    """Number of strongly red pixels (the force arrow's colour; nothing else in the scene is red)."""
-    return int(((frame[..., 0] > 120) & (frame[..., 1] < 90) & (frame[..., 2] < 90)).sum())
+    """Number of strongly red pixels."""
+    return int(_red_mask(frame).sum())
 
 
 def test_rgb_array_frames_show_the_skin_deformation_and_the_force(offscreen_gl: None) -> None:
@@ -218,12 +223,15 @@ def test_rgb_array_frames_show_the_skin_deformation_and_the_force(offscreen_gl: 
     increment = base._last_increment
     assert np.array_equal(painter.render(increment.displacement, rotation, tip, increment.force), pressed)
     assert _red_pixels(pressed) > 20 and _red_pixels(free) == 0
+    # The arrow ends at the tip, which the camera looks at (the frame's centre); the indenter and the
+    # skin around it do not hide it.
+    centre = np.array(pressed.shape[:2]) / 2
+    assert np.linalg.norm(np.argwhere(_red_mask(pressed)) - centre, axis=1).min() < 0.03 * pressed.shape[1]
     # The skin's deformation is drawn: the undeformed skin with the indenter where it is now differs,
     # and around the tip, which the camera centres.
     undeformed = painter.render(np.zeros_like(increment.displacement), rotation, tip, increment.force)
     dent = np.argwhere(_changed(undeformed, pressed))
     assert len(dent) > 50
-    centre = np.array(pressed.shape[:2]) / 2
     assert np.linalg.norm(dent.mean(axis=0) - centre) < 0.15 * pressed.shape[1]
     env.close()
 

@@ -187,7 +187,9 @@ class SkinRenderer:
         arrow = force * (length / np.linalg.norm(force))
         geom = self.scene.geoms[0]
         mujoco.mjv_initGeom(geom, mujoco.mjtGeom.mjGEOM_ARROW, np.zeros(3), np.zeros(3), np.zeros(9), FORCE_RGBA)
-        mujoco.mjv_connector(geom, mujoco.mjtGeom.mjGEOM_ARROW, 4e-4, tip - arrow, tip)
+        # MuJoCo's renderer draws an arrow geom over the first half of its size[2] (shaft to 1/3, head to
+        # 1/2), so the connector runs to tip + arrow for the arrow drawn to end at the tip.
+        mujoco.mjv_connector(geom, mujoco.mjtGeom.mjGEOM_ARROW, 4e-4, tip - arrow, tip + arrow)
         self.scene.ngeom = 1
         return True
 
