@@ -50,24 +50,10 @@ LAYER_LAW_HELD_OUT = (
 )
 CONFOUNDED = {
     "ft_calibration": LAYER_LAW_HELD_OUT,
-    "registration_offset": "on the points drawn from seeds 5 and 6 the offset leaves 6.5-8x the noise and its "
-    "evidence, linearised at zero offset, ranks fill_volume or skin_thickness first (only the first is refitted "
-    "here); the model with the true offset fits to 1.00x the noise, and on seed 7 it ranks first and is found",
-    "skin_modulus": "on seed 5's points (full suite, 2026-11-26) ft_gain and skin_modulus explain the force "
-    "residual equally well (evidence 127107.5 against 127103.3, 4.2 apart where 10 is needed): force alone "
-    "cannot tell a stiffer skin from a larger F/T gain, and the diagnosis says so; the electrodes and PDC in "
-    "the residual (issue 20) are what would separate them",
-    "skin_thickness": "on seed 5's points (2026-11-26, commit b857b16) the 3x3 ft_calibration map fits a thinner "
-    "skin's force in sample slightly better (evidence 214450.8 against 213699.8) and ranks first; only it is "
-    "refitted here (top=1) and its held-out residual, 2.37x with yx and zx at their bounds, fails the noise test, "
-    "so the verdict is 'unexplained' rather than the map; skin_thickness, second, is not refitted",
     "skin_relaxation": "on seed 5's points (2026-11-26, run alone at commits 1a5094d and 9424c0b) the 3x3 "
     "ft_calibration map ranks first in sample (evidence 771244 against 769451) and is the only candidate refitted "
     "here (top=1): 1.24x refitted, 2.19x held out, so the verdict is 'unexplained'; the hidden relaxation (fraction "
     "0.34, 0.34 s) is linearised at its probe (0.15, 1 s), far from its size",
-    "ft_crosstalk": "on seed 5's points (full suite, 2026-11-26) the crosstalk refit brings the error down "
-    "but its parameters are not identifiable from these six trajectories, so the verdict is 'unexplained' "
-    "(base RMS 1.54x the noise) rather than a named cause that might not generalise",
 }
 """Library effects this small campaign cannot tell apart (seen in benchmarks/diagnose_bench.py): their
 cases run every time and report as expected failures with the reason; a fix shows as XPASS."""
