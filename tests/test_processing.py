@@ -57,3 +57,30 @@ def test_a_press_refused_before_its_first_row_has_no_rows_and_no_phases() -> Non
     trajectory without rows, and processing gives none instead of failing on an empty argmax."""
     assert loading_phase(np.zeros(0)).shape == (0,)
     np.testing.assert_array_equal(loading_phase(np.array([0.0, 1.0, 2.0, 1.0])), [0, 0, 0, 1])
+
+
+def test_a_press_refused_at_once_leaves_the_noise_estimate_finite() -> None:
+    """A paper-scale campaign holds presses whose first fe step was refused: one sample, no rows. Its rate is
+    undefined; the rows' noise estimate must come from the other presses, as if it were not there."""
+    import warnings
+    from types import SimpleNamespace
+
+    from twin.analysis.compare import rows_noise_estimate
+
+    rng = np.random.default_rng(3)
+
+    def press(samples: int, rows: int) -> SimpleNamespace:
+        time = np.arange(samples) / 100.0
+        rate = float(1.0 / np.median(np.diff(time))) if samples > 1 else float("nan")
+        force = np.linspace(0, 3, rows)[:, None] + rng.normal(0, 0.01, (rows, 3))
+        return SimpleNamespace(raw=SimpleNamespace(time=time), rate_hz=rate, rows={"force": force, "pdc": force[:, 0]})
+
+    presses = [press(500, 40), press(450, 35)]
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        alone = rows_noise_estimate(presses)
+        with_refused = rows_noise_estimate([*presses, press(1, 0)])
+        short = lowpass(np.ones((1, 3)), float("nan"))
+    assert all(np.isfinite(v) for v in with_refused.values())
+    assert with_refused == alone
+    assert np.array_equal(short, np.ones((1, 3)))

@@ -40,11 +40,11 @@ class ProcessedRows:
 
 def lowpass(signal: np.ndarray, rate_hz: float, cutoff_hz: float = FILTER_CUTOFF_HZ) -> np.ndarray:
     """Zero-phase first-order Butterworth low-pass along axis 0 (forward-backward, as in the paper)."""
-    if cutoff_hz >= 0.5 * rate_hz:
+    if len(signal) <= 3 * (FILTER_ORDER + 1):  # too short to pad: left as it is (its rate may be undefined)
+        return np.asarray(signal, dtype=float).copy()
+    if not cutoff_hz < 0.5 * rate_hz:
         raise ValueError(f"cutoff {cutoff_hz} Hz must be below the Nyquist frequency {0.5 * rate_hz} Hz")
     b, a = butter(FILTER_ORDER, cutoff_hz, fs=rate_hz)
-    if len(signal) <= 3 * max(len(a), len(b)):
-        return np.asarray(signal, dtype=float).copy()
     return filtfilt(b, a, signal, axis=0)
 
 

@@ -123,7 +123,8 @@ def rows_noise_estimate(trajectories: list[TrajectoryRecord]) -> dict[str, float
         for i, c in enumerate(FORCE_CHANNELS):
             second[c].append(np.diff(t.rows["force"][:, i], n=2))
         second["pdc"].append(np.diff(np.asarray(t.rows["pdc"], dtype=float), n=2))
-    gain = filtered_noise_gain(float(np.median([t.rate_hz for t in trajectories])))
+    rates = [t.rate_hz for t in trajectories if len(t.raw.time) > 1]  # a press refused at once has one sample
+    gain = filtered_noise_gain(float(np.median(rates)))
     sigma = {c: _robust_sigma(np.concatenate(parts)) / np.sqrt(6.0) for c, parts in second.items()}
     return {c: float(v / gain) if c in FORCE_CHANNELS else v for c, v in sigma.items()}
 

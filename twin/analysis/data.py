@@ -45,8 +45,8 @@ class TrajectoryRecord:
 
     @property
     def rate_hz(self) -> float:
-        """Sampling rate of the full-rate recording (Hz)."""
-        return float(1.0 / np.median(np.diff(self.raw.time)))
+        """Sampling rate of the full-rate recording (Hz); NaN for a recording of one sample."""
+        return float(1.0 / np.median(np.diff(self.raw.time))) if len(self.raw.time) > 1 else float("nan")
 
     @property
     def normal(self) -> bool:
