@@ -38,6 +38,7 @@ from twin.planning import PlannedTrajectory, plan_statistics, plan_trajectory, s
 from twin.plant import Plant, make_plant, rigid_transform
 from twin.processing import process
 from twin.protocol import QUICK_SETTINGS, ProtocolSettings, TrajectorySpec, plan_specs
+from twin.readout import electrode_model
 from twin.registration import simulate_registration
 from twin.scene import SceneParameters, TestbedScene
 from twin.sim_backend import SimBackend, SkinSolver
@@ -215,7 +216,7 @@ class CampaignWorker:
         if sid not in self.models:
             truth = self.plant.sensor(sid)
             model = inflated_model(self.geometry, apply_skin(truth.skin, self.plant.effects))
-            electrodes = ElectrodeModel(self.geometry, truth.electrodes, model.reference, truth.skin.thickness)
+            electrodes = electrode_model(model, truth.electrodes, truth.skin.thickness)
             self.models[sid] = (model, electrodes)
         return self.models[sid]
 

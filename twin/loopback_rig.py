@@ -37,7 +37,6 @@ from typing import NamedTuple, Protocol
 import numpy as np
 
 from assets.biotac import make_biotac
-from fe.electrodes import ElectrodeModel
 from twin.backend import ARMS, BackendError
 from twin.campaign import CampaignConfig, true_biotac_pose
 from twin.effects import apply_skin
@@ -45,6 +44,7 @@ from twin.fe_models import inflated_model
 from twin.kinematics import forward
 from twin.planning import scene_tool_tip
 from twin.plant import Plant, make_plant
+from twin.readout import electrode_model
 from twin.scene import TestbedScene
 from twin.sim_backend import SimBackend
 
@@ -122,7 +122,7 @@ class TwinSources:
         truth = plant.sensor(sensor_id)
         geometry = make_biotac(config.mesh_max_edge)
         model = inflated_model(geometry, apply_skin(truth.skin, plant.effects))
-        electrodes = ElectrodeModel(geometry, truth.electrodes, model.reference, truth.skin.thickness)
+        electrodes = electrode_model(model, truth.electrodes, truth.skin.thickness)
         scene = TestbedScene(config.scene)
         rng = np.random.default_rng(np.random.SeedSequence([config.seed, sensor_id, TWIN_STREAM]))
         backend = SimBackend(
