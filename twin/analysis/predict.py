@@ -17,21 +17,19 @@ from dataclasses import asdict, dataclass, field, replace
 
 import numpy as np
 
-from assets.biotac import make_biotac
 from fe.batched_runner import PoseTrajectory, run_trajectories
 from fe.indentation import step_through
 from fe.params import SkinParameters
 from fe.results import IncrementResult
-from fe.sensor import SENSOR_THICKNESS, BioTacModel, InflationResult
+from fe.sensor import BioTacModel, InflationResult
 from twin.analysis.data import TrajectoryRecord
 from twin.controller import Recording
 from twin.effects import EffectValues, apply_path, apply_skin, check_values, measure_wrench
+from twin.fe_models import INFLATION_RULES, inflated_fe_model
 from twin.processing import ProcessedRows, lowpass, process
 from twin.readout import SensorReadout, ft_load
 from twin.sim_backend import RELAXATION_SOLVE_INTERVAL_S
 
-INFLATION_RULES = ("thickness", "thermal")
-"""How a model's skin is inflated (see TwinModel)."""
 MODEL_CACHE_SIZE = 24
 """Inflated fe models a Predictor keeps (first built dropped first); replays, small arrays, are all kept."""
 PREFETCH_SLOTS = 256
@@ -83,15 +81,6 @@ class TwinModel:
     def key(self) -> str:
         """Stable hash of the model."""
         return hashlib.sha256(json.dumps(self.to_dict(), sort_keys=True).encode()).hexdigest()[:16]
-
-
-def inflated_fe_model(
-    skin: SkinParameters, mesh_max_edge: float, inflation: str = "thickness"
-) -> tuple[BioTacModel, InflationResult]:
-    """A BioTac fe model of `skin` meshed at `mesh_max_edge` (m) and inflated by the rule `inflation` (see
-    TwinModel), with its InflationResult (which says whether it converged)."""
-    model = BioTacModel(make_biotac(mesh_max_edge), skin)
-    return model, model.inflate(SENSOR_THICKNESS if inflation == "thickness" else None)
 
 
 @dataclass(frozen=True)

@@ -20,7 +20,7 @@ from assets.biotac import electrode_table
 from assets.indenters import INDENTERS
 from fe.indentation import step_through
 from twin.dataset import open_dataset
-from twin.envs.fe_batch import shared_model
+from twin.fe_models import shared_model
 from twin.view.layout import default_blueprint
 from twin.view.scene import SkinScene, log_residual_field
 
