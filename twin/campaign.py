@@ -213,12 +213,19 @@ class CampaignWorker:
         return self._scene
 
     def sensor(self, sid: int) -> tuple[BioTacModel, ElectrodeModel]:
+        """Plant sensor `sid`'s fe model and electrodes (`plant_sensor_models`), built once per process."""
         if sid not in self.models:
-            truth = self.plant.sensor(sid)
-            model = inflated_model(self.geometry, apply_skin(truth.skin, self.plant.effects))
-            electrodes = electrode_model(model, truth.electrodes, truth.skin.thickness)
-            self.models[sid] = (model, electrodes)
+            self.models[sid] = plant_sensor_models(self.plant, sid, self.geometry)
         return self.models[sid]
+
+
+def plant_sensor_models(plant: Plant, sid: int, geometry: BioTacGeometry) -> tuple[BioTacModel, ElectrodeModel]:
+    """The truth of plant sensor `sid` as the simulated testbed needs it: its skin (with the plant's physics
+    effects) inflated on `geometry`, and its electrodes (its read-out parameters, seeing the skin through the
+    sensor's own thickness) on that skin."""
+    truth = plant.sensor(sid)
+    model = inflated_model(geometry, apply_skin(truth.skin, plant.effects))
+    return model, electrode_model(model, truth.electrodes, truth.skin.thickness)
 
 
 _WORKER: CampaignWorker | None = None
