@@ -288,9 +288,15 @@ class ElectrodeModel:
         time_s: seconds since power-on (drift). rng: None for the expected, unquantised counts; a
         generator adds white noise and rounds to integers. Always clipped to 0..4095.
         """
+        return self.impedance_counts(self.relative_impedance(vertices), time_s, rng)
+
+    def impedance_counts(
+        self, z: np.ndarray, time_s: float = 0.0, rng: np.random.Generator | None = None
+    ) -> np.ndarray:
+        """(19,) raw electrode counts for the relative impedances z (19,) (`relative_impedance`); time_s and rng
+        as in `counts`."""
         p = self.params
         lam = p.load_ratio
-        z = self.relative_impedance(vertices)
         signal = p.gain * ADC_MAX * (1.0 / (1.0 + lam * z) - 1.0 / (1.0 + lam))
         value = p.offset + signal + self.drift(time_s)
         if rng is not None:

@@ -3,8 +3,9 @@
 `IndentationStepper` is the one-system view of the FE engine (`fe.batched_stepper.BatchedStepper` with
 B = 1, on any warp device): it holds the skin state between prescribed indenter poses (as a robot arm would
 move the indenter), each `step` re-solving equilibrium with the fluid volume held, warm-started, friction
-lagged, with viscoelastic relaxation and trapped air as the skin's parameters say. `drive` steps it along a
-straight `Trajectory`. Forces are in newtons in the sensor frame, the force the indenter applies to the skin.
+lagged, with viscoelastic relaxation and trapped air as the skin's parameters say. `step_through` steps it
+along a path of tips, `drive` along a straight `Trajectory`. Forces are in newtons in the sensor frame, the
+force the indenter applies to the skin.
 """
 
 from collections.abc import Iterator
@@ -16,7 +17,7 @@ from fe.batched import InflatedSkin
 from fe.batched_stepper import MAX_CUTS, BatchedStepper, CutBack
 from fe.results import IncrementResult, Trajectory
 
-__all__ = ["IncrementResult", "IndentationStepper", "Trajectory", "drive"]
+__all__ = ["IncrementResult", "IndentationStepper", "Trajectory", "drive", "step_through"]
 
 
 class IndentationStepper:
@@ -98,12 +99,19 @@ class IndentationStepper:
                 return result
 
 
-def drive(stepper: IndentationStepper, trajectory: Trajectory) -> Iterator[IncrementResult]:
-    """Step `stepper` through the poses (and times) of a straight trajectory, yielding each increment;
-    stop after the first one that does not converge."""
-    for k, depth in enumerate(trajectory.depths):
-        time_s = None if trajectory.times is None else trajectory.times[k]
-        result = stepper.step(trajectory.rotation, trajectory.touch_point + depth * trajectory.direction, time_s)
+def step_through(
+    stepper: IndentationStepper, rotation: np.ndarray, tips: np.ndarray, times: np.ndarray | None = None
+) -> Iterator[IncrementResult]:
+    """Step `stepper` through the indenter tips (K, 3) m (one rotation (3, 3) body->sensor) at `times` (K,) s
+    (None: no time passes), yielding each increment; stop after the first one that does not converge."""
+    for k, tip in enumerate(tips):
+        result = stepper.step(rotation, tip, None if times is None else float(times[k]))
         yield result
         if not result.converged:
             return
+
+
+def drive(stepper: IndentationStepper, trajectory: Trajectory) -> Iterator[IncrementResult]:
+    """Step `stepper` through the poses (and times) of a straight trajectory (`step_through`)."""
+    tips = trajectory.touch_point + np.outer(trajectory.depths, trajectory.direction)
+    return step_through(stepper, trajectory.rotation, tips, trajectory.times)

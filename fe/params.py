@@ -4,72 +4,71 @@ Defaults are the paper's calibrated optimum (Narang et al., Table I): t_s = 1.57
 mu_NH = 2.80e5 Pa, mu_fr = 0.186, T_fl = 29.19 C with beta_T = 0.01 /C.
 """
 
-from dataclasses import dataclass, fields
+from dataclasses import dataclass, field, fields
+from typing import Any
 
-PAPER_CALIBRATION_BOUNDS: dict[str, tuple[float, float]] = {
-    "thickness": (1e-3, 2e-3),
-    "mu_nh": (1e5, 1e6),
-    "friction": (0.1, 1.0),
-    "fluid_temperature": (25.0, 35.0),
-}
-"""The paper's SLSQP bounds (m, Pa, -, C)."""
 
-_PHYSICAL_BOUNDS: dict[str, tuple[float, float]] = {
-    "thickness": (1e-5, 1e-2),
-    "mu_nh": (1e2, 1e9),
-    "friction": (0.0, 5.0),
-    "fluid_temperature": (-20.0, 150.0),
-    "thermal_expansion": (0.0, 1.0),
-    "reference_temperature": (-20.0, 150.0),
-    "inflation_volume_scale": (0.5, 2.0),
-    "relaxation_fraction": (0.0, 0.95),
-    "relaxation_time_s": (1e-3, 1e4),
-    "gent_inverse_jm": (0.0, 10.0),
-    "air_volume_fraction": (0.0, 0.5),
-}
+@dataclass(frozen=True)
+class Parameter:
+    """What is declared of one skin parameter besides its nominal value (the `SkinParameters` field's default,
+    which is also its off value for a physics term that is off by default)."""
+
+    units: str
+    physical: tuple[float, float] | None
+    """The range `SkinParameters` accepts (None: any value of the field's type)."""
+    paper: tuple[float, float] | None = None
+    """The paper's SLSQP calibration bounds, for the parameters its calibration fits (twin.analysis.calibrate)."""
+
+
+def _parameter(
+    default: Any, units: str, physical: tuple[float, float] | None, paper: tuple[float, float] | None = None
+) -> Any:
+    """A `SkinParameters` field with its `Parameter` declared beside it (in the field's metadata)."""
+    return field(default=default, metadata={"parameter": Parameter(units, physical, paper)})
 
 
 @dataclass(frozen=True)
 class SkinParameters:
-    """Material and loading parameters of the BioTac skin model (SI units, temperatures in C)."""
+    """Material and loading parameters of the BioTac skin model (SI units, temperatures in C); each field's
+    units and ranges are declared with it (`SKIN_PARAMETERS`)."""
 
-    thickness: float = 1.57e-3
+    thickness: float = _parameter(1.57e-3, "m", (1e-5, 1e-2), paper=(1e-3, 2e-3))
     """Skin shell thickness t_s (m)."""
-    mu_nh: float = 2.80e5
+    mu_nh: float = _parameter(2.80e5, "Pa", (1e2, 1e9), paper=(1e5, 1e6))
     """Neo-Hookean shear modulus mu_NH (Pa)."""
-    friction: float = 0.186
+    friction: float = _parameter(0.186, "1", (0.0, 5.0), paper=(0.1, 1.0))
     """Coulomb friction coefficient mu_fr between indenter and skin."""
-    fluid_temperature: float = 29.19
+    fluid_temperature: float = _parameter(29.19, "C", (-20.0, 150.0), paper=(25.0, 35.0))
     """Fluid temperature T_fl (C) of the thermal inflation parametrisation."""
-    thermal_expansion: float = 0.01
+    thermal_expansion: float = _parameter(0.01, "1/C", (0.0, 1.0))
     """Volumetric thermal expansion coefficient beta_T of the fluid (1/C)."""
-    reference_temperature: float = 20.0
+    reference_temperature: float = _parameter(20.0, "C", (-20.0, 150.0))
     """Temperature (C) at which the fluid fills the unpressurised cavity."""
-    bending: bool = True
+    bending: bool = _parameter(True, "bool", None)
     """Include discrete-shell bending (plate stiffness mu t^3 / 3)."""
-    inflation_volume_scale: float = 1.0
+    inflation_volume_scale: float = _parameter(1.0, "1", (0.5, 2.0))
     """Fill (pretension) knob: the inflated sensor holds this multiple of the fluid volume that inflation adds
     to the unpressurised cavity (to the 15.1 mm thickness, or by the thermal rule); 1 = off."""
-    relaxation_fraction: float = 0.0
+    relaxation_fraction: float = _parameter(0.0, "1", (0.0, 0.95))
     """Prony fraction g of one quasi-linear-viscoelastic branch of the skin (membrane and bending): moduli
     relax from mu_nh (instantaneous) to (1 - g) mu_nh (long-term) as exp(-t / relaxation_time_s); 0 = off."""
-    relaxation_time_s: float = 1.0
+    relaxation_time_s: float = _parameter(1.0, "s", (1e-3, 1e4))
     """Relaxation time tau (s) of the Prony branch (used only when relaxation_fraction > 0)."""
-    gent_inverse_jm: float = 0.0
+    gent_inverse_jm: float = _parameter(0.0, "1", (0.0, 10.0))
     """Gent strain stiffening 1/J_m (-): energy -(mu t / 2) J_m ln(1 - (I1 - 3) / J_m) per reference area,
     I1 = tr C + 1/det C; the membrane locks at I1 = 3 + J_m. 0 = off (Neo-Hookean)."""
-    air_volume_fraction: float = 0.0
+    air_volume_fraction: float = _parameter(0.0, "1", (0.0, 0.5))
     """Trapped air: gas volume as a fraction of the fluid cavity volume at the inflated reference state (at the
     absolute pressure p_atm + p_ref), compressed isothermally (Boyle) during indentation; 0 = off."""
 
     def __post_init__(self) -> None:
-        for f in fields(self):
-            if f.name not in _PHYSICAL_BOUNDS:
+        for name, parameter in SKIN_PARAMETERS.items():
+            if parameter.physical is None:
                 continue
-            low, high = _PHYSICAL_BOUNDS[f.name]
-            value = getattr(self, f.name)
+            low, high = parameter.physical
+            value = getattr(self, name)
             if not (low <= value <= high):
-                raise ValueError(f"{f.name}={value!r} is outside its physical range [{low:g}, {high:g}]")
+                raise ValueError(f"{name}={value!r} is outside its physical range [{low:g}, {high:g}]")
 
     @property
     def long_term_fraction(self) -> float:
@@ -85,6 +84,14 @@ class SkinParameters:
     def bending_stiffness(self) -> float:
         """Plate bending stiffness D = E t^3 / (12 (1 - nu^2)) = mu t^3 / 3 for nu = 1/2 (J)."""
         return self.mu_nh * self.thickness**3 / 3.0 if self.bending else 0.0
+
+
+SKIN_PARAMETERS: dict[str, Parameter] = {f.name: f.metadata["parameter"] for f in fields(SkinParameters)}
+"""The one table of skin parameters: field name -> units and ranges, in field order."""
+PAPER_CALIBRATION_BOUNDS: dict[str, tuple[float, float]] = {
+    name: p.paper for name, p in SKIN_PARAMETERS.items() if p.paper is not None
+}
+"""The paper's SLSQP bounds (m, Pa, -, C) of the parameters its calibration fits, in field order."""
 
 
 @dataclass(frozen=True)

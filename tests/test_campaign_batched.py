@@ -20,8 +20,6 @@ import numpy as np
 import pytest
 
 import twin.campaign_batched as campaign_batched
-from assets.biotac import make_biotac
-from fe.electrodes import ElectrodeModel, ElectrodeParameters
 from twin.campaign import QUICK_CONFIG, run_campaign
 from twin.campaign_batched import (
     FE_FORCE_LIMIT_FACTOR,
@@ -35,7 +33,6 @@ from twin.campaign_batched import (
 from twin.executors import Executor
 from twin.plant import make_plant
 from twin.protocol import QUICK_SETTINGS
-from twin.sim_backend import held_impedance
 
 CONFIG = replace(
     QUICK_CONFIG,
@@ -166,24 +163,6 @@ def test_an_interrupted_batched_campaign_resumes_to_the_same_file(
     assert limits == [np.inf]  # its batched solves were kept: only the normal press's re-solve without a limit
     assert not list((tmp_path / "parts" / SOLVES_DIR).rglob("*.npz"))
     _assert_same_campaign(one_at_a_time, _read_all(tmp_path / "biotac2.hdf5"))
-
-
-def test_held_impedance_gives_the_same_counts_and_solves_once_per_skin_state(monkeypatch: pytest.MonkeyPatch) -> None:
-    geometry = make_biotac(2e-3)
-    electrodes = ElectrodeModel(geometry, ElectrodeParameters())
-    rest = geometry.skin.vertices
-    pressed = rest + np.where(rest[:, 2:] < 0.0, 2e-4, 0.0) * np.array([0.0, 0.0, 1.0])  # the pad pushed in 0.2 mm
-    states = [rest, rest, pressed, pressed, pressed, rest.copy()]
-    plain_rng, held_rng = np.random.default_rng(7), np.random.default_rng(7)
-    expected = [electrodes.counts(v, 10.0 + k, plain_rng) for k, v in enumerate(states)]
-    assert not np.array_equal(expected[0], expected[2])  # the press changes the counts
-    solved = []
-    impedance = electrodes.relative_impedance
-    monkeypatch.setattr(electrodes, "relative_impedance", lambda v: solved.append(1) or impedance(v))
-    held = held_impedance(electrodes)
-    got = [held.counts(v, 10.0 + k, held_rng) for k, v in enumerate(states)]
-    np.testing.assert_array_equal(np.array(got), np.array(expected))
-    assert len(solved) == 3  # rest, pressed, and the copy of rest (a new array)
 
 
 def test_a_resume_keeps_solves_only_for_the_schedule_they_were_solved_for(tmp_path: Path) -> None:

@@ -19,10 +19,11 @@ from fe.electrodes import ElectrodeParameters
 from fe.indentation import IndentationStepper
 from twin.envs import ENV_IDS
 from twin.envs.edge import EdgeFollowEnv
-from twin.envs.fe_batch import IndentationBatch, shared_model
+from twin.envs.fe_batch import IndentationBatch
 from twin.envs.press import PressEnv
 from twin.envs.render import open_gl_context
 from twin.envs.vector import TactileVectorEnv
+from twin.fe_models import shared_model
 
 PRESS = np.array([0.0, 0.0, 1.0])
 

@@ -10,8 +10,7 @@ import pytest
 from assets.biotac import make_biotac
 from fe.params import SkinParameters
 from fe.sensor import SENSOR_THICKNESS
-from twin.envs.fe_batch import shared_model
-from twin.fe_models import inflated_model
+from twin.fe_models import inflated_model, shared_model
 
 
 def test_the_model_is_inflated_to_the_sensor_s_thickness_and_shared_by_the_envs() -> None:

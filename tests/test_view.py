@@ -17,8 +17,8 @@ from assets.biotac import electrode_table
 from assets.indenters import INDENTERS, get_indenter
 from twin.analysis.report.field import residual_field
 from twin.cli import app
-from twin.envs.fe_batch import shared_model
 from twin.envs.press import PressEnv
+from twin.fe_models import shared_model
 from twin.view import CampaignViewer, open_recording
 from twin.view.scene import FORCE_ARROW_M_PER_N, NAN_COLOUR
 

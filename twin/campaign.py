@@ -38,6 +38,7 @@ from twin.planning import PlannedTrajectory, plan_statistics, plan_trajectory, s
 from twin.plant import Plant, make_plant, rigid_transform
 from twin.processing import process
 from twin.protocol import QUICK_SETTINGS, ProtocolSettings, TrajectorySpec, plan_specs
+from twin.readout import electrode_model
 from twin.registration import simulate_registration
 from twin.scene import SceneParameters, TestbedScene
 from twin.sim_backend import SimBackend, SkinSolver
@@ -212,12 +213,19 @@ class CampaignWorker:
         return self._scene
 
     def sensor(self, sid: int) -> tuple[BioTacModel, ElectrodeModel]:
+        """Plant sensor `sid`'s fe model and electrodes (`plant_sensor_models`), built once per process."""
         if sid not in self.models:
-            truth = self.plant.sensor(sid)
-            model = inflated_model(self.geometry, apply_skin(truth.skin, self.plant.effects))
-            electrodes = ElectrodeModel(self.geometry, truth.electrodes, model.reference, truth.skin.thickness)
-            self.models[sid] = (model, electrodes)
+            self.models[sid] = plant_sensor_models(self.plant, sid, self.geometry)
         return self.models[sid]
+
+
+def plant_sensor_models(plant: Plant, sid: int, geometry: BioTacGeometry) -> tuple[BioTacModel, ElectrodeModel]:
+    """The truth of plant sensor `sid` as the simulated testbed needs it: its skin (with the plant's physics
+    effects) inflated on `geometry`, and its electrodes (its read-out parameters, seeing the skin through the
+    sensor's own thickness) on that skin."""
+    truth = plant.sensor(sid)
+    model = inflated_model(geometry, apply_skin(truth.skin, plant.effects))
+    return model, electrode_model(model, truth.electrodes, truth.skin.thickness)
 
 
 _WORKER: CampaignWorker | None = None

@@ -37,11 +37,8 @@ from typing import NamedTuple, Protocol
 import numpy as np
 
 from assets.biotac import make_biotac
-from fe.electrodes import ElectrodeModel
 from twin.backend import ARMS, BackendError
-from twin.campaign import CampaignConfig, true_biotac_pose
-from twin.effects import apply_skin
-from twin.fe_models import inflated_model
+from twin.campaign import CampaignConfig, plant_sensor_models, true_biotac_pose
 from twin.kinematics import forward
 from twin.planning import scene_tool_tip
 from twin.plant import Plant, make_plant
@@ -119,16 +116,13 @@ class TwinSources:
         if indenter not in config.indenters_for(sensor_id):
             raise ValueError(f"sensor {sensor_id} is not indented with {indenter!r} in this campaign")
         plant = plant if plant is not None else make_plant(list(config.sensors), config.seed)
-        truth = plant.sensor(sensor_id)
-        geometry = make_biotac(config.mesh_max_edge)
-        model = inflated_model(geometry, apply_skin(truth.skin, plant.effects))
-        electrodes = ElectrodeModel(geometry, truth.electrodes, model.reference, truth.skin.thickness)
+        model, electrodes = plant_sensor_models(plant, sensor_id, make_biotac(config.mesh_max_edge))
         scene = TestbedScene(config.scene)
         rng = np.random.default_rng(np.random.SeedSequence([config.seed, sensor_id, TWIN_STREAM]))
         backend = SimBackend(
             scene,
             true_biotac_pose(plant, sensor_id, scene),
-            truth,
+            plant.sensor(sensor_id),
             model,
             electrodes,
             plant.noise,

@@ -14,7 +14,6 @@ replays their batched results through the same backend.
 
 from __future__ import annotations
 
-import copy
 import math
 from collections.abc import Callable
 from dataclasses import dataclass
@@ -29,6 +28,7 @@ from twin.backend import ARMS, BackendError, Sample, check_arm
 from twin.effects import EffectValues, check_values, measure_wrench
 from twin.kinematics import joint_limits, velocity_limits
 from twin.plant import MeasurementNoise, PlantSensor
+from twin.readout import SensorReadout, ft_load
 from twin.scene import TestbedScene
 
 GRAVITY = np.array([0.0, 0.0, -9.81])
@@ -102,7 +102,7 @@ class SimBackend:
         self.fe_model = fe_model
         self._solver = solver if solver is not None else fe_model.stepper
         self.electrodes = electrodes
-        self._held_electrodes = held_impedance(electrodes)
+        self._readout = SensorReadout(fe_model.reference, electrodes)
         self.noise = noise
         self.rng = rng
         self.electrode_counts = electrode_counts
@@ -183,8 +183,8 @@ class SimBackend:
         wrench = self._measured_wrench() + self.sensor.ft_bias + wrench_noise
         if not self.electrode_counts:
             return Sample(self.time_s, joints, wrench, np.full(N_ELECTRODES, np.nan), np.nan)
-        electrodes = self._held_electrodes.counts(self._clean["vertices"], self.time_s, self.rng)
-        pdc = self.electrodes.pdc_counts(self._clean["pressure"], self.rng)
+        electrodes = self._readout.electrode_counts(self._clean["displacement"], self.time_s, self.rng)
+        pdc = self._readout.pdc(self._clean["pressure"], self.rng)
         return Sample(self.time_s, joints, wrench, electrodes, float(pdc))
 
     def close(self) -> None:
@@ -257,16 +257,19 @@ class SimBackend:
             self._wrench_history.pop(0)
 
     def _rest_signals(self) -> dict:
-        reference = self.fe_model.reference
+        """The clean state of the rest skin: no displacement (None), the inflated pressure (Pa), the untared
+        wrench (sensor frame)."""
         return {
-            "vertices": reference,
+            "displacement": None,
             "pressure": self.fe_model.pressure,
             "wrench": self._wrench(np.zeros(3), np.zeros(3)),
         }
 
     def _signals(self, result: IncrementResult, tip: np.ndarray) -> dict:
+        """The clean state of a solve: skin displacement (V, 3) m, pressure (Pa), untared wrench (sensor frame)
+        of its force at the tip (3,) m."""
         return {
-            "vertices": self.fe_model.reference + result.displacement,
+            "displacement": result.displacement,
             "pressure": result.pressure,
             "wrench": self._wrench(result.force, tip),
         }
@@ -282,30 +285,3 @@ def _norm(vector: np.ndarray) -> float:
     """The Euclidean norm of a 1-D float array, as `np.linalg.norm` computes it (sqrt of its dot with itself,
     the same bits) without its per-call overhead (it is asked every sample)."""
     return math.sqrt(vector.dot(vector))
-
-
-def held_impedance(electrodes: ElectrodeModel) -> ElectrodeModel:
-    """A view of `electrodes` that computes the relative impedance once per skin state: the backend reads the
-    same vertices array until the next solve (hundreds of samples in a pause, where only drift and noise
-    change), so the impedance of the last array it was given is kept. The same counts, bit for bit; at the
-    0.5 mm mesh the impedance is most of a sample's cost (about 11 ms)."""
-    held = copy.copy(electrodes)
-    last: list[np.ndarray | None] = [None, None]
-
-    def relative_impedance(vertices: np.ndarray) -> np.ndarray:
-        if vertices is not last[0]:
-            last[0], last[1] = vertices, electrodes.relative_impedance(vertices)
-        return last[1]
-
-    held.relative_impedance = relative_impedance  # counts() asks self.relative_impedance
-    return held
-
-
-def ft_load(force_biotac: np.ndarray, point_biotac: np.ndarray, sensor_in_biotac: np.ndarray) -> np.ndarray:
-    """(6,) wrench (N, N·m) in the F/T sensor frame of a force (N, biotac frame) applied at a point (m).
-
-    sensor_in_biotac: 4x4 pose of the sensor frame in the biotac frame; moments are about its origin.
-    """
-    rotation = sensor_in_biotac[:3, :3]
-    moment = np.cross(np.asarray(point_biotac) - sensor_in_biotac[:3, 3], np.asarray(force_biotac))
-    return np.concatenate([rotation.T @ force_biotac, rotation.T @ moment])

@@ -36,8 +36,8 @@ from twin.analysis.data import CampaignData, TrajectoryRecord
 from twin.analysis.predict import Predictor, TwinModel
 from twin.effects import apply_skin
 
-CALIBRATED = ("thickness", "mu_nh", "friction", "fluid_temperature")
-"""SkinParameters fields the calibration moves (the paper's t_s, mu_NH, mu_fr, T_fl)."""
+CALIBRATED = tuple(PAPER_CALIBRATION_BOUNDS)
+"""SkinParameters fields the calibration moves: those with the paper's bounds (its t_s, mu_NH, mu_fr, T_fl)."""
 FORCE_WEIGHT = 1.0
 THICKNESS_WEIGHT = 1e4
 THICKNESS_SMOOTHING = 0.1e-3

@@ -12,26 +12,24 @@ from __future__ import annotations
 
 import hashlib
 import json
-from collections.abc import Callable, Iterable, Iterator, Sequence
+from collections.abc import Callable, Iterable, Sequence
 from dataclasses import asdict, dataclass, field, replace
 
 import numpy as np
 
-from assets.biotac import make_biotac
 from fe.batched_runner import PoseTrajectory, run_trajectories
-from fe.electrodes import ElectrodeModel
-from fe.indentation import IndentationStepper
+from fe.indentation import step_through
 from fe.params import SkinParameters
 from fe.results import IncrementResult
-from fe.sensor import SENSOR_THICKNESS, BioTacModel, InflationResult
+from fe.sensor import BioTacModel, InflationResult
 from twin.analysis.data import TrajectoryRecord
 from twin.controller import Recording
 from twin.effects import EffectValues, apply_path, apply_skin, check_values, measure_wrench
+from twin.fe_models import INFLATION_RULES, inflated_fe_model
 from twin.processing import ProcessedRows, lowpass, process
-from twin.sim_backend import RELAXATION_SOLVE_INTERVAL_S, ft_load
+from twin.readout import SensorReadout, ft_load
+from twin.sim_backend import RELAXATION_SOLVE_INTERVAL_S
 
-INFLATION_RULES = ("thickness", "thermal")
-"""How a model's skin is inflated (see TwinModel)."""
 MODEL_CACHE_SIZE = 24
 """Inflated fe models a Predictor keeps (first built dropped first); replays, small arrays, are all kept."""
 PREFETCH_SLOTS = 256
@@ -85,15 +83,6 @@ class TwinModel:
         return hashlib.sha256(json.dumps(self.to_dict(), sort_keys=True).encode()).hexdigest()[:16]
 
 
-def inflated_fe_model(
-    skin: SkinParameters, mesh_max_edge: float, inflation: str = "thickness"
-) -> tuple[BioTacModel, InflationResult]:
-    """A BioTac fe model of `skin` meshed at `mesh_max_edge` (m) and inflated by the rule `inflation` (see
-    TwinModel), with its InflationResult (which says whether it converged)."""
-    model = BioTacModel(make_biotac(mesh_max_edge), skin)
-    return model, model.inflate(SENSOR_THICKNESS if inflation == "thickness" else None)
-
-
 @dataclass(frozen=True)
 class Prediction:
     """A model's view of one trajectory: per-increment fe results, full-rate signals and rows."""
@@ -130,7 +119,7 @@ class Predictor:
     def __init__(self, device: str = "cpu") -> None:
         self.device = device
         self._models: dict[tuple, tuple[BioTacModel, InflationResult]] = {}
-        self._electrodes: dict[int, ElectrodeModel] = {}
+        self._readouts: dict[int, SensorReadout] = {}
         self._replays: dict[tuple, Replay] = {}
 
     def inflated(self, skin: SkinParameters, mesh_max_edge: float, inflation: str = "thickness") -> tuple:
@@ -142,7 +131,7 @@ class Predictor:
                 raise RuntimeError(f"the model did not inflate for {skin}: {result.message}")
             if len(self._models) >= MODEL_CACHE_SIZE:
                 dropped = next(iter(self._models))
-                self._electrodes.pop(id(self._models.pop(dropped)[0]), None)
+                self._readouts.pop(id(self._models.pop(dropped)[0]), None)
             self._models[key] = (model, result)
         return self._models[key]
 
@@ -150,12 +139,12 @@ class Predictor:
         """An inflated fe model for these parameters (built once)."""
         return self.inflated(skin, mesh_max_edge, inflation)[0]
 
-    def electrode_model(self, fe: BioTacModel) -> ElectrodeModel:
-        """Nominal electrode physics on this fe model's inflated skin (read-out gains unknown: nominal)."""
+    def readout(self, fe: BioTacModel) -> SensorReadout:
+        """The nominal sensor read-out of this fe model's inflated skin (read-out gains unknown: nominal)."""
         key = id(fe)
-        if key not in self._electrodes:
-            self._electrodes[key] = ElectrodeModel(fe.geometry, None, fe.reference, fe.params.thickness)
-        return self._electrodes[key]
+        if key not in self._readouts:
+            self._readouts[key] = SensorReadout.of_model(fe)
+        return self._readouts[key]
 
     def _plan(self, model: TwinModel, trajectory: TrajectoryRecord) -> _ReplayPlan:
         """The replay `model` needs for `trajectory` (its key says which cached replay serves it)."""
@@ -191,14 +180,14 @@ class Predictor:
         if not pending:
             return 0
         fe = self._model_fe(model)
-        electrodes = self.electrode_model(fe)
+        readout = self.readout(fe)
         work = list(pending.values())
         poses = [_pose_trajectory(trajectory, plan) for trajectory, plan in work]
         solved: list[tuple] = []
 
         def finished(index: int, increments: list[IncrementResult]) -> None:
             plan = work[index][1]
-            self._replays[plan.key] = _replay_of(fe, electrodes, plan.events, increments)
+            self._replays[plan.key] = _replay_of(readout, plan.events, increments)
             increments.clear()  # the displacement fields are read: free them as the run goes on
             solved.append(plan.key)
             if progress is not None:
@@ -219,8 +208,9 @@ class Predictor:
         if plan.key not in self._replays:
             fe = self._model_fe(model)
             stepper = fe.stepper(trajectory.indenter, self.device)
-            increments = _steps(stepper, trajectory.rotation, plan)
-            self._replays[plan.key] = _replay_of(fe, self.electrode_model(fe), plan.events, increments)
+            times, indices = plan.events
+            increments = step_through(stepper, trajectory.rotation, plan.tips[indices], times if plan.timed else None)
+            self._replays[plan.key] = _replay_of(self.readout(fe), plan.events, increments)
         replay = self._replays[plan.key]
         tips, raw = plan.tips, trajectory.raw
         times = raw.time
@@ -236,7 +226,7 @@ class Predictor:
             return loads[np.clip(np.searchsorted(replay.time, t, side="right") - 1, 0, None)]
 
         wrench = measure_wrench(times, clean_at, model.effects)
-        pdc_change = _PDC_COUNTS_PER_PA * (replay.pressure[sample_event] - replay.pressure[0])
+        pdc_change = replay.pdc_change[sample_event]
         pdc = raw.pdc[0] + pdc_change
         predicted = Recording(
             time=times,
@@ -262,10 +252,6 @@ class Predictor:
         return Prediction(replay.force[last], replay.pressure[last], replay.converged[last], tared, pdc_change, rows)
 
 
-_PDC_COUNTS_PER_PA = 4095.0 / 100e3
-"""Nominal PDC scale: 12 bits over 0-100 kPa (facts: BioTac signals table)."""
-
-
 def _path_depths(raw: Recording) -> np.ndarray:
     """Commanded depth of each path index (-1 standoff first), from the recording's labels."""
     n = int(raw.increment.max()) + 2
@@ -277,14 +263,15 @@ def _path_depths(raw: Recording) -> np.ndarray:
 @dataclass(frozen=True)
 class Replay:
     """fe solves along a trajectory's path, one per event: the event's time (s, the recording's clock),
-    path index, force (N, biotac frame), pressure (Pa), electrode counts and converged flag (NaN after a
-    failure)."""
+    path index, force (N, biotac frame), pressure (Pa), its read-out (electrode counts, the PDC change from
+    the first event) and converged flag (NaN after a failure)."""
 
     time: np.ndarray  # (S,)
     path_index: np.ndarray  # (S,)
     force: np.ndarray  # (S, 3)
     pressure: np.ndarray  # (S,)
-    electrodes: np.ndarray  # (S, 19)
+    electrodes: np.ndarray  # (S, 19) counts, expected (noise-free)
+    pdc_change: np.ndarray  # (S,) counts, noise-free, from the first event's pressure
     converged: np.ndarray  # (S,) bool
 
 
@@ -310,34 +297,28 @@ def _pose_trajectory(trajectory: TrajectoryRecord, plan: _ReplayPlan) -> PoseTra
     return PoseTrajectory(trajectory.indenter, rotations, plan.tips[indices], times if plan.timed else None)
 
 
-def _steps(stepper: IndentationStepper, rotation: np.ndarray, plan: _ReplayPlan) -> Iterator[IncrementResult]:
-    """Step one system through a replay's events, yielding each increment up to and including the first that
-    does not converge."""
-    for t, k in zip(*plan.events, strict=True):
-        result = stepper.step(rotation, plan.tips[k], float(t) if plan.timed else None)
-        yield result
-        if not result.converged:
-            return
-
-
 def _replay_of(
-    fe: BioTacModel,
-    electrode_model: ElectrodeModel,
-    events: tuple[np.ndarray, np.ndarray],
-    increments: Iterable[IncrementResult],
+    readout: SensorReadout, events: tuple[np.ndarray, np.ndarray], increments: Iterable[IncrementResult]
 ) -> Replay:
     """The replay of the events (see `solve_events`) from their increments in order (read one by one), which
     end at the first that did not converge: that event and the later ones are NaN and not converged."""
     times, indices = events
     n = len(times)
     replay = Replay(
-        times, indices, np.full((n, 3), np.nan), np.full(n, np.nan), np.full((n, 19), np.nan), np.zeros(n, bool)
+        times,
+        indices,
+        np.full((n, 3), np.nan),
+        np.full(n, np.nan),
+        np.full((n, 19), np.nan),
+        np.full(n, np.nan),
+        np.zeros(n, bool),
     )
     for s, result in enumerate(increments):
         if not result.converged:
             break
         replay.force[s], replay.pressure[s], replay.converged[s] = result.force, result.pressure, True
-        replay.electrodes[s] = electrode_model.counts(fe.reference + result.displacement)
+        replay.electrodes[s] = readout.electrode_counts(result.displacement)
+    replay.pdc_change[:] = readout.pdc_change(replay.pressure - replay.pressure[0])
     return replay
 
 

@@ -111,10 +111,10 @@ def inflated_twin_model(
 ) -> tuple[TwinModel, BioTacModel, InflationResult]:
     """The `--model` TwinModel JSON (None: the nominal model) with its mesh size overridden by `mesh_mm` (mm;
     None: the model's, `FE_MESH_MM` without a model), and its fe model: skin with the effects applied, inflated
-    by the model's rule (`twin.analysis.predict.inflated_fe_model`), with the InflationResult. Bad input
+    by the model's rule (`twin.fe_models.inflated_fe_model`), with the InflationResult. Bad input
     (unreadable or invalid model, bad mesh size): one-line message and exit code 2."""
-    from twin.analysis.predict import inflated_fe_model
     from twin.effects import apply_skin
+    from twin.fe_models import inflated_fe_model
 
     def load() -> tuple[TwinModel, SkinParameters]:
         try:

@@ -27,8 +27,9 @@ import numpy as np
 from gymnasium import spaces
 
 from fe.electrodes import ADC_MAX, N_ELECTRODES, ElectrodeParameters
-from twin.envs.fe_batch import COARSE_MESH_MM, BatchIncrement, IndentationBatch, shared_model
+from twin.envs.fe_batch import COARSE_MESH_MM, BatchIncrement, IndentationBatch
 from twin.envs.sensing import Reading, TactileReadout
+from twin.fe_models import shared_model
 
 Pose = tuple[np.ndarray, np.ndarray]
 """Indenter pose: rotation (3, 3) body->biotac and tip position (3,) m."""

@@ -13,17 +13,13 @@ from __future__ import annotations
 
 import time
 from dataclasses import dataclass
-from functools import lru_cache
 
 import numpy as np
 import warp as wp
 
-from assets.biotac import make_biotac
 from fe.batched_stepper import BatchedStepper, CutBack
-from fe.params import SkinParameters
 from fe.results import IncrementResult
 from fe.sensor import BioTacModel
-from twin.fe_models import inflated_model
 
 COARSE_MESH_MM = 2.0
 """The cheap mesh (largest edge, mm): 281 skin nodes, about 0.05-0.1 s per contact increment on one core."""
@@ -36,14 +32,6 @@ def check_device(device: str) -> str:
     except (RuntimeError, ValueError) as error:
         raise ValueError(f"warp has no device {device!r} here ({error})") from None
     return device
-
-
-@lru_cache(maxsize=4)
-def shared_model(mesh_mm: float = COARSE_MESH_MM) -> BioTacModel:
-    """An inflated nominal BioTac FE model with `mesh_mm` (mm) largest edges, built once per process."""
-    if not 0.3 <= mesh_mm <= 5.0:
-        raise ValueError(f"mesh_mm must be in [0.3, 5] mm, got {mesh_mm!r}")
-    return inflated_model(make_biotac(mesh_mm * 1e-3), SkinParameters())
 
 
 @dataclass(frozen=True)

@@ -1,7 +1,7 @@
 """What a real BioTac (and, optionally, a wrist F/T sensor) reports about an FE state.
 
-Electrodes and PDC come from `fe.electrodes.ElectrodeModel` on the FE's inflated skin (nominal
-read-out unless parameters are given), with the ADC's noise and rounding; both are tared at the start
+Electrodes and PDC come from the twin's sensor read-out (`twin.readout.SensorReadout`) of the FE's inflated
+skin (nominal read-out unless parameters are given), with the ADC's noise and rounding; both are tared at the start
 of each episode as a user of the real sensor would. The optional F/T reading is the FE indenter force
 plus white noise. Units: counts for electrodes and PDC, N (biotac frame) for the force.
 """
@@ -12,8 +12,9 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from fe.electrodes import ElectrodeModel, ElectrodeParameters
+from fe.electrodes import ElectrodeParameters
 from twin.envs.fe_batch import IndentationBatch
+from twin.readout import SensorReadout
 
 
 @dataclass(frozen=True)
@@ -33,16 +34,14 @@ class TactileReadout:
     ) -> None:
         if force_noise_n < 0.0:
             raise ValueError(f"force_noise_n must be >= 0 N, got {force_noise_n!r}")
-        model = fe.model
-        self.reference = fe.reference
-        self.electrode_model = ElectrodeModel(model.geometry, params, model.reference, model.params.thickness)
-        self.electrode_positions = model.geometry.electrodes.positions
+        self.sensor = SensorReadout.of_model(fe.model, params)
+        self.electrode_positions = fe.model.geometry.electrodes.positions
         """(19, 3) electrode centres on the core (m, biotac frame)."""
         self.force_noise_n = float(force_noise_n)
 
     def read(self, displacement: np.ndarray, pressure: float, force: np.ndarray, rng: np.random.Generator) -> Reading:
         """Noisy sensor readings for a skin displacement (V, 3) m, fluid pressure (Pa) and indenter force (3,) N."""
-        electrodes = self.electrode_model.counts(self.reference + displacement, 0.0, rng)
-        pdc = self.electrode_model.pdc_counts(pressure, rng)
+        electrodes = self.sensor.electrode_counts(displacement, 0.0, rng)
+        pdc = self.sensor.pdc(pressure, rng)
         noisy_force = np.asarray(force, dtype=float) + self.force_noise_n * rng.standard_normal(3)
         return Reading(electrodes, pdc, noisy_force)

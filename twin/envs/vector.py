@@ -18,9 +18,10 @@ from gymnasium.vector.utils import batch_space, concatenate, create_empty_array
 
 from twin.envs.base import TactileEnv, slot_increment
 from twin.envs.edge import EdgeFollowEnv
-from twin.envs.fe_batch import COARSE_MESH_MM, IndentationBatch, shared_model
+from twin.envs.fe_batch import COARSE_MESH_MM, IndentationBatch
 from twin.envs.press import PressEnv
 from twin.envs.sensing import TactileReadout
+from twin.fe_models import shared_model
 
 
 class TactileVectorEnv(VectorEnv):

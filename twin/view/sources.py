@@ -18,8 +18,9 @@ import rerun as rr
 
 from assets.biotac import electrode_table
 from assets.indenters import INDENTERS
+from fe.indentation import step_through
 from twin.dataset import open_dataset
-from twin.envs.fe_batch import shared_model
+from twin.fe_models import shared_model
 from twin.view.layout import default_blueprint
 from twin.view.scene import SkinScene, log_residual_field
 
@@ -58,13 +59,10 @@ def _replayed_displacement(
     """FE replay of tip positions (N, 3) m: (N, V, 3) displacement (NaN after a failed increment),
     reference (V, 3) m and triangles of the nominal model with `mesh_max_edge` (m)."""
     model = shared_model(mesh_max_edge * 1e3)
-    stepper = model.stepper(indenter)
     out = np.full((len(tips), *model.reference.shape), np.nan)
-    for k, tip in enumerate(tips):
-        result = stepper.step(rotation, tip)
-        if not result.converged:
-            break
-        out[k] = result.displacement
+    for k, result in enumerate(step_through(model.stepper(indenter), rotation, tips)):
+        if result.converged:
+            out[k] = result.displacement
     return out, model.reference, model.geometry.skin.triangles
 
 
