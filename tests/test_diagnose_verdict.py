@@ -96,6 +96,20 @@ def test_the_weighted_chi_square_quantile_matches_the_chi_square_and_the_normal(
     assert normal == pytest.approx(100 * norm.isf(0.001), rel=0.01)
 
 
+def test_the_out_of_fold_excess_is_the_spectrum_of_the_explicit_held_out_projection() -> None:
+    rng = np.random.default_rng(23)
+    jac = rng.standard_normal((600, 4)) * [1.0, 0.1, 0.5, 2.0]
+    folds = rng.integers(0, 3, 600)
+    explicit = np.zeros((600, 600))  # P: each fold's rows predicted by the fit on the others
+    for g in range(3):
+        test = folds == g
+        explicit[np.ix_(test, ~test)] = jac[test] @ np.linalg.pinv(jac[~test])
+    residual_map = np.eye(600) - explicit
+    spectrum = np.linalg.eigvalsh(residual_map.T @ residual_map - np.eye(600))
+    spectrum = spectrum[np.abs(spectrum) > 1e-9]
+    assert np.sort(out_of_fold_excess(jac, folds).excess) == pytest.approx(np.sort(spectrum), abs=1e-8)
+
+
 def test_the_held_out_test_allows_for_the_other_folds_fit_and_holds_its_false_alarm_rate() -> None:
     rng = np.random.default_rng(22)
     jac, folds = _two_fold_design(rng, 1000)

@@ -169,29 +169,41 @@ def noise_test(
 
 
 def out_of_fold_excess(jac: np.ndarray, folds: np.ndarray) -> OutOfFold:
-    """The mean and extra variance that leave-one-fold-out linear least-squares fits add to the held-out sum
-    of squares of white unit noise (see the module docstring). jac (N, k): the whitened sensitivity (rows
-    with a non-finite entry are left out, as the fits leave them); folds (N,): each row's fold label.
+    """What leave-one-fold-out linear least-squares fits add to the held-out sum of squares of white unit
+    noise (see the module docstring). jac (N, k): the whitened sensitivity (rows with a non-finite entry are
+    left out, as the fits leave them); folds (N,): each row's fold label.
 
-    With U_g = S_g X (X_~g^T X_~g)^-1 and V_g = S_~g X (S selecting rows), P = U V^T and
+    With U_g = S_g X M_g, M_g = (X_~g^T X_~g)^-1, and V_g = S_~g X (S selecting rows), P = U V^T and
     (I - P)^T (I - P) = I + W K W^T with W = [U V] and K = [[0, -I], [-I, U^T U]], whose non-zero
-    eigenvalues are those of the small (W^T W)^(1/2) K (W^T W)^(1/2)."""
+    eigenvalues are those of the small (W^T W)^(1/2) K (W^T W)^(1/2). W^T W needs only each fold's
+    A_g = X_g^T X_g: U_g^T U_g = M_g A_g M_g, U_g^T V_h = M_g A_g (g != h), V_g^T V_h = sum of the A_f
+    outside g and h (0 for U_g^T U_h, U_g^T V_g)."""
     rows = np.isfinite(jac).all(axis=1)
     x, labels = jac[rows], np.asarray(folds)[rows]
     groups = np.unique(labels)
     if len(groups) < 2:
         return NO_FIT
-    u_blocks, v_blocks = [], []
-    for g in groups:
-        test = (labels == g)[:, None]
-        train = np.where(test, 0.0, x)
-        u_blocks.append(np.where(test, x @ np.linalg.pinv(train.T @ train), 0.0))
-        v_blocks.append(train)
-    u, v = np.hstack(u_blocks), np.hstack(v_blocks)
-    w = np.hstack([u, v])
-    m = u.shape[1]
-    k = np.block([[np.zeros((m, m)), -np.eye(m)], [-np.eye(m), u.T @ u]])
-    values, vectors = np.linalg.eigh(w.T @ w)
-    root = vectors * np.sqrt(np.clip(values, 0.0, None)) @ vectors.T  # (W^T W)^(1/2): K W^T W's eigenvalues
-    excess = np.linalg.eigvalsh(root @ k @ root)
+    grams = [x[labels == g].T @ x[labels == g] for g in groups]
+    total = np.sum(grams, axis=0)
+    inverses = [np.linalg.pinv(total - a) for a in grams]
+    f, k = len(groups), x.shape[1]
+    gram = np.zeros((2 * f * k, 2 * f * k))
+    u_block = np.zeros((f * k, f * k))
+
+    def at(i: int, j: int) -> tuple[slice, slice]:
+        return slice(i * k, (i + 1) * k), slice(j * k, (j + 1) * k)
+
+    for g in range(f):
+        u_block[at(g, g)] = gram[at(g, g)] = inverses[g] @ grams[g] @ inverses[g]
+        for h in range(f):
+            outside = total - grams[g] - (grams[h] if h != g else 0.0)
+            gram[at(f + g, f + h)] = outside
+            if h != g:
+                gram[at(g, f + h)] = inverses[g] @ grams[g]
+                gram[at(f + h, g)] = grams[g] @ inverses[g]
+    identity = np.eye(f * k)
+    kernel = np.block([[np.zeros_like(identity), -identity], [-identity, u_block]])
+    values, vectors = np.linalg.eigh(gram)
+    root = vectors * np.sqrt(np.clip(values, 0.0, None)) @ vectors.T
+    excess = np.linalg.eigvalsh(root @ kernel @ root)
     return OutOfFold(tuple(float(e) for e in excess[np.abs(excess) > 1e-9 * np.abs(excess).max()]))
