@@ -10,10 +10,11 @@ import json
 
 import numpy as np
 import pytest
+from scipy.stats import chi2, norm
 
 from twin.analysis.diagnose import Diagnosis, diagnose
 from twin.analysis.predict import TwinModel
-from twin.analysis.significance import noise_test, ratio_threshold
+from twin.analysis.significance import noise_test, out_of_fold_excess, ratio_threshold, weighted_chi2_quantile
 from twin.analysis.verdict import NOTHING_BEYOND_NUISANCES, Candidate, order_candidates, parameters_at_bound, verdict
 
 CHANNELS = 4
@@ -61,6 +62,69 @@ def test_the_noise_test_sees_a_small_excess_on_many_samples_and_not_on_few() -> 
     rms_many = np.sqrt(ratio_threshold([50_000] * 4, [50_000] * 4, 80)[0])
     rms_few = np.sqrt(ratio_threshold([500] * 4, [500] * 4, 8)[0])
     assert 1.0 < rms_many < 1.02 < 1.05 < rms_few < 1.3, (rms_many, rms_few)
+
+
+def _two_fold_design(rng: np.random.Generator, rows: int) -> tuple[np.ndarray, np.ndarray]:
+    """A 9-column whitened sensitivity in two folds, as the F/T map's on two indenters: fold 0 barely
+    excites six columns (the lateral ones) that fold 1 loads ten times as much."""
+    weak = np.r_[np.full(6, 0.03), np.ones(3)]
+    strong = np.r_[np.full(6, 0.3), np.ones(3)]
+    jac = np.vstack([rng.standard_normal((rows, 9)) * weak, rng.standard_normal((rows, 9)) * strong])
+    return jac, np.repeat([0, 1], rows)
+
+
+def _held_out_squares(jac: np.ndarray, folds: np.ndarray, noise: np.ndarray) -> np.ndarray:
+    """Sum of squares of each noise column (N, draws) predicted per fold by a least-squares fit on the other."""
+    out = np.zeros(noise.shape[1])
+    for g in np.unique(folds):
+        test = folds == g
+        fit = np.linalg.lstsq(jac[~test], noise[~test], rcond=None)[0]
+        out += np.sum((noise[test] - jac[test] @ fit) ** 2, axis=0)
+    return out
+
+
+def test_the_weighted_chi_square_quantile_matches_the_chi_square_and_the_normal() -> None:
+    for degrees, alpha in ((1, 0.01), (9, 0.001), (500, 0.001), (20_000, 0.001)):
+        exact = 2.5 * chi2.isf(alpha, degrees)
+        assert weighted_chi2_quantile(np.array([2.5]), np.array([degrees]), 0.0, alpha) == pytest.approx(
+            exact, rel=0.01
+        )
+    # two chi-squares of one weight are one; a dominant normal term gives the normal quantile
+    split = weighted_chi2_quantile(np.array([1.0, 1.0]), np.array([30, 70]), 0.0, 0.001)
+    assert split == pytest.approx(chi2.isf(0.001, 100), rel=1e-4)
+    normal = weighted_chi2_quantile(np.array([1e-6]), np.array([1]), 1e4, 0.001)
+    assert normal == pytest.approx(100 * norm.isf(0.001), rel=0.01)
+
+
+def test_the_out_of_fold_excess_is_the_spectrum_of_the_explicit_held_out_projection() -> None:
+    rng = np.random.default_rng(23)
+    jac = rng.standard_normal((600, 4)) * [1.0, 0.1, 0.5, 2.0]
+    folds = rng.integers(0, 3, 600)
+    explicit = np.zeros((600, 600))  # P: each fold's rows predicted by the fit on the others
+    for g in range(3):
+        test = folds == g
+        explicit[np.ix_(test, ~test)] = jac[test] @ np.linalg.pinv(jac[~test])
+    residual_map = np.eye(600) - explicit
+    spectrum = np.linalg.eigvalsh(residual_map.T @ residual_map - np.eye(600))
+    spectrum = spectrum[np.abs(spectrum) > 1e-9]
+    assert np.sort(out_of_fold_excess(jac, folds).excess) == pytest.approx(np.sort(spectrum), abs=1e-8)
+
+
+def test_the_held_out_test_allows_for_the_other_folds_fit_and_holds_its_false_alarm_rate() -> None:
+    rng = np.random.default_rng(22)
+    jac, folds = _two_fold_design(rng, 1000)
+    excess = out_of_fold_excess(jac, folds)
+    squares = _held_out_squares(jac, folds, rng.standard_normal((len(jac), 4000)))
+    assert excess.mean > 0.05 * len(jac), "the design must make the out-of-fold error matter"
+    assert np.mean(squares) - len(jac) == pytest.approx(excess.mean, rel=0.1)
+    assert np.var(squares) == pytest.approx(2 * len(jac) + excess.variance, rel=0.1)
+    # one channel, sigma known (a huge noise sample), no nuisances: the false alarms at alpha 0.05 and 0.01
+    # (binomial sd over 4000 draws 0.0034 and 0.0016)
+    for alpha, low, high in ((0.05, 0.04, 0.06), (0.01, 0.005, 0.016)):
+        with_fit = noise_test([0.0], [len(jac)], [10**12], 0, alpha=alpha, out_of_fold=excess).threshold
+        without = noise_test([0.0], [len(jac)], [10**12], 0, alpha=alpha).threshold
+        assert low <= np.mean(squares / len(jac) > with_fit) <= high, alpha
+        assert np.mean(squares / len(jac) > without) > 0.5, "ignoring the fit, pure noise fails the held-out test"
 
 
 def _candidate(name: str, evidence: float, refit: float, heldout: float, passes: bool, **kw) -> Candidate:

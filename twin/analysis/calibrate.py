@@ -8,6 +8,12 @@ Cost (Narang et al., Eq. 1): J = w1 J_force + w2 J_thick with w1 = 1, w2 = 1e4.
   a proper penalty of the same weight and units, smooth for SLSQP: w2 sqrt((t_sim - 0.0151)^2 + eps^2)
   - w2 eps with eps = 0.1 mm (a pseudo-Huber absolute value: |dt| far from zero, quadratic within eps, so
   SLSQP sees a smooth valley it can follow while the other parameters move the inflated thickness).
+Gradient: forward differences of J_force (the fe replays) and the chain rule for J_thick, its exact slope
+at t_sim times the forward difference of t_sim (a smooth output of the inflation alone). A forward
+difference of J_thick itself is its secant: at the valley's floor a step of 0.02 of T_fl's range moves
+t_sim by 0.033 mm, a third of eps, and the secant slope is 2.7 per unit of scaled T_fl where the true one is
+zero, twice the modulus's 1.2 (docs/analysis.md): SLSQP then spends its steps on T_fl and its line search
+cuts every step short, the modulus barely moving.
 The skin is inflated by the paper's thermal rule (fluid at T_fl), so the sensor thickness t_sim is an
 output. Our BioTac cavity (facts/biotac.md geometry) holds far less fluid than the paper's FE fluid
 domain: with beta_T = 0.01 /C, reaching 15.1 mm would need T_fl near 130 C. Calibration therefore uses
@@ -122,6 +128,12 @@ def thickness_penalty(thickness: float) -> float:
     return THICKNESS_WEIGHT * (np.hypot(d, THICKNESS_SMOOTHING) - THICKNESS_SMOOTHING)
 
 
+def thickness_penalty_slope(thickness: float) -> float:
+    """d `thickness_penalty` / d thickness (1/m times the cost's units): w2 dt / sqrt(dt^2 + eps^2)."""
+    d = thickness - SENSOR_THICKNESS
+    return THICKNESS_WEIGHT * d / np.hypot(d, THICKNESS_SMOOTHING)
+
+
 def calibrate(
     trajectories: list[TrajectoryRecord],
     base: TwinModel,
@@ -161,25 +173,35 @@ def calibrate(
         force_cost = FORCE_WEIGHT * float(np.sum(np.sqrt(np.mean(residual**2, axis=0))))
         return force_cost, float(thickness_penalty(thickness)), thickness
 
-    def cost(z: np.ndarray) -> float:
+    def evaluated(z: np.ndarray) -> tuple[float, float, float]:
+        """`terms(z)`, recorded in the history (and reported) as one cost evaluation."""
         force_cost, thick_cost, thickness = terms(z)
         total = force_cost + thick_cost
         history.append({**_calibrated_values(model_at(z).skin), "cost": total, "sensor_thickness": thickness})
         if progress is not None:
             progress(len(history), total)
-        return total if np.isfinite(total) else 1e6
+        return force_cost, thick_cost, thickness
+
+    def cost(z: np.ndarray) -> float:
+        return _bounded(sum(evaluated(z)[:2]))
 
     z0 = (start - low) / (high - low)
 
     def gradient(z: np.ndarray) -> np.ndarray:
-        """Forward differences of `settings.step` in scaled units (backward at the upper bound); the
-        predictor caches every model, so SLSQP's repeated points cost nothing."""
-        f0, out = cost(z), np.zeros_like(z)
+        """Forward differences of `settings.step` in scaled units (backward at the upper bound) of the force
+        term, plus the thickness penalty's exact slope times the difference of the thickness (see the module
+        docstring); the predictor caches every model, so SLSQP's repeated points cost nothing."""
+        at = evaluated(z)
+        slope, out = thickness_penalty_slope(at[2]), np.zeros_like(z)
         for i in range(len(z)):
             h = settings.step if z[i] + settings.step <= 1.0 else -settings.step
             shifted = z.copy()
             shifted[i] += h
-            out[i] = (cost(shifted) - f0) / h
+            near = evaluated(shifted)
+            if np.isfinite(at[0]) and np.isfinite(near[0]):
+                out[i] = (near[0] - at[0]) / h + slope * (near[2] - at[2]) / h
+            else:  # the model fails on one side: the failure's cost (1e6) as in `cost`
+                out[i] = (_bounded(sum(near[:2])) - _bounded(sum(at[:2]))) / h
         return out
 
     # SLSQP's first step is minus the gradient (unit Hessian) and its tolerance is absolute: divide the
@@ -236,6 +258,11 @@ def effective_thermal_expansion(predictor: Predictor, base: TwinModel) -> float:
         )
     added = inflation.volume_change / skin.inflation_volume_scale
     return float(added / (fe.geometry.cavity_volume_reference * warming))
+
+
+def _bounded(total: float) -> float:
+    """A cost SLSQP can use: a failed model's (non-finite) cost counts as 1e6."""
+    return total if np.isfinite(total) else 1e6
 
 
 def _calibrated_values(skin: SkinParameters) -> dict[str, float]:

@@ -43,6 +43,7 @@ from twin.analysis.data import CampaignData
 from twin.analysis.nuisances import NUISANCE_EFFECTS, fit_nuisances
 from twin.analysis.predict import Predictor, TwinModel
 from twin.analysis.residual import CHANNELS, Base, Residual, base_residual
+from twin.analysis.significance import out_of_fold_excess
 from twin.analysis.verdict import Candidate, order_candidates, parameters_at_bound, verdict
 from twin.effects import EFFECTS, Effect
 
@@ -287,13 +288,16 @@ def _heldout(
 
 def _judge_heldout(candidate: Candidate, model: TwinModel, predictor: Predictor, base: Base) -> None:
     """Held-out RMS about the refitted values (the effect linearised again there: one fe replay per
-    parameter for a physics effect) and whether that held-out residual passes the noise test; and which
-    refitted parameters sit at a bound."""
+    parameter for a physics effect) and whether that held-out residual passes the noise test, which
+    allows for the error the fits on the other indenters carry into it (`significance.out_of_fold_excess`;
+    the parameter bounds of the fits are not modelled); and which refitted parameters sit at a bound."""
     effect = EFFECTS[candidate.name]
     at_fit = linearise(effect, model, candidate.refit_parameters, predictor, base)
     rms, left_out = _heldout(effect, at_fit, base.residual.values, base.residual.indenter)
+    test = base.noise_test(left_out, out_of_fold=out_of_fold_excess(at_fit.jac, base.residual.indenter))
     candidate.heldout_rms = rms
-    candidate.heldout_is_noise = base.noise_test(left_out).is_noise
+    candidate.heldout_is_noise = test.is_noise
+    candidate.heldout_rms_threshold = test.rms_threshold
     candidate.at_bound = parameters_at_bound(candidate.name, candidate.refit_parameters)
 
 

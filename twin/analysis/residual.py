@@ -23,7 +23,7 @@ from assets.indenters import get_indenter
 from twin.analysis.compare import FORCE_CHANNELS, noise_estimate, time_in_increment
 from twin.analysis.data import CampaignData, TrajectoryRecord
 from twin.analysis.predict import Predictor, TwinModel, measured_force_fullrate, measured_pdc_fullrate
-from twin.analysis.significance import NoiseTest, noise_test
+from twin.analysis.significance import NO_FIT, NoiseTest, OutOfFold, noise_test
 
 CHANNELS = (*FORCE_CHANNELS, "pdc")
 """Residual channels, in the order of the last axis of every signal array."""
@@ -190,11 +190,12 @@ class Base:
         predicted = fullrate_prediction(predictor, model, self.trajectories, self.model_for)
         return self.nuisance.project(whitened(predicted, self.masks, self.sigma) - self.prediction)
 
-    def noise_test(self, values: np.ndarray, fitted: int | None = None) -> NoiseTest:
+    def noise_test(self, values: np.ndarray, fitted: int | None = None, out_of_fold: OutOfFold = NO_FIT) -> NoiseTest:
         """The noise test (`twin.analysis.significance`) of a whitened residual on this residual's samples
         (NaN skipped): the nuisances are each trajectory's channel offsets, each sensor's PDC gain and the
         `fitted` parameters (default: those fitted to reach this base), and each channel's noise was
-        estimated from every trajectory's successive differences."""
+        estimated from every trajectory's successive differences; `out_of_fold` for a held-out residual
+        (what the fits on the other folds add, `significance.out_of_fold_excess`)."""
         axis = self.residual.covariates["axis"]
         finite = np.isfinite(values)
         channels = range(len(CHANNELS))
@@ -203,7 +204,7 @@ class Base:
         differences = sum(len(t.raw.time) - 1 for t in self.trajectories)
         sensors = len(np.unique(self.residual.covariates["sensor"]))
         nuisances = len(CHANNELS) * len(self.trajectories) + sensors + (self.fitted if fitted is None else fitted)
-        return noise_test(squares, counts, [differences] * len(CHANNELS), nuisances)
+        return noise_test(squares, counts, [differences] * len(CHANNELS), nuisances, out_of_fold=out_of_fold)
 
 
 def base_residual(

@@ -41,6 +41,7 @@ class Candidate:
     identifiable: bool = True
     at_bound: list[str] = field(default_factory=list)  # refitted parameters at a bound of their range
     heldout_is_noise: bool | None = None  # the held-out residual passes the noise test (None: not judged)
+    heldout_rms_threshold: float | None = None  # the RMS its held-out test allows (None: not judged)
 
     @property
     def refitted(self) -> bool:
@@ -60,6 +61,8 @@ def parameters_at_bound(name: str, values: dict[str, float], tolerance: float = 
 
 def _figures(c: Candidate) -> str:
     held = "-" if c.heldout_rms is None else f"{c.heldout_rms:.2f}x"
+    if c.heldout_rms_threshold is not None:
+        held += f", its noise test {c.heldout_rms_threshold:.3f}x"
     refit = "-" if c.refit_rms is None else f"{c.refit_rms:.2f}x"
     bound = (
         f"; {', '.join(c.at_bound)} at {'its bound' if len(c.at_bound) == 1 else 'their bounds'}" if c.at_bound else ""
@@ -98,7 +101,7 @@ def verdict(
     if not named:
         closest = sorted((c for c in candidates if c.refitted), key=lambda c: c.heldout_rms or float("inf"))
         shown = "; ".join(_figures(c) for c in closest[:CLOSEST_SHOWN]) or "none refitted"
-        why = [f"no refitted candidate brings the held-out residual to the noise ({rms_threshold:.3f}x)"]
+        why = ["no refitted candidate brings the held-out residual to the noise"]
         if any(c.heldout_is_noise and not c.identifiable for c in closest):
             why.append("or those that do have parameters these data cannot identify")
         return "unexplained", f"{' '.join(why)}; closest: {shown}", []
@@ -120,7 +123,7 @@ def verdict(
         )
     return (
         best.name,
-        f"{best.name} explains {best.explained_fraction:.0%} of the excess residual; {_figures(best)}, "
-        f"within the noise test's {rms_threshold:.3f}x",
+        f"{best.name} explains {best.explained_fraction:.0%} of the excess residual (noise test {rms_threshold:.3f}x); "
+        f"{_figures(best)}: held out within its noise test",
         [],
     )
