@@ -598,11 +598,11 @@ class BatchedShell:
         self, x: wp.array, spacing: np.ndarray, floor: np.ndarray, which: np.ndarray
     ) -> np.ndarray:
         """Nearest approach (m, the indenter SDF; negative inside its body) of each `which` system's (B,) bool
-        indenter body to its skin's mid-surface triangles at positions x (B,V), (B,): sampled on each
-        triangle with nodes at most `spacing` (B,) m apart where its bound is below `floor` (B,) m
+        indenter body to each of its skin's mid-surface triangles at positions x (B,V), (B,T): sampled on
+        the triangle with nodes at most `spacing` (B,) m apart where its bound is below `floor` (B,) m
         (`fe.contact.indenter_skin_clearance_kernel`), a lower bound at least `floor` elsewhere; +inf for the
         other systems."""
-        clearance = wp.full(self.batch, np.inf, dtype=wp.float64, device=self.device)
+        clearance = wp.full((self.batch, self.n_triangles), np.inf, dtype=wp.float64, device=self.device)
         arr = lambda a, dtype: wp.array(np.asarray(a, dtype=dtype), device=self.device)  # noqa: E731
         values = {**self.pose, "kind": self._kind, "dims": self._dims, "clearance": clearance, "x": x}
         values |= {"triangles": self._static["triangles"], "spacing": arr(spacing, np.float64)}

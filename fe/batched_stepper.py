@@ -528,7 +528,7 @@ class BatchedStepper:
         i: int,
         gap: np.ndarray,
         core_gap: np.ndarray,
-        clearances: tuple[float, float],
+        clearances: tuple[float, np.ndarray],
         force: np.ndarray,
         balance: float,
     ) -> str:
@@ -541,7 +541,7 @@ class BatchedStepper:
         indenter nearer the rigid core than both half-layers at the floor allow (`clearance`, m, from
         `fe.batched.BatchedShell.indenter_clearance`): it reached the core through the skin, between skin
         vertices (issue 17 review F2); or the indenter body deeper in a skin triangle, anywhere on it, than the
-        layer law allows (`reach`, m, its SDF's minimum over the mid-surface from
+        layer law allows (`reach` (T,), m, its SDF's minimum over each mid-surface triangle from
         `fe.batched.BatchedShell.indenter_skin_clearance`): below `min_stretch` of the half-layer, or deeper
         than `max_penetration` of the thickness into a zero-thickness contact; it passed between the
         quadrature points (`clearances` = (clearance, reach)). Core gaps of vertices whose search was skipped
@@ -565,12 +565,14 @@ class BatchedStepper:
             if h <= 0.0 and closing > limit:
                 return f"{where} {closing * 1e6:.0f} um into the skin{clamped} (limit {limit * 1e6:.0f} um)"
         clearance, reach = clearances
-        if reach < self._skin_floor[i]:
-            h = self._half[i]
-            law = f"{settings.min_stretch:.2f} of the half-layer" if h > 0.0 else "the penetration limit"
+        face = int(np.argmin(reach))
+        if reach[face] < self._skin_floor[i]:
+            law = f"{settings.min_stretch:.2f} of the half-layer" if self._half[i] > 0.0 else "the penetration limit"
+            rim = self.shell.fixed[self.skin.triangles[face]].all(axis=1).any()
+            clamped = " with a clamped vertex (the rigid base)" if rim else ""
             return (
-                f"the indenter reaches into a skin triangle ({reach * 1e6:.0f} um from its mid-surface; "
-                f"floor {self._skin_floor[i] * 1e6:.0f} um, {law})"
+                f"the indenter reaches into a skin triangle{clamped} ({reach[face] * 1e6:.0f} um from its "
+                f"mid-surface; floor {self._skin_floor[i] * 1e6:.0f} um, {law})"
             )
         floor = self._core_floor[i]
         if clearance < floor:

@@ -576,12 +576,11 @@ def indenter_skin_clearance_kernel(
     rotation: wp.array(dtype=wp.mat33d),
     translation: wp.array(dtype=wp.vec3d),
     active: wp.array(dtype=wp.int32),
-    clearance: wp.array(dtype=wp.float64),
+    clearance: wp.array2d(dtype=wp.float64),
 ):
-    """clearance[b] = min over the skin's mid-surface triangles f at positions x[b] of the indenter body's
-    SDF there (m), to the sampling of `_split_clearance` with nodes at most spacing[b] m apart along the
-    triangle's longest edge where below floor[b] m (clearance must start at +inf; systems with
-    active[b] = 0 are left as they are)."""
+    """clearance[b, f] = min over skin mid-surface triangle f at positions x[b] of the indenter body's SDF
+    (m), to the sampling of `_split_clearance` with nodes at most spacing[b] m apart along the triangle's
+    longest edge where below floor[b] m (systems with active[b] = 0 are left as they are)."""
     b, f = wp.tid()
     if active[b] == 0:
         return
@@ -591,5 +590,4 @@ def indenter_skin_clearance_kernel(
     e2 = x[b, tri[2]] - p0
     longest = wp.max(wp.length(e1), wp.max(wp.length(e2), wp.length(e2 - e1)))
     parts = wp.max(int(wp.ceil(longest / spacing[b])), 1)
-    least = _split_clearance(kind[b], dims[b], rotation[b], translation[b], p0, e1, e2, parts, floor[b])
-    wp.atomic_min(clearance, b, least)
+    clearance[b, f] = _split_clearance(kind[b], dims[b], rotation[b], translation[b], p0, e1, e2, parts, floor[b])
