@@ -1,26 +1,36 @@
-"""Contact energies per skin vertex, in warp: rigid core (frictionless) and rigid indenter (frictional).
+"""Contact energies in warp: rigid core (frictionless, per skin vertex) and rigid indenter (normal contact
+integrated over the skin triangles, friction per vertex).
 
 Normal contact is the through-thickness compression of the skin. The shell's mid-surface carries half the
 thickness, h (m), on each side (the indenter's side: `InflatedSkin.indenter_offset`, default t/2; the core's:
-`InflatedSkin.core_offset`); with d (m) the signed distance of a mid-surface vertex to the body and
+`InflatedSkin.core_offset`); with d (m) the signed distance of a mid-surface point to the body and
 g = d - h its gap, a closing gap squeezes that half-layer to the stretch lam = d / h = 1 + g / h. The layer is
 incompressible Neo-Hookean, compressed with free lateral expansion (Ogden, Non-linear Elastic Deformations,
-1984, sec. 7.2: uniaxial nominal stress mu (lam - lam^-2)), so a vertex of reference area A_v (m^2) stores
-E_n = A_v h (mu / 2)(lam^2 + 2 / lam - 3) for lam < 1 and nothing above: C1 at lam = 1 (the stress
+1984, sec. 7.2: uniaxial nominal stress mu (lam - lam^-2)), so a reference area A (m^2) stores
+E_n = A h (mu / 2)(lam^2 + 2 / lam - 3) for lam < 1 and nothing above: C1 at lam = 1 (the stress
 vanishes there), stiffening as lam^-3 towards lam = 0. Below `ContactSettings.min_stretch` the energy goes on
 as its second-order Taylor expansion there (finite and convex for any gap, so Newton never meets a
 non-finite energy), and `fe.batched_stepper.BatchedStepper` refuses any converged state that reaches it.
-h = 0 (a zero-thickness membrane, e.g. `fe.dome`) keeps the one-sided quadratic penalty kappa A_v g^2 / 2
+h = 0 (a zero-thickness membrane, e.g. `fe.dome`) keeps the one-sided quadratic penalty kappa A g^2 / 2
 (kappa in Pa/m). mu (Pa) is each system's long-term modulus (1 - g) mu_NH (`layer_mu`): the layer keeps no
 viscoelastic branch of its own, so a relaxing skin ends exactly as the long-term elastic one.
 
-Friction is lagged Coulomb with IPC smoothing: E_f = mu_fr lambda f0(|u_T|), lambda the normal force (N) of
-the law above and n the contact normal of the last lagging pass, u_T the slip over the increment projected
-on the plane normal to n, and f0 the C1 smoothing of |u| over the slip length eps (m). The indenter moves
-rigidly from pose (R0, t0) to (R, t); the slip of a skin vertex at p relative to the indenter material
-point now under it is u = R0 R^T (p - t) + t0 - x_start, i.e. its motion seen from the indenter's body
-frame. Its SDF is evaluated in its own frame (tip at the origin, body along +z) and covers the whole body,
-head and shank (`fe.indenter_sdf.body_sdf_and_grad`), so the skin cannot slip past the head's back.
+The core's contact is lumped per skin vertex (A = the vertex's lumped reference area, 3x3 Hessian blocks).
+The indenter's is integrated over each skin triangle f (`indenter_surface_kernel`): E = sum_f sum_q
+psi(g(x_q); w_q A_f), x_q = sum_i N_i(q) x_i at the quadrature points of `fe.surface_quadrature` (reference-area
+weights w_q A_f, barycentric shape functions N_i), so an indenter smaller than a triangle meets the skin
+between its vertices and the force grows smoothly as the contact edge crosses a triangle, not in a jump per
+ring of nodes; its Hessian is a 9x9 block per triangle (the pattern the membrane already has).
+
+Friction is lagged Coulomb with IPC smoothing, per skin vertex: E_f = mu_fr lambda f0(|u_T|), lambda the
+normal force (N) and n the normal of the last lagging pass (the surface contact's quadrature forces lumped to
+the vertex with the weights N_i: lambda their magnitude, n their direction, `lag_candidates`), u_T the slip
+over the increment projected on the plane normal to n, and f0 the C1 smoothing of |u| over the slip length
+eps (m). The indenter moves rigidly from pose (R0, t0) to (R, t); the slip of a skin vertex at p relative to
+the indenter material point now under it is u = R0 R^T (p - t) + t0 - x_start, i.e. its motion seen from the
+indenter's body frame. Its SDF is evaluated in its own frame (tip at the origin, body along +z) and covers
+the whole body, head and shank (`fe.indenter_sdf.body_sdf_and_grad`), so the skin cannot slip past the
+head's back.
 """
 
 import warp as wp
