@@ -364,7 +364,6 @@ class BatchedShell:
             "indenter_gap": z((B, V), wp.float64),
             "indenter_normal": z((B, V), wp.vec3d),
             "indenter_face_energy": z((B, nt), wp.float64),
-            "indenter_face_hessian": z((B, nt), mat99d),
             "indenter_face_gap": z((B, nt), wp.float64),
             "indenter_vertex_force": z((B, V), wp.vec3d),
         }
@@ -522,7 +521,7 @@ class BatchedShell:
         surface = {
             "face_energy": buf["indenter_face_energy"],
             "gradient": self.gradients[2],
-            "face_hessian": buf["indenter_face_hessian"],
+            "face_hessian": buf["membrane_hessian"],
             "face_gap": buf["indenter_face_gap"],
             "vertex_force": buf["indenter_vertex_force"],
         }
@@ -628,7 +627,7 @@ class BatchedShell:
         force = self.buf["indenter_vertex_force"]
         force.zero_()
         surface = {**self._static, **self._lag_buf, "x": x, "want_hessian": 0, "active": self._all}
-        surface |= {"face_hessian": self.buf["indenter_face_hessian"], "vertex_force": force}
+        surface |= {"face_hessian": self.buf["membrane_hessian"], "vertex_force": force}  # want_hessian 0: unused
         self._launch_faces(contact.indenter_surface_kernel, surface)
         self._stats.zero_()
         values = {"vertex_force": force, "lagged_force": self.lagged_force, "candidate": self._candidate}
@@ -866,7 +865,6 @@ class BatchedShell:
                 (1, buf["bending_hessian"], None),
                 (2, buf["core_hessian"], None),
                 (2, buf["indenter_hessian"], None),
-                (0, buf["indenter_face_hessian"], None),
                 (0, buf["volume_hessian"], -pressure),
             ],
             damping,

@@ -277,9 +277,11 @@ def indenter_surface_kernel(
     offset[b] m, squeezed by the `layer_response` law), integrated over the triangle: at each quadrature
     point q (barycentric N_i, weight w_q of the reference area A_f) the law of area w_q A_f at the point's
     gap, energy summed per face, gradient N_i psi' n to the nodes (and the force -N_i psi' n to
-    `vertex_force`, for the friction lagging), 9x9 Hessian blocks N_i N_j (psi'' n n^T + psi' d2g/dx2).
-    A face whose SDF lower bound (`_triangle_bound`) clears the layer is skipped (its `face_gap` is that
-    bound); otherwise `face_gap` is its smallest gap (m) over the quadrature points."""
+    `vertex_force`, for the friction lagging), 9x9 Hessian blocks N_i N_j (psi'' n n^T + psi' d2g/dx2) added
+    to the triangle's block in `face_hessian` (the membrane's, written before: no block of its own to
+    assemble, and nothing written for a triangle out of contact). A face whose SDF lower bound
+    (`_triangle_bound`) clears the layer is skipped (its `face_gap` is that bound); otherwise `face_gap` is
+    its smallest gap (m) over the quadrature points."""
     b, f = wp.tid()
     if active[b] == 0:  # a system left out of this evaluation: nothing is written for it
         return
@@ -294,13 +296,11 @@ def indenter_surface_kernel(
     h = offset[b]
     zero = wp.float64(0.0)
     face_energy[b, f] = zero
-    H = mat99d()
     bound = _triangle_bound(shape, size, R, t, p0, p1, p2) - h
     if bound > zero:
         face_gap[b, f] = bound
-        if want_hessian != 0:
-            face_hessian[b, f] = H
         return
+    H = mat99d()
     e = zero
     g0 = wp.vec3d()
     g1 = wp.vec3d()
@@ -330,9 +330,9 @@ def indenter_surface_kernel(
                                 H[3 * i + r, 3 * j + s] += c * K[r, s]
     face_energy[b, f] = e
     face_gap[b, f] = least
-    if want_hessian != 0:
-        face_hessian[b, f] = H
     if least < zero:
+        if want_hessian != 0:
+            face_hessian[b, f] = face_hessian[b, f] + H
         wp.atomic_add(gradient, b, tri[0], g0)
         wp.atomic_add(gradient, b, tri[1], g1)
         wp.atomic_add(gradient, b, tri[2], g2)

@@ -112,7 +112,6 @@ class _Probe:
         out = []
         for b in range(B):
             H = _assemble_full(V, buf["membrane_hessian"].numpy()[b], self.triangles)
-            H += _assemble_full(V, buf["indenter_face_hessian"].numpy()[b], self.triangles)
             H += _assemble_full(V, buf["bending_hessian"].numpy()[b], stencils)
             H += _assemble_full(V, contact[b], np.arange(V)[:, None])
             out.append(H)
