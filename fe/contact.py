@@ -216,19 +216,17 @@ def _sdf_grad_world(kind: int, dims: wp.vec4d, rotation: wp.mat33d, translation:
 
 @wp.func
 def _sdf_curvature_world(
-    kind: int, dims: wp.vec4d, rotation: wp.mat33d, translation: wp.vec3d, p: wp.vec3d
+    kind: int, dims: wp.vec4d, rotation: wp.mat33d, translation: wp.vec3d, p: wp.vec3d, n: wp.vec3d
 ) -> wp.mat33d:
-    """Hessian (1/m, world frame, symmetrised) of `_sdf_world` at p: central differences of its analytic
-    gradient over 1e-8 m."""
+    """Hessian (1/m, world frame, symmetrised) of `_sdf_world` at p, where its gradient is n: forward
+    differences of the analytic gradient over 1e-8 m (truncation ~1e-8 m |d3 SDF|, ~1e-5 of the curvature
+    of a 1.75 mm ball; three gradients where central differences take six)."""
     h = wp.float64(1e-8)
     curv = wp.mat33d()
     for j in range(3):
         dp = wp.vec3d()
         dp[j] = h
-        col = (
-            _sdf_grad_world(kind, dims, rotation, translation, p + dp)
-            - _sdf_grad_world(kind, dims, rotation, translation, p - dp)
-        ) / (wp.float64(2.0) * h)
+        col = (_sdf_grad_world(kind, dims, rotation, translation, p + dp) - n) / h
         for i in range(3):
             curv[i, j] = col[i]
     return wp.float64(0.5) * (curv + wp.transpose(curv))
@@ -321,7 +319,7 @@ def indenter_surface_kernel(
             g1 += dg * q[1]
             g2 += dg * q[2]
             if want_hessian != 0:
-                K = law[2] * wp.outer(n, n) + law[1] * _sdf_curvature_world(shape, size, R, t, p)
+                K = law[2] * wp.outer(n, n) + law[1] * _sdf_curvature_world(shape, size, R, t, p, n)
                 for i in range(3):
                     for j in range(3):
                         c = q[i] * q[j]
