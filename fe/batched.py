@@ -371,6 +371,7 @@ class BatchedShell:
             "face_energy": z((B, nt), wp.float64),
             "gradient": z((B, V), wp.vec3d),
             "face_gap": z((B, nt), wp.float64),
+            "vertex_force": z((B, V), wp.vec3d),
         }
         """Scratch outputs of the surface contact evaluated for the friction lagging (`lag_contact`), so that
         it leaves the last evaluation's buffers as they are."""
@@ -623,11 +624,12 @@ class BatchedShell:
     # -- Newton ------------------------------------------------------------------------------------
     def lag_contact(self, x: wp.array, mask: np.ndarray) -> np.ndarray:
         """Refresh the lagged friction forces and normals of the masked systems from positions x where they
-        changed by more than the friction tolerance; returns which systems changed ((B,) bool)."""
-        force = self.buf["indenter_vertex_force"]
+        changed by more than the friction tolerance (per vertex: the surface contact's forces at x lumped to
+        it, `fe.contact.lag_candidates`); returns which systems changed ((B,) bool)."""
+        force = self._lag_buf["vertex_force"]
         force.zero_()
         surface = {**self._static, **self._lag_buf, "x": x, "want_hessian": 0, "active": self._all}
-        surface |= {"face_hessian": self.buf["membrane_hessian"], "vertex_force": force}  # want_hessian 0: unused
+        surface["face_hessian"] = self.buf["membrane_hessian"]  # not written: want_hessian 0
         self._launch_faces(contact.indenter_surface_kernel, surface)
         self._stats.zero_()
         values = {"vertex_force": force, "lagged_force": self.lagged_force, "candidate": self._candidate}
