@@ -39,6 +39,7 @@ from fe.linsolve import BatchedDirectSolver
 from fe.newton import NewtonSettings
 from fe.params import ContactSettings, SkinParameters
 from fe.shell import lumped_areas
+from fe.surface_quadrature import rule
 from fe.trapped_air import TrappedAir
 from fe.wptypes import mat99d, mat1818d, vec6i
 
@@ -323,6 +324,7 @@ class BatchedShell:
             "layer_mu": per_batch([p.long_term_fraction * p.mu_nh for p in params]),
             "kappa": wp.float64(cs.penalty_stiffness),
             "min_stretch": wp.float64(cs.min_stretch),
+            "quadrature": arr(rule(cs.surface_rule), wp.vec4d),
             "slip_eps": wp.float64(cs.slip_length),
             "origin": wp.vec3d(*skin.volume_origin),
         }
@@ -361,7 +363,18 @@ class BatchedShell:
             "indenter_hessian": z((B, V), wp.mat33d),
             "indenter_gap": z((B, V), wp.float64),
             "indenter_normal": z((B, V), wp.vec3d),
+            "indenter_face_energy": z((B, nt), wp.float64),
+            "indenter_face_gap": z((B, nt), wp.float64),
+            "indenter_vertex_force": z((B, V), wp.vec3d),
         }
+        self._lag_buf = {
+            "face_energy": z((B, nt), wp.float64),
+            "gradient": z((B, V), wp.vec3d),
+            "face_gap": z((B, nt), wp.float64),
+            "vertex_force": z((B, V), wp.vec3d),
+        }
+        """Scratch outputs of the surface contact evaluated for the friction lagging (`lag_contact`), so that
+        it leaves the last evaluation's buffers as they are."""
         self.residual = z((B, V), wp.vec3d)
         self.gradient = z((B, V), wp.vec3d)
         self.bvec = z((B, V), wp.vec3d)
@@ -373,6 +386,8 @@ class BatchedShell:
         self._pair = z((B, 2), wp.float64)
         self._scratch: dict[str, wp.array] = {}
         self._candidate = z((B, V), wp.float64)
+        self._candidate_normal = z((B, V), wp.vec3d)
+        self._all = wp.array(np.ones(B, dtype=np.int32), dtype=wp.int32, device=device)
         self.pose = {name: z(B, wp.mat33d if "rotation" in name else wp.vec3d) for name in _POSE}
         far = np.tile([0.0, 0.0, 1.0], (B, 1))  # 1 m away: no contact until a pose is set
         self.set_poses(np.tile(np.eye(3), (B, 1, 1)), far, np.tile(np.eye(3), (B, 1, 1)), far)
@@ -457,6 +472,7 @@ class BatchedShell:
         self.gradients.zero_()
         for name in ("volume_gradient", "core_energy", "core_hessian", "indenter_energy", "indenter_hessian"):
             buf[name].zero_()
+        buf["indenter_vertex_force"].zero_()
         flag = 1 if want_hessian else 0
         common = {**self._static, "x": x, "want_hessian": flag, "active": self._active}
         elastic = self.gradients[0]
@@ -503,7 +519,15 @@ class BatchedShell:
                 "queried_gap": self._core_queried_gap,
             }
             launch(contact.core_contact_kernel, (B, V), core, dev)
-        outputs = {
+        surface = {
+            "face_energy": buf["indenter_face_energy"],
+            "gradient": self.gradients[2],
+            "face_hessian": buf["membrane_hessian"],
+            "face_gap": buf["indenter_face_gap"],
+            "vertex_force": buf["indenter_vertex_force"],
+        }
+        self._launch_faces(contact.indenter_surface_kernel, {**common, **surface})
+        friction = {
             "x_start": self.x_start,
             "lagged_force": self.lagged_force,
             "lagged_normal": self.lagged_normal,
@@ -513,7 +537,7 @@ class BatchedShell:
             "gap": buf["indenter_gap"],
             "normal": buf["indenter_normal"],
         }
-        self._launch_indenters(contact.indenter_contact_kernel, {**common, **outputs})
+        self._launch_indenters(contact.indenter_friction_kernel, {**common, **friction})
         self._totals.zero_()  # per system: volume (m^3) and energy (J), summed on the device, fetched once
         longest = max(buf[name].shape[1] for name in _TOTALS)
         launch(bk.totals, (B, longest), {**buf, "out": self._totals, "active": self._active}, dev)
@@ -541,16 +565,21 @@ class BatchedShell:
         liquid = totals[:, 0] - self.air.volume(pressure)
         return BatchLinearization(energy, liquid, stats[:, 0].copy(), np.sqrt(stats[:, 1]), stats[:, 2].copy())
 
-    def proximity(self, x: wp.array, rows: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """Gap (k,V) m (negative inside the contact band) and unit SDF normals (k,V,3) of x to each indenter,
-        for the systems `rows` (k,) (the shell's gap buffers then hold all B systems' values)."""
+    def proximity(self, x: wp.array, rows: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """Gap (k,V) m of each skin vertex (negative inside the contact band) and unit SDF normals (k,V,3) of x
+        to each indenter, and the smallest gap over every skin triangle's quadrature points (k,) m (negative:
+        the surface contact acts, whatever the vertices' gaps), for the systems `rows` (k,) (the shell's gap
+        buffers then hold all B systems' values)."""
         self._gaps(x)
-        return get_rows(self.buf["indenter_gap"], rows), get_rows(self.buf["indenter_normal"], rows)
+        face_gap = get_rows(self.buf["indenter_face_gap"], rows).min(axis=1)
+        return get_rows(self.buf["indenter_gap"], rows), get_rows(self.buf["indenter_normal"], rows), face_gap
 
     def _gaps(self, x: wp.array) -> None:
-        """Indenter gaps and normals of positions x (B,V) into the shell's buffers."""
+        """Indenter gaps and normals of positions x (B,V), and the triangles' smallest quadrature-point gaps,
+        into the shell's buffers."""
         values = {**self._static, "x": x, "gap": self.buf["indenter_gap"], "normal": self.buf["indenter_normal"]}
         self._launch_indenters(contact.indenter_gap_kernel, values)
+        self._launch_faces(contact.indenter_face_gap_kernel, {**values, "face_gap": self.buf["indenter_face_gap"]})
 
     def indenter_clearance(self, parts: wp.array, floor: np.ndarray, which: np.ndarray) -> np.ndarray:
         """Nearest approach (m) of each `which` system's (B,) bool indenter body to the rigid core at its pose,
@@ -565,19 +594,46 @@ class BatchedShell:
         launch(contact.indenter_clearance_kernel, (self.batch, len(parts)), values, self.device)
         return clearance.numpy()
 
+    def indenter_skin_clearance(
+        self, x: wp.array, spacing: np.ndarray, floor: np.ndarray, which: np.ndarray
+    ) -> np.ndarray:
+        """Nearest approach (m, the indenter SDF; negative inside its body) of each `which` system's (B,) bool
+        indenter body to each of its skin's mid-surface triangles at positions x (B,V), (B,T): sampled on
+        the triangle with nodes at most `spacing` (B,) m apart where its bound is below `floor` (B,) m
+        (`fe.contact.indenter_skin_clearance_kernel`), a lower bound at least `floor` elsewhere; +inf for the
+        other systems."""
+        clearance = wp.full((self.batch, self.n_triangles), np.inf, dtype=wp.float64, device=self.device)
+        arr = lambda a, dtype: wp.array(np.asarray(a, dtype=dtype), device=self.device)  # noqa: E731
+        values = {**self.pose, "kind": self._kind, "dims": self._dims, "clearance": clearance, "x": x}
+        values |= {"triangles": self._static["triangles"], "spacing": arr(spacing, np.float64)}
+        values |= {"floor": arr(floor, np.float64), "active": arr(which, np.int32)}
+        launch(contact.indenter_skin_clearance_kernel, (self.batch, self.n_triangles), values, self.device)
+        return clearance.numpy()
+
     def _launch_indenters(self, kernel: wp.Kernel, values: dict) -> None:
-        """One launch of an indenter kernel for every system, each with its own indenter shape and pose."""
+        """One launch of an indenter kernel for every system and skin vertex, each system with its own
+        indenter shape and pose."""
         values = {**values, **self.pose, "kind": self._kind, "dims": self._dims}
         launch(kernel, (self.batch, self.n_vertices), values, self.device)
+
+    def _launch_faces(self, kernel: wp.Kernel, values: dict) -> None:
+        """`_launch_indenters` over the skin's triangles instead of its vertices."""
+        values = {**values, **self.pose, "kind": self._kind, "dims": self._dims}
+        launch(kernel, (self.batch, self.n_triangles), values, self.device)
 
     # -- Newton ------------------------------------------------------------------------------------
     def lag_contact(self, x: wp.array, mask: np.ndarray) -> np.ndarray:
         """Refresh the lagged friction forces and normals of the masked systems from positions x where they
-        changed by more than the friction tolerance; returns which systems changed ((B,) bool)."""
-        self._gaps(x)
+        changed by more than the friction tolerance (per vertex: the surface contact's forces at x lumped to
+        it, `fe.contact.lag_candidates`); returns which systems changed ((B,) bool)."""
+        force = self._lag_buf["vertex_force"]
+        force.zero_()
+        surface = {**self._static, **self._lag_buf, "x": x, "want_hessian": 0, "active": self._all}
+        surface["face_hessian"] = self.buf["membrane_hessian"]  # not written: want_hessian 0
+        self._launch_faces(contact.indenter_surface_kernel, surface)
         self._stats.zero_()
-        values = {**self._static, "gap": self.buf["indenter_gap"], "lagged_force": self.lagged_force}
-        values |= {"candidate": self._candidate, "stats": self._stats}
+        values = {"vertex_force": force, "lagged_force": self.lagged_force, "candidate": self._candidate}
+        values |= {"candidate_normal": self._candidate_normal, "stats": self._stats}
         launch(contact.lag_candidates, (self.batch, self.n_vertices), values, self.device)
         stats = self._stats.numpy()
         changed = mask & (stats[:, 0] > self.skin.contact.friction_tolerance * np.maximum(stats[:, 1], 1e-12))
@@ -585,8 +641,7 @@ class BatchedShell:
             wp.launch(
                 bk.lag_apply,
                 (self.batch, self.n_vertices),
-                [self._flags(changed), self._candidate]
-                + [self.buf["indenter_normal"], self.lagged_force, self.lagged_normal],
+                [self._flags(changed), self._candidate, self._candidate_normal, self.lagged_force, self.lagged_normal],
                 device=self.device,
             )
         return changed
@@ -883,7 +938,7 @@ class BatchedShell:
         return scratch
 
 
-_TOTALS = ("volume", "membrane_energy", "bending_energy", "core_energy", "indenter_energy")
+_TOTALS = ("volume", "membrane_energy", "bending_energy", "core_energy", "indenter_energy", "indenter_face_energy")
 """The per-element buffers summed into `BatchedShell._totals` (per system: volume, energy)."""
 _POSE = ("rotation", "translation", "rotation_start", "translation_start")
 

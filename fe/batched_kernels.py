@@ -19,6 +19,7 @@ def totals(
     bending_energy: wp.array2d(dtype=wp.float64),
     core_energy: wp.array2d(dtype=wp.float64),
     indenter_energy: wp.array2d(dtype=wp.float64),
+    indenter_face_energy: wp.array2d(dtype=wp.float64),
     out: wp.array2d(dtype=wp.float64),
     active: wp.array(dtype=wp.int32),
 ):
@@ -32,6 +33,7 @@ def totals(
     _add_entry(bending_energy, b, i, out, 1)
     _add_entry(core_energy, b, i, out, 1)
     _add_entry(indenter_energy, b, i, out, 1)
+    _add_entry(indenter_face_energy, b, i, out, 1)
 
 
 @wp.kernel
@@ -117,11 +119,11 @@ def combine(
 def lag_apply(
     changed: wp.array(dtype=wp.int32),
     candidate: wp.array2d(dtype=wp.float64),
-    normal: wp.array2d(dtype=wp.vec3d),
+    candidate_normal: wp.array2d(dtype=wp.vec3d),
     lagged_force: wp.array2d(dtype=wp.float64),
     lagged_normal: wp.array2d(dtype=wp.vec3d),
 ):
     b, v = wp.tid()
     if changed[b] != 0:
         lagged_force[b, v] = candidate[b, v]
-        lagged_normal[b, v] = normal[b, v]
+        lagged_normal[b, v] = candidate_normal[b, v]

@@ -200,6 +200,14 @@ class BatchedStepper:
         self._core_floor = skin.contact.min_stretch * (self._half + skin.core_offset)
         """(B,) nearest approach (m) of the rigid indenter to the rigid core that a converged state may show:
         both half-layers between them at `ContactSettings.min_stretch`."""
+        thickness = np.array([s.params.thickness for s in self.skins])
+        penetration = skin.contact.max_penetration * thickness
+        self._skin_floor = np.where(self._half > 0.0, skin.contact.min_stretch * self._half, -penetration)
+        """(B,) smallest indenter SDF (m) at any point of the skin's mid-surface that a converged state may show:
+        the half-layer at `ContactSettings.min_stretch`, or, for a zero-thickness skin, `max_penetration` of
+        the thickness inside the body."""
+        self._skin_spacing = 0.5 * np.where(self._half > 0.0, self._skin_floor, penetration)
+        """(B,) node spacing (m) of the skin triangles' sampling in that check: half the margin it tests."""
         self._core_parts = None
         """Per core triangle, how many pieces each of its edges is split into for the rigid-against-rigid check
         (nodes half the smallest floor apart or closer; None: no core, or no layer between it and the
@@ -316,7 +324,8 @@ class BatchedStepper:
         free_now = np.zeros(self.batch, dtype=bool)
         free_ref = np.zeros(self.batch, dtype=bool)
         free_now[rows], pressed = self._sweep(rows)
-        free_ref[rows] = shell.proximity(self._reference_w, rows)[0].min(axis=1) >= 0.0
+        gap_ref, _, face_ref = shell.proximity(self._reference_w, rows)
+        free_ref[rows] = (gap_ref.min(axis=1) >= 0.0) & (face_ref >= 0.0)
         relaxed = np.ones(self.batch, dtype=bool)
         if self.relaxation is not None:
             relaxed[rows] = self.relaxation.at_rest(rows)
@@ -372,9 +381,9 @@ class BatchedStepper:
             rotation[rows] = Rotation.from_rotvec(f[:, None] * turn).as_matrix() @ start_r
             translation[rows] = start_t + f[:, None] * shift
             shell.set_poses(rotation, translation, self._start_rotation, self._start_translation)
-            gap = shell.proximity(shell.x_trial, rows)[0]
+            gap, _, face_gap = shell.proximity(shell.x_trial, rows)
             live = (step >= 1) & (step <= pieces)
-            clear &= ~live | (gap.min(axis=1) >= 0.0)
+            clear &= ~live | ((gap.min(axis=1) >= 0.0) & (face_gap >= 0.0))
             if before is not None:
                 touching = (gap < 0.0) | (before < 0.0)
                 moved = np.where(touching, np.abs(gap - before), 0.0).max(axis=1)
@@ -458,7 +467,7 @@ class BatchedStepper:
         share = np.where(has_motion, np.clip(repeat, 0.0, 1.0), 0.0)
         x = self.x[rows] + share[:, None, None] * np.where(has_motion[:, None, None], self._motion[rows], 0.0)
         put_rows(self.shell.x_trial, rows, x)
-        gap, normal = self.shell.proximity(self.shell.x_trial, rows)
+        gap, normal, _ = self.shell.proximity(self.shell.x_trial, rows)
         depth = np.minimum(self._gap[rows] + share[:, None] * self._gap_change[rows], 0.0)
         x += np.maximum(depth - gap, 0.0)[:, :, None] * normal
         return np.where(self.shell.fixed, self.x[rows], x)
@@ -481,17 +490,21 @@ class BatchedStepper:
         x_rows = get_rows(shell.x, rows)
         gap_rows = get_rows(shell.buf["indenter_gap"], rows)
         core_gap_rows = get_rows(shell.buf["core_gap"], rows)
+        face_gap_rows = get_rows(shell.buf["indenter_face_gap"], rows).min(axis=1)
+        finished = np.isin(np.arange(self.batch), rows)
         clearance = np.full(self.batch, np.inf)
         if self._core_parts is not None:
-            finished = np.isin(np.arange(self.batch), rows)
             clearance = shell.indenter_clearance(self._core_parts, self._core_floor, finished)
+        reach = shell.indenter_skin_clearance(shell.x, self._skin_spacing, self._skin_floor, finished)
         results = {}
         for k, i in enumerate(int(r) for r in rows):
             x, gap = x_rows[k], gap_rows[k]
             force, balance = self._force_balance(i, state.pressure[i])
             in_contact = gap < 0.0
             refused = (
-                self._inadmissible(i, gap, core_gap_rows[k], clearance[i], force, balance) if state.converged[i] else ""
+                self._inadmissible(i, gap, core_gap_rows[k], (clearance[i], reach[i]), force, balance)
+                if state.converged[i]
+                else ""
             )
             if refused:
                 state.converged[i], state.message[i] = False, f"inadmissible: {refused}"
@@ -502,7 +515,7 @@ class BatchedStepper:
                 self._gap_change[i] = np.minimum(gap, 0.0) - np.minimum(self._gap[i], 0.0)
                 self._gap[i] = gap
                 self.x[i], self.pressure[i] = x, state.pressure[i]
-                self.in_contact[i] = in_contact.any()
+                self.in_contact[i] = in_contact.any() or face_gap_rows[k] < 0.0
                 if self.relaxation is not None:
                     self.relaxation.advance(np.array([i]), self._dt[i : i + 1], x[None])
             else:
@@ -511,7 +524,13 @@ class BatchedStepper:
         return results
 
     def _inadmissible(
-        self, i: int, gap: np.ndarray, core_gap: np.ndarray, clearance: float, force: np.ndarray, balance: float
+        self,
+        i: int,
+        gap: np.ndarray,
+        core_gap: np.ndarray,
+        clearances: tuple[float, np.ndarray],
+        force: np.ndarray,
+        balance: float,
     ) -> str:
         """Why system i's converged state is not a solution of the skin ("" if it is): a half-layer squeezed
         below `ContactSettings.min_stretch` by the indenter or the core (gaps (V,) m, negative closing;
@@ -521,8 +540,12 @@ class BatchedStepper:
         through: force (3,) N on the skin, the press direction being the indenter's -z axis); or the rigid
         indenter nearer the rigid core than both half-layers at the floor allow (`clearance`, m, from
         `fe.batched.BatchedShell.indenter_clearance`): it reached the core through the skin, between skin
-        vertices (issue 17 review F2). Core gaps of vertices whose search was skipped are lower bounds >= 0
-        (`fe.contact.core_contact_kernel`), so they never refuse."""
+        vertices (issue 17 review F2); or the indenter body deeper in a skin triangle, anywhere on it, than the
+        layer law allows (`reach` (T,), m, its SDF's minimum over each mid-surface triangle from
+        `fe.batched.BatchedShell.indenter_skin_clearance`): below `min_stretch` of the half-layer, or deeper
+        than `max_penetration` of the thickness into a zero-thickness contact; it passed between the
+        quadrature points (`clearances` = (clearance, reach)). Core gaps of vertices whose search was skipped
+        are lower bounds >= 0 (`fe.contact.core_contact_kernel`), so they never refuse."""
         settings, skin = self.skin.contact, self.skins[i]
         free = ~self.shell.fixed.all(axis=1)  # clamped vertices sit on the rigid base: no core contact there
         bodies = [("the indenter", gap, self._half[i])]
@@ -541,6 +564,16 @@ class BatchedStepper:
             limit = settings.max_penetration * skin.params.thickness
             if h <= 0.0 and closing > limit:
                 return f"{where} {closing * 1e6:.0f} um into the skin{clamped} (limit {limit * 1e6:.0f} um)"
+        clearance, reach = clearances
+        face = int(np.argmin(reach))
+        if reach[face] < self._skin_floor[i]:
+            law = f"{settings.min_stretch:.2f} of the half-layer" if self._half[i] > 0.0 else "the penetration limit"
+            rim = self.shell.fixed[self.skin.triangles[face]].all(axis=1).any()
+            clamped = " with a clamped vertex (the rigid base)" if rim else ""
+            return (
+                f"the indenter reaches into a skin triangle{clamped} ({reach[face] * 1e6:.0f} um from its "
+                f"mid-surface; floor {self._skin_floor[i] * 1e6:.0f} um, {law})"
+            )
         floor = self._core_floor[i]
         if clearance < floor:
             return (

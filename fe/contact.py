@@ -1,31 +1,42 @@
-"""Contact energies per skin vertex, in warp: rigid core (frictionless) and rigid indenter (frictional).
+"""Contact energies in warp: rigid core (frictionless, per skin vertex) and rigid indenter (normal contact
+integrated over the skin triangles, friction per vertex).
 
 Normal contact is the through-thickness compression of the skin. The shell's mid-surface carries half the
 thickness, h (m), on each side (the indenter's side: `InflatedSkin.indenter_offset`, default t/2; the core's:
-`InflatedSkin.core_offset`); with d (m) the signed distance of a mid-surface vertex to the body and
+`InflatedSkin.core_offset`); with d (m) the signed distance of a mid-surface point to the body and
 g = d - h its gap, a closing gap squeezes that half-layer to the stretch lam = d / h = 1 + g / h. The layer is
 incompressible Neo-Hookean, compressed with free lateral expansion (Ogden, Non-linear Elastic Deformations,
-1984, sec. 7.2: uniaxial nominal stress mu (lam - lam^-2)), so a vertex of reference area A_v (m^2) stores
-E_n = A_v h (mu / 2)(lam^2 + 2 / lam - 3) for lam < 1 and nothing above: C1 at lam = 1 (the stress
+1984, sec. 7.2: uniaxial nominal stress mu (lam - lam^-2)), so a reference area A (m^2) stores
+E_n = A h (mu / 2)(lam^2 + 2 / lam - 3) for lam < 1 and nothing above: C1 at lam = 1 (the stress
 vanishes there), stiffening as lam^-3 towards lam = 0. Below `ContactSettings.min_stretch` the energy goes on
 as its second-order Taylor expansion there (finite and convex for any gap, so Newton never meets a
 non-finite energy), and `fe.batched_stepper.BatchedStepper` refuses any converged state that reaches it.
-h = 0 (a zero-thickness membrane, e.g. `fe.dome`) keeps the one-sided quadratic penalty kappa A_v g^2 / 2
+h = 0 (a zero-thickness membrane, e.g. `fe.dome`) keeps the one-sided quadratic penalty kappa A g^2 / 2
 (kappa in Pa/m). mu (Pa) is each system's long-term modulus (1 - g) mu_NH (`layer_mu`): the layer keeps no
 viscoelastic branch of its own, so a relaxing skin ends exactly as the long-term elastic one.
 
-Friction is lagged Coulomb with IPC smoothing: E_f = mu_fr lambda f0(|u_T|), lambda the normal force (N) of
-the law above and n the contact normal of the last lagging pass, u_T the slip over the increment projected
-on the plane normal to n, and f0 the C1 smoothing of |u| over the slip length eps (m). The indenter moves
-rigidly from pose (R0, t0) to (R, t); the slip of a skin vertex at p relative to the indenter material
-point now under it is u = R0 R^T (p - t) + t0 - x_start, i.e. its motion seen from the indenter's body
-frame. Its SDF is evaluated in its own frame (tip at the origin, body along +z) and covers the whole body,
-head and shank (`fe.indenter_sdf.body_sdf_and_grad`), so the skin cannot slip past the head's back.
+The core's contact is lumped per skin vertex (A = the vertex's lumped reference area, 3x3 Hessian blocks).
+The indenter's is integrated over each skin triangle f (`indenter_surface_kernel`): E = sum_f sum_q
+psi(g(x_q); w_q A_f), x_q = sum_i N_i(q) x_i at the quadrature points of `fe.surface_quadrature` (reference-area
+weights w_q A_f, barycentric shape functions N_i), so an indenter smaller than a triangle meets the skin
+between its vertices and the force grows smoothly as the contact edge crosses a triangle, not in a jump per
+ring of nodes; its Hessian is a 9x9 block per triangle (the pattern the membrane already has).
+
+Friction is lagged Coulomb with IPC smoothing, per skin vertex: E_f = mu_fr lambda f0(|u_T|), lambda the
+normal force (N) and n the normal of the last lagging pass (the surface contact's quadrature forces lumped to
+the vertex with the weights N_i: lambda their magnitude, n their direction, `lag_candidates`), u_T the slip
+over the increment projected on the plane normal to n, and f0 the C1 smoothing of |u| over the slip length
+eps (m). The indenter moves rigidly from pose (R0, t0) to (R, t); the slip of a skin vertex at p relative to
+the indenter material point now under it is u = R0 R^T (p - t) + t0 - x_start, i.e. its motion seen from the
+indenter's body frame. Its SDF is evaluated in its own frame (tip at the origin, body along +z) and covers
+the whole body, head and shank (`fe.indenter_sdf.body_sdf_and_grad`), so the skin cannot slip past the
+head's back.
 """
 
 import warp as wp
 
 from fe.indenter_sdf import body_sdf_and_grad
+from fe.wptypes import mat99d
 
 wp.set_module_options({"enable_backward": False})  # no adjoint kernels: nothing differentiates them
 
@@ -203,11 +214,166 @@ def _sdf_grad_world(kind: int, dims: wp.vec4d, rotation: wp.mat33d, translation:
     return rotation @ wp.vec3d(r[1], r[2], r[3])
 
 
+@wp.func
+def _sdf_curvature_world(
+    kind: int, dims: wp.vec4d, rotation: wp.mat33d, translation: wp.vec3d, p: wp.vec3d, n: wp.vec3d
+) -> wp.mat33d:
+    """Hessian (1/m, world frame, symmetrised) of `_sdf_world` at p, where its gradient is n: forward
+    differences of the analytic gradient over 1e-8 m (truncation ~1e-8 m |d3 SDF|, ~1e-5 of the curvature
+    of a 1.75 mm ball; three gradients where central differences take six)."""
+    h = wp.float64(1e-8)
+    curv = wp.mat33d()
+    for j in range(3):
+        dp = wp.vec3d()
+        dp[j] = h
+        col = (_sdf_grad_world(kind, dims, rotation, translation, p + dp) - n) / h
+        for i in range(3):
+            curv[i, j] = col[i]
+    return wp.float64(0.5) * (curv + wp.transpose(curv))
+
+
+@wp.func
+def _triangle_bound(
+    kind: int, dims: wp.vec4d, rotation: wp.mat33d, translation: wp.vec3d, p0: wp.vec3d, p1: wp.vec3d, p2: wp.vec3d
+) -> wp.float64:
+    """A lower bound (m) of the indenter SDF over triangle p0 p1 p2: its value at the centroid minus the
+    centroid's distance to the farthest corner (the SDF is 1-Lipschitz)."""
+    centre = (p0 + p1 + p2) / wp.float64(3.0)
+    spread = wp.max(wp.length(p0 - centre), wp.max(wp.length(p1 - centre), wp.length(p2 - centre)))
+    return _sdf_world(kind, dims, rotation, translation, centre) - spread
+
+
+@wp.func
+def _at(p0: wp.vec3d, p1: wp.vec3d, p2: wp.vec3d, q: wp.vec4d) -> wp.vec3d:
+    """The point (m) of triangle p0 p1 p2 at the barycentric coordinates (q[0], q[1], q[2])."""
+    return p0 * q[0] + p1 * q[1] + p2 * q[2]
+
+
 @wp.kernel
-def indenter_contact_kernel(
+def indenter_surface_kernel(
+    x: wp.array2d(dtype=wp.vec3d),
+    triangles: wp.array(dtype=wp.vec3i),
+    rest_area: wp.array(dtype=wp.float64),
+    quadrature: wp.array(dtype=wp.vec4d),
+    kind: wp.array(dtype=wp.int32),
+    dims: wp.array(dtype=wp.vec4d),
+    rotation: wp.array(dtype=wp.mat33d),
+    translation: wp.array(dtype=wp.vec3d),
+    offset: wp.array(dtype=wp.float64),
+    kappa: wp.float64,
+    layer_mu: wp.array(dtype=wp.float64),
+    min_stretch: wp.float64,
+    want_hessian: int,
+    face_energy: wp.array2d(dtype=wp.float64),
+    gradient: wp.array2d(dtype=wp.vec3d),
+    face_hessian: wp.array2d(dtype=mat99d),
+    face_gap: wp.array2d(dtype=wp.float64),
+    vertex_force: wp.array2d(dtype=wp.vec3d),
+    active: wp.array(dtype=wp.int32),
+):
+    """Normal contact of skin triangle f with the indenter of batch b (the outer half-layer, thickness
+    offset[b] m, squeezed by the `layer_response` law), integrated over the triangle: at each quadrature
+    point q (barycentric N_i, weight w_q of the reference area A_f) the law of area w_q A_f at the point's
+    gap, energy summed per face, gradient N_i psi' n to the nodes (and the force -N_i psi' n to
+    `vertex_force`, for the friction lagging), 9x9 Hessian blocks N_i N_j (psi'' n n^T + psi' d2g/dx2) added
+    to the triangle's block in `face_hessian` (the membrane's, written before: no block of its own to
+    assemble, and nothing written for a triangle out of contact). A face whose SDF lower bound
+    (`_triangle_bound`) clears the layer is skipped (its `face_gap` is that bound); otherwise `face_gap` is
+    its smallest gap (m) over the quadrature points."""
+    b, f = wp.tid()
+    if active[b] == 0:  # a system left out of this evaluation: nothing is written for it
+        return
+    tri = triangles[f]
+    p0 = x[b, tri[0]]
+    p1 = x[b, tri[1]]
+    p2 = x[b, tri[2]]
+    R = rotation[b]
+    t = translation[b]
+    shape = kind[b]
+    size = dims[b]
+    h = offset[b]
+    zero = wp.float64(0.0)
+    face_energy[b, f] = zero
+    bound = _triangle_bound(shape, size, R, t, p0, p1, p2) - h
+    if bound > zero:
+        face_gap[b, f] = bound
+        return
+    H = mat99d()
+    e = zero
+    g0 = wp.vec3d()
+    g1 = wp.vec3d()
+    g2 = wp.vec3d()
+    least = wp.float64(1.0e30)
+    for k in range(quadrature.shape[0]):
+        q = quadrature[k]
+        p = _at(p0, p1, p2, q)
+        local = body_sdf_and_grad(shape, size, wp.transpose(R) @ (p - t))
+        g = local[0] - h
+        least = wp.min(least, g)
+        if g < zero:
+            n = R @ wp.vec3d(local[1], local[2], local[3])
+            law = layer_response(g, h, layer_mu[b], q[3] * rest_area[f], kappa, min_stretch)
+            e += law[0]
+            dg = n * law[1]
+            g0 += dg * q[0]
+            g1 += dg * q[1]
+            g2 += dg * q[2]
+            if want_hessian != 0:
+                K = law[2] * wp.outer(n, n) + law[1] * _sdf_curvature_world(shape, size, R, t, p, n)
+                for i in range(3):
+                    for j in range(3):
+                        c = q[i] * q[j]
+                        for r in range(3):
+                            for s in range(3):
+                                H[3 * i + r, 3 * j + s] += c * K[r, s]
+    face_energy[b, f] = e
+    face_gap[b, f] = least
+    if least < zero:
+        if want_hessian != 0:
+            face_hessian[b, f] = face_hessian[b, f] + H
+        wp.atomic_add(gradient, b, tri[0], g0)
+        wp.atomic_add(gradient, b, tri[1], g1)
+        wp.atomic_add(gradient, b, tri[2], g2)
+        wp.atomic_sub(vertex_force, b, tri[0], g0)
+        wp.atomic_sub(vertex_force, b, tri[1], g1)
+        wp.atomic_sub(vertex_force, b, tri[2], g2)
+
+
+@wp.kernel
+def indenter_face_gap_kernel(
+    x: wp.array2d(dtype=wp.vec3d),
+    triangles: wp.array(dtype=wp.vec3i),
+    quadrature: wp.array(dtype=wp.vec4d),
+    kind: wp.array(dtype=wp.int32),
+    dims: wp.array(dtype=wp.vec4d),
+    rotation: wp.array(dtype=wp.mat33d),
+    translation: wp.array(dtype=wp.vec3d),
+    offset: wp.array(dtype=wp.float64),
+    face_gap: wp.array2d(dtype=wp.float64),
+):
+    """face_gap[b, f] (m): the smallest gap over skin triangle f's quadrature points to the indenter of batch
+    b, as `indenter_surface_kernel` reports it (the SDF lower bound where that clears the layer)."""
+    b, f = wp.tid()
+    tri = triangles[f]
+    p0 = x[b, tri[0]]
+    p1 = x[b, tri[1]]
+    p2 = x[b, tri[2]]
+    h = offset[b]
+    bound = _triangle_bound(kind[b], dims[b], rotation[b], translation[b], p0, p1, p2) - h
+    if bound > wp.float64(0.0):
+        face_gap[b, f] = bound
+        return
+    least = wp.float64(1.0e30)
+    for k in range(quadrature.shape[0]):
+        p = _at(p0, p1, p2, quadrature[k])
+        least = wp.min(least, _sdf_world(kind[b], dims[b], rotation[b], translation[b], p) - h)
+    face_gap[b, f] = least
+
+
+@wp.kernel
+def indenter_friction_kernel(
     x: wp.array2d(dtype=wp.vec3d),
     x_start: wp.array2d(dtype=wp.vec3d),
-    vertex_area: wp.array(dtype=wp.float64),
     kind: wp.array(dtype=wp.int32),
     dims: wp.array(dtype=wp.vec4d),
     rotation: wp.array(dtype=wp.mat33d),
@@ -215,9 +381,6 @@ def indenter_contact_kernel(
     rotation_start: wp.array(dtype=wp.mat33d),
     translation_start: wp.array(dtype=wp.vec3d),
     offset: wp.array(dtype=wp.float64),
-    kappa: wp.float64,
-    layer_mu: wp.array(dtype=wp.float64),
-    min_stretch: wp.float64,
     friction: wp.array(dtype=wp.float64),
     lagged_force: wp.array2d(dtype=wp.float64),
     lagged_normal: wp.array2d(dtype=wp.vec3d),
@@ -230,43 +393,23 @@ def indenter_contact_kernel(
     normal: wp.array2d(dtype=wp.vec3d),
     active: wp.array(dtype=wp.int32),
 ):
-    """Normal contact (the outer half-layer, thickness offset[b] m, squeezed by the `layer_response` law) +
-    lagged smoothed Coulomb friction of skin vertex v with the indenter of batch b (shape kind[b] with dims[b]
-    of `fe.indenter_sdf`)."""
+    """Lagged smoothed Coulomb friction of skin vertex v with the indenter of batch b (its lagged normal
+    force and normal: the surface contact's forces lumped to the vertex, `lag_candidates`), and the
+    vertex's own gap (m; SDF of kind[b] with dims[b] of `fe.indenter_sdf` minus offset[b]) and unit
+    normal."""
     b, v = wp.tid()
     if active[b] == 0:  # a system left out of this evaluation: nothing is written for it
         return
     p = x[b, v]
     R = rotation[b]
     t = translation[b]
-    shape = kind[b]
-    size = dims[b]
     zero = wp.float64(0.0)
-    g = _sdf_world(shape, size, R, t, p) - offset[b]
-    n = _sdf_grad_world(shape, size, R, t, p)
-    gap[b, v] = g
-    normal[b, v] = n
+    local = body_sdf_and_grad(kind[b], dims[b], wp.transpose(R) @ (p - t))
+    gap[b, v] = local[0] - offset[b]
+    normal[b, v] = R @ wp.vec3d(local[1], local[2], local[3])
     e = zero
     grad = wp.vec3d()
     H = wp.mat33d()
-    if g < zero:
-        law = layer_response(g, offset[b], layer_mu[b], vertex_area[v], kappa, min_stretch)
-        e = law[0]
-        grad = n * law[1]
-        if want_hessian != 0:
-            # d2g/dx2 by central differences of the analytic SDF gradient.
-            h = wp.float64(1e-8)
-            curv = wp.mat33d()
-            for j in range(3):
-                dp = wp.vec3d()
-                dp[j] = h
-                col = (_sdf_grad_world(shape, size, R, t, p + dp) - _sdf_grad_world(shape, size, R, t, p - dp)) / (
-                    wp.float64(2.0) * h
-                )
-                for i in range(3):
-                    curv[i, j] = col[i]
-            curv = wp.float64(0.5) * (curv + wp.transpose(curv))
-            H = law[2] * wp.outer(n, n) + law[1] * curv
     lam = lagged_force[b, v] * friction[b]
     if lam > zero:
         nl = lagged_normal[b, v]
@@ -277,12 +420,12 @@ def indenter_contact_kernel(
         eps = slip_eps
         one = wp.float64(1.0)
         if y < eps:
-            e += lam * (-y * y * y / (wp.float64(3.0) * eps * eps) + y * y / eps + eps / wp.float64(3.0))
+            e = lam * (-y * y * y / (wp.float64(3.0) * eps * eps) + y * y / eps + eps / wp.float64(3.0))
             f1_over_y = wp.float64(2.0) / eps - y / (eps * eps)
         else:
-            e += lam * y
+            e = lam * y
             f1_over_y = one / y
-        grad += wp.transpose(A) @ (ut * (lam * f1_over_y))
+        grad = wp.transpose(A) @ (ut * (lam * f1_over_y))
         if want_hessian != 0:
             proj = wp.identity(n=3, dtype=wp.float64) - wp.outer(nl, nl)
             Hf = proj * f1_over_y
@@ -291,7 +434,7 @@ def indenter_contact_kernel(
                     Hf -= wp.outer(ut, ut) / (eps * eps * y)
                 else:
                     Hf -= wp.outer(ut, ut) / (y * y * y)
-            H += lam * (wp.transpose(A) @ Hf @ A)
+            H = lam * (wp.transpose(A) @ Hf @ A)
     energy[b, v] = e
     wp.atomic_add(gradient, b, v, grad)
     hessian[b, v] = H
@@ -317,38 +460,28 @@ def indenter_gap_kernel(
 
 @wp.kernel
 def lag_candidates(
-    gap: wp.array2d(dtype=wp.float64),
-    vertex_area: wp.array(dtype=wp.float64),
-    offset: wp.array(dtype=wp.float64),
-    kappa: wp.float64,
-    layer_mu: wp.array(dtype=wp.float64),
-    min_stretch: wp.float64,
+    vertex_force: wp.array2d(dtype=wp.vec3d),
     lagged_force: wp.array2d(dtype=wp.float64),
     candidate: wp.array2d(dtype=wp.float64),
+    candidate_normal: wp.array2d(dtype=wp.vec3d),
     stats: wp.array2d(dtype=wp.float64),
 ):
-    """Normal force (N) of each vertex on the indenter of batch b from its gap (m), by `layer_response`;
-    stats[b] = (largest change from the lagged force, largest force)."""
+    """Normal force (N) of each vertex on the indenter of batch b, the magnitude of the surface contact's
+    forces lumped to it (`indenter_surface_kernel`'s `vertex_force`), and its direction (unit; 0 where no
+    force); stats[b] = (largest change from the lagged force, largest force)."""
     b, v = wp.tid()
-    law = layer_response(gap[b, v], offset[b], layer_mu[b], vertex_area[v], kappa, min_stretch)
-    f = -law[1]
+    force = vertex_force[b, v]
+    f = wp.length(force)
     candidate[b, v] = f
+    if f > _TINY:
+        candidate_normal[b, v] = force / f
+    else:
+        candidate_normal[b, v] = wp.vec3d()
     wp.atomic_max(stats, b, 0, wp.abs(f - lagged_force[b, v]))
     wp.atomic_max(stats, b, 1, f)
 
 
 _SPLIT = wp.constant(8)  # sub-triangles per edge screened by their own bound before sampling
-
-
-@wp.func
-def _triangle_bound(
-    kind: int, dims: wp.vec4d, rotation: wp.mat33d, translation: wp.vec3d, p0: wp.vec3d, p1: wp.vec3d, p2: wp.vec3d
-) -> wp.float64:
-    """A lower bound (m) of the indenter SDF over triangle p0 p1 p2: its value at the centroid minus the
-    centroid's distance to the farthest corner (the SDF is 1-Lipschitz)."""
-    centre = (p0 + p1 + p2) / wp.float64(3.0)
-    spread = wp.max(wp.length(p0 - centre), wp.max(wp.length(p1 - centre), wp.length(p2 - centre)))
-    return _sdf_world(kind, dims, rotation, translation, centre) - spread
 
 
 @wp.func
@@ -379,6 +512,40 @@ def _triangle_clearance(
     return least
 
 
+@wp.func
+def _split_clearance(
+    kind: int,
+    dims: wp.vec4d,
+    rotation: wp.mat33d,
+    tip: wp.vec3d,
+    p0: wp.vec3d,
+    e1: wp.vec3d,
+    e2: wp.vec3d,
+    parts: int,
+    floor: wp.float64,
+) -> wp.float64:
+    """The indenter SDF's minimum (m) over triangle (p0, p0 + e1, p0 + e2) to the sampling of
+    `_triangle_clearance` with nodes `parts` to an edge where below `floor` (m): the whole triangle's bound
+    where that is at least `floor`, else its 8^2 (at most) similar pieces each bounded or sampled."""
+    whole = _triangle_bound(kind, dims, rotation, tip, p0, p0 + e1, p0 + e2)
+    if whole >= floor:
+        return whole
+    k = wp.min(parts, _SPLIT)
+    n = (parts + k - 1) / k
+    d1 = e1 / wp.float64(k)
+    d2 = e2 / wp.float64(k)
+    least = wp.float64(1.0e30)
+    for i in range(k):
+        for j in range(k - i):
+            a = p0 + d1 * wp.float64(i) + d2 * wp.float64(j)
+            up = _triangle_clearance(kind, dims, rotation, tip, a, a + d1, a + d2, n, floor)
+            least = wp.min(least, up)
+            if i + j < k - 1:
+                down = _triangle_clearance(kind, dims, rotation, tip, a + d1, a + d2, a + d1 + d2, n, floor)
+                least = wp.min(least, down)
+    return least
+
+
 @wp.kernel
 def indenter_clearance_kernel(
     core_vertices: wp.array(dtype=wp.vec3d),
@@ -393,9 +560,8 @@ def indenter_clearance_kernel(
     clearance: wp.array(dtype=wp.float64),
 ):
     """clearance[b] = min over core triangles t of the indenter body's SDF there (m), to the sampling of
-    `_triangle_clearance` with nodes parts[t] to an edge: a triangle whose bound is below floor[b] is split
-    into up to 8^2 similar pieces, each bounded or sampled in turn (clearance must start at +inf; systems
-    with active[b] = 0 are left as they are)."""
+    `_split_clearance` with nodes parts[t] to an edge (clearance must start at +inf; systems with
+    active[b] = 0 are left as they are)."""
     b, t = wp.tid()
     if active[b] == 0:
         return
@@ -403,23 +569,33 @@ def indenter_clearance_kernel(
     p0 = core_vertices[tri[0]]
     e1 = core_vertices[tri[1]] - p0
     e2 = core_vertices[tri[2]] - p0
-    R = rotation[b]
-    tip = translation[b]
-    whole = _triangle_bound(kind[b], dims[b], R, tip, p0, p0 + e1, p0 + e2)
-    if whole >= floor[b]:
-        wp.atomic_min(clearance, b, whole)
-        return
-    k = wp.min(parts[t], _SPLIT)
-    n = (parts[t] + k - 1) / k
-    d1 = e1 / wp.float64(k)
-    d2 = e2 / wp.float64(k)
-    least = wp.float64(1.0e30)
-    for i in range(k):
-        for j in range(k - i):
-            a = p0 + d1 * wp.float64(i) + d2 * wp.float64(j)
-            up = _triangle_clearance(kind[b], dims[b], R, tip, a, a + d1, a + d2, n, floor[b])
-            least = wp.min(least, up)
-            if i + j < k - 1:
-                down = _triangle_clearance(kind[b], dims[b], R, tip, a + d1, a + d2, a + d1 + d2, n, floor[b])
-                least = wp.min(least, down)
+    least = _split_clearance(kind[b], dims[b], rotation[b], translation[b], p0, e1, e2, parts[t], floor[b])
     wp.atomic_min(clearance, b, least)
+
+
+@wp.kernel
+def indenter_skin_clearance_kernel(
+    x: wp.array2d(dtype=wp.vec3d),
+    triangles: wp.array(dtype=wp.vec3i),
+    spacing: wp.array(dtype=wp.float64),
+    floor: wp.array(dtype=wp.float64),
+    kind: wp.array(dtype=wp.int32),
+    dims: wp.array(dtype=wp.vec4d),
+    rotation: wp.array(dtype=wp.mat33d),
+    translation: wp.array(dtype=wp.vec3d),
+    active: wp.array(dtype=wp.int32),
+    clearance: wp.array2d(dtype=wp.float64),
+):
+    """clearance[b, f] = min over skin mid-surface triangle f at positions x[b] of the indenter body's SDF
+    (m), to the sampling of `_split_clearance` with nodes at most spacing[b] m apart along the triangle's
+    longest edge where below floor[b] m (systems with active[b] = 0 are left as they are)."""
+    b, f = wp.tid()
+    if active[b] == 0:
+        return
+    tri = triangles[f]
+    p0 = x[b, tri[0]]
+    e1 = x[b, tri[1]] - p0
+    e2 = x[b, tri[2]] - p0
+    longest = wp.max(wp.length(e1), wp.max(wp.length(e2), wp.length(e2 - e1)))
+    parts = wp.max(int(wp.ceil(longest / spacing[b])), 1)
+    clearance[b, f] = _split_clearance(kind[b], dims[b], rotation[b], translation[b], p0, e1, e2, parts, floor[b])

@@ -114,6 +114,9 @@ class ContactSettings:
     Neo-Hookean layer then carries mu (lam^-2 - lam) = 15.75 mu (4.4 MPa at the paper's mu), far beyond
     rubber's working range, so the indenter has reached the core or the rigid base through the skin."""
 
+    surface_rule: str = "split-4"
+    """Quadrature rule of the indenter contact on each skin triangle (`fe.surface_quadrature.rule`)."""
+
     def __post_init__(self) -> None:
         if self.penalty_stiffness <= 0 or self.slip_length <= 0 or self.friction_passes < 1:
             raise ValueError("contact settings must be positive (penalty, slip length, passes >= 1)")

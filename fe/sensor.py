@@ -18,6 +18,7 @@ from fe.batched_stepper import BatchedStepper
 from fe.indentation import IncrementResult, IndentationStepper, Trajectory, drive
 from fe.newton import NewtonSettings
 from fe.params import ContactSettings, SkinParameters
+from fe.surface_quadrature import rule
 from fe.trapped_air import TrappedAir
 from fe.wptypes import host_device
 
@@ -227,8 +228,12 @@ class BioTacModel:
     def _first_touch(
         self, indenter: Indenter, rotation: np.ndarray, point: np.ndarray, direction: np.ndarray
     ) -> np.ndarray:
-        """Tip position (m) where the rigid indenter first touches the undeformed outer skin."""
-        x = self._require_reference()
+        """Tip position (m) where the rigid indenter first touches the undeformed outer skin: where its contact
+        law first acts, at a skin vertex or a quadrature point of a skin triangle (`fe.surface_quadrature`)."""
+        vertices = self._require_reference()
+        weights = rule(self.rest_skin.contact.surface_rule)[:, :3]
+        points = np.einsum("qk,tkd->tqd", weights, vertices[self.geometry.skin.triangles]).reshape(-1, 3)
+        x = np.concatenate([vertices, points])
         half_t = 0.5 * self.params.thickness
 
         def min_gap(s: float) -> float:

@@ -85,6 +85,8 @@ class _Probe:
         self.shell.lagged_force.assign(lagged)
         self.shell.lagged_normal.assign(self.shell.buf["indenter_normal"].numpy())
         assert ((gap < 0).sum(axis=1) >= 3).all() and (lagged > 0).any(axis=1).all()
+        face_gap = self.shell.buf["indenter_face_gap"].numpy()
+        assert ((face_gap < 0).sum(axis=1) >= 3).all()  # the surface contact acts on several triangles
         assert ((self.shell.buf["core_gap"].numpy() < 0).sum(axis=1) >= 3).all()
 
     def evaluate(self, x: np.ndarray, want_hessian: bool, pressure: np.ndarray | None = None):
@@ -96,7 +98,7 @@ class _Probe:
         buffers) and its gradient (B,3V) N (sum of the engine's three gradient buffers)."""
         self.evaluate(x, want_hessian=False)
         buf = self.shell.buf
-        terms = ("membrane_energy", "bending_energy", "core_energy", "indenter_energy")
+        terms = ("membrane_energy", "bending_energy", "core_energy", "indenter_energy", "indenter_face_energy")
         energy = sum(buf[name].numpy().sum(axis=1) for name in terms)
         return energy, self.shell.gradients.numpy().sum(axis=0).reshape(B, -1)
 

@@ -5,6 +5,7 @@ import pytest
 
 from fe.axisymmetric import indent_dome
 from fe.dome import run_dome
+from fe.params import ContactSettings
 
 R, T, MU, RATIO, R_IND = 10e-3, 0.1e-3, 1e5, 1.5, 5e-3  # m, m, Pa, -, m
 DEPTHS = np.array([0.0, 1.0e-3, 1.5e-3])  # m past first touch
@@ -32,3 +33,59 @@ def test_fe_dome_matches_axisymmetric_membrane_theory_and_converges(reference: t
     # The contact force is resolved by a few rings of nodes only: a few % on the finer mesh.
     assert f_fine[0] == 0.0
     assert np.all(np.abs(f_fine[1:] / f_ref[1:] - 1) < 0.05), (f_fine, f_ref)
+
+
+TARGET_RATIO, TARGET_RADIUS = 1.5, 5e-3  # -, m: one case of issue 17's grid (docs/fe.md tabulates all four)
+TARGET_DEPTHS = np.arange(7) * 0.25e-3  # m: first touch, then 0.25 ... 1.5 mm
+
+
+@pytest.fixture(scope="module")
+def target_reference() -> np.ndarray:
+    """Apex force (N) of the axisymmetric reference at `TARGET_DEPTHS` past first touch (0.25 ... 1.5 mm)."""
+    states = indent_dome(R, T, MU, TARGET_RATIO, TARGET_RADIUS, list(TARGET_DEPTHS))
+    return np.array([s.force for s in states])[1:]
+
+
+def _target_forces(max_edge: float, rule: str) -> np.ndarray:
+    """FE apex forces (N) at 0.25 ... 1.5 mm on a mesh of `max_edge` (m) with the contact quadrature `rule`."""
+    contact = ContactSettings(surface_rule=rule)
+    result = run_dome(R, T, MU, TARGET_RATIO, False, TARGET_RADIUS, TARGET_DEPTHS, max_edge, contact)
+    assert all(inc.converged for inc in result.increments)
+    return np.array([-inc.force[2] for inc in result.increments])[1:]
+
+
+@pytest.fixture(scope="module")
+def half_millimetre() -> np.ndarray:
+    """FE apex forces on the 0.5 mm mesh with the default rule (split-4)."""
+    return _target_forces(0.5e-3, ContactSettings().surface_rule)
+
+
+def test_dome_force_is_within_two_percent_of_the_reference_on_a_quarter_millimetre_mesh(
+    target_reference: np.ndarray,
+) -> None:
+    """Issue 17's target (2 % at every depth >= 0.25 mm) holds on a 0.25 mm mesh: measured +1.6 % at 0.25 mm,
+    within 0.6 % deeper (docs/fe.md)."""
+    error = _target_forces(0.25e-3, "split-4") / target_reference - 1.0
+    assert np.all(np.abs(error) < 0.02), error
+
+
+def test_dome_force_on_the_half_millimetre_mesh_does_not_depend_on_the_contact_quadrature(
+    half_millimetre: np.ndarray,
+) -> None:
+    """The contact integral is resolved: 64 points per triangle (split-8) give the 16-point rule's forces to
+    0.3 %, so what remains of the error on this mesh is the membrane's discretisation (next test)."""
+    finer = _target_forces(0.5e-3, "split-8")
+    assert np.all(np.abs(half_millimetre / finer - 1.0) < 3e-3), (half_millimetre, finer)
+
+
+@pytest.mark.xfail(
+    strict=True,
+    reason="open (issue 17): on the 0.5 mm mesh the force is +3.9 % off at 0.25 mm (+2.3 % at 0.75 mm) with the "
+    "contact integral resolved (split-4 = split-8 to 0.1 %); the error halves and more on a 0.25 mm mesh: the "
+    "membrane's discretisation (docs/fe.md)",
+)
+def test_dome_force_is_within_two_percent_of_the_reference_on_the_half_millimetre_mesh(
+    target_reference: np.ndarray, half_millimetre: np.ndarray
+) -> None:
+    error = half_millimetre / target_reference - 1.0
+    assert np.all(np.abs(error) < 0.02), error

@@ -153,12 +153,16 @@ def test_direct_solver_solves_the_biotac_newton_matrix(frictional_biotac: BioTac
 
 CHORD_CASES = [
     ("frictionless_biotac", 0.0, 1e-6),
-    ("frictionless_biotac", 30.0, 1e-6),
+    ("frictionless_biotac", 30.0, 3e-6),
     ("frictional_biotac", 0.0, 1e-3),
     ("frictional_biotac", 30.0, 1e-2),
 ]
 """Fixture, indentation angle (deg) and force tolerance relative to |F|. Without friction both runs solve
-the same equations to the Newton tolerance. With friction the equilibrium also depends on the lagged normal
+the same equations to the Newton tolerance, 1e-6 of the largest nodal load (~0.13 N here) at every node,
+so two converged states may differ by that summed over the vertices the contact loads: at 30 deg the
+force is 0.22 N at 0.4 mm and, with the contact integrated over the triangles (more vertices loaded),
+the runs differ by 1.02e-6 of it (session 11; the bound is several times that). With friction the
+equilibrium also depends on the lagged normal
 forces, refreshed at most `ContactSettings.friction_passes` times at iterates that differ between the runs:
 at 30 deg the runs stop with lagged forces up to ~0.7% (plain) and ~0.1% (chord) off the final ones, which
 moves the tangential force by that order."""

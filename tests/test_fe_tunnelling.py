@@ -131,3 +131,66 @@ def test_the_batched_runner_halves_a_step_too_large_like_the_one_trajectory_step
     jump, steps = run.results[0][-1], run.results[1][-1]
     assert jump.converged and steps.converged and run.counters["cut_backs"] == 3
     assert np.linalg.norm(jump.force - steps.force) <= 1e-3 * np.linalg.norm(steps.force)
+
+
+def _deepest_reach(skin, indenter_name: str, rotation: np.ndarray, tip: np.ndarray, x: np.ndarray) -> float:
+    """Smallest numpy SDF (m) of the indenter head at pose (rotation, tip) over the skin mid-surface at x (V,3):
+    every triangle sampled with 24 nodes to an edge (an independent check of the engine's sampling)."""
+    k = 24
+    uv = np.array([(i / k, j / k) for i in range(k + 1) for j in range(k + 1 - i)])
+    bary = np.column_stack([1.0 - uv.sum(axis=1), uv])
+    points = np.einsum("qk,tkd->tqd", bary, x[skin.triangles]).reshape(-1, 3)
+    return float(get_indenter(indenter_name).sdf((points - tip) @ rotation).min())
+
+
+def test_a_ball_smaller_than_a_skin_triangle_does_not_pass_between_its_vertices(biotac: BioTacModel) -> None:
+    """sphere_small (1.75 mm radius) against the 3 mm mesh in 0.5 mm steps: with contact at the skin vertices
+    only, the ball went in between them (its surface 0.075 mm inside the mid-surface at 0.5 mm, 1.38 mm at 2
+    mm) while every increment read converged, the force turning round at 2 mm (1.51 N at 1.5 mm, 0.56 N
+    after). Now every converged increment keeps the ball at least the floor (min_stretch of the half-layer)
+    from every point of the skin's mid-surface, sampled here independently of the engine, its force rising
+    with depth; an increment that would not is refused as inadmissible."""
+    skin, name = biotac.inflated_skin(), "sphere_small"
+    path = biotac.plan_trajectory(get_indenter(name), POINT, 0.0, 0.0, 1e-3, 1e-3)
+    floor = skin.contact.min_stretch * 0.5 * biotac.params.thickness
+    rows = _press(biotac, name, 4.0, 0.5)
+    accepted = [r for r in rows[1:] if r.converged]
+    assert len(accepted) >= 6  # converged at least to 3 mm: the check does not refuse honest states
+    for r in accepted:
+        x = skin.reference + r.displacement
+        tip = path.touch_point + r.depth * path.direction
+        assert _deepest_reach(skin, name, path.rotation, tip, x) >= floor, r.depth
+    magnitudes = [float(np.linalg.norm(r.force)) for r in accepted]
+    assert np.all(np.diff(magnitudes) > 0.0), magnitudes
+    assert all(r.converged or r.message.startswith("inadmissible") for r in rows), [r.message for r in rows]
+
+
+def test_the_skin_clearance_of_a_ball_is_its_exact_distance_to_the_skin_triangles(biotac: BioTacModel) -> None:
+    """`BatchedShell.indenter_skin_clearance` (over all triangles) against trimesh's exact closest point on the
+    mid-surface mesh: a ball placed with its surface 0.1-0.3 mm inside the mid-surface at the centres of three
+    skin triangles (where no vertex reaches it), its shank pointing away, reads its depth to the sampling's
+    resolution (nodes 0.05 mm apart on a 1.75 mm ball: < 1 um); a ball clear of the skin reads at least the
+    floor."""
+    skin, name = biotac.inflated_skin(), "sphere_small"
+    radius = get_indenter(name).dims[0]
+    stepper = BatchedStepper(skin, [name] * 4)
+    mesh = trimesh.Trimesh(skin.reference, skin.triangles, process=False)
+    faces = [20, 90, 160]
+    centroids = skin.reference[skin.triangles[faces]].mean(axis=1)
+    outward = mesh.face_normals[faces]
+    depths = np.array([0.1e-3, 0.3e-3, 0.2e-3, -5e-3])  # the last ball stays 5 mm off the skin
+    centres = np.vstack([centroids, centroids[:1]]) + (radius - depths)[:, None] * np.vstack([outward, outward[:1]])
+    axes = np.vstack([outward, outward[:1]])  # body axis (+z) outward: the shank points away from the skin
+    side = np.cross(axes, [0.3, 0.5, 0.8])
+    side /= np.linalg.norm(side, axis=1)[:, None]
+    rotation = np.stack([side, np.cross(axes, side), axes], axis=2)
+    tips = centres - radius * axes  # the ball's centre sits radius above its tip
+    stepper.shell.set_poses(rotation, tips, rotation, tips)
+    x = wp.array(np.stack([skin.reference] * 4), dtype=wp.vec3d)
+    floor = np.full(4, 0.2e-3)
+    reach = stepper.shell.indenter_skin_clearance(x, np.full(4, 0.05e-3), floor, np.ones(4, dtype=bool)).min(axis=1)
+    exact = trimesh.proximity.closest_point(mesh, centres)[1] - radius
+    assert np.all(reach[:3] - exact[:3] >= -1e-12) and np.all(reach[:3] - exact[:3] <= 1e-6), (reach, exact)
+    assert np.all(exact[:3] < 0.0) and reach[3] >= floor[3]
+    nearest_vertex = np.linalg.norm(skin.reference[None] - centres[:3, None], axis=2).min(axis=1)
+    assert np.all(nearest_vertex > radius)  # between the vertices: a vertex-only check saw nothing
