@@ -141,13 +141,6 @@ def _batches(work: list[_PendingReplay]) -> list[list[_PendingReplay]]:
     return runs
 
 
-def _count(solved: list[int], total: int, progress: Callable[[int, int], None] | None) -> None:
-    """Count one more replay solved (in solved[0]) and report it."""
-    solved[0] += 1
-    if progress is not None:
-        progress(solved[0], total)
-
-
 class Predictor:
     """Replays trajectories on a warp `device` ("cpu", "cuda", ...); inflated fe models and fe replays are
     cached.
@@ -237,9 +230,16 @@ class Predictor:
                     fe = self._model_fe(model)
                     pending[plan.key] = _PendingReplay(trajectory, plan, fe, self.readout(fe))
         work = list(pending.values())
-        solved = [0]
+        solved = 0
+
+        def done() -> None:
+            nonlocal solved
+            solved += 1
+            if progress is not None:
+                progress(solved, len(work))
+
         for batch in _batches(work):
-            self._solve(batch, lambda: _count(solved, len(work), progress))
+            self._solve(batch, done)
         return len(work)
 
     def _solve(self, batch: list[_PendingReplay], done: Callable[[], None]) -> None:
