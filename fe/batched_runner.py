@@ -23,7 +23,7 @@ from dataclasses import dataclass, replace
 
 import numpy as np
 
-from fe.batched import InflatedSkin
+from fe.batched import InflatedSkin, per_system
 from fe.batched_stepper import MAX_CUTS, BatchedStepper, CutBack, Pose
 from fe.indentation import IncrementResult
 
@@ -77,8 +77,18 @@ class BatchedRun:
     round_systems: np.ndarray
 
 
+def can_share_batch(first: InflatedSkin, other: InflatedSkin) -> bool:
+    """Whether two skins can be systems of one batch (`fe.batched.per_system`: one mesh, core, contact and
+    Newton settings; parameters and starting states may differ)."""
+    try:
+        per_system([first, other], 2)
+    except ValueError:
+        return False
+    return True
+
+
 def run_trajectories(
-    skin: InflatedSkin,
+    skin: InflatedSkin | Sequence[InflatedSkin],
     trajectories: Sequence[PoseTrajectory],
     device: str = "cpu",
     slots: int = 256,
@@ -96,7 +106,9 @@ def run_trajectories(
     `fe.batched.BatchedShell`. A failed increment is cut back: retried from the last accepted pose through
     the midpoint (in pose and time), and so on up to `max_cuts` halvings of one step, before it ends the
     trajectory (`BatchedRun.counters["cut_backs"]`). Timed trajectories (all or none) are stepped at their
-    times, each from its own clock."""
+    times, each from its own clock. `skin`: the inflated skin of every trajectory, or one per trajectory
+    (skins that can share a batch, `can_share_batch`); then each trajectory keeps its own system, so `slots`
+    must be at least the number of trajectories."""
     if not trajectories:
         raise ValueError("no trajectories to run")
     timed = [t.times is not None for t in trajectories]
@@ -107,6 +119,8 @@ def run_trajectories(
     if max_cuts < 0:
         raise ValueError(f"max_cuts must be at least 0, got {max_cuts}")
     slots = min(slots, len(trajectories))
+    if not isinstance(skin, InflatedSkin) and slots < len(trajectories):
+        raise ValueError(f"one skin per trajectory needs a system each: {len(trajectories)} > {slots} slots")
     start = time.perf_counter()
     stepper = BatchedStepper(skin, [t.indenter for t in trajectories[:slots]], device, forcing, linear)
     schedule = _Schedule(trajectories, force_limit, on_trajectory, stepper, max_cuts)

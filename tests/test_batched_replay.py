@@ -1,5 +1,6 @@
 """Replays of many trajectories of one model as one batched run (`Predictor.prefetch`) equal the
-one-at-a-time replays, failures included; `--device` of the analysis commands (issue 18)."""
+one-at-a-time replays, failures included; those of many models as one run (`Predictor.prefetch_many`)
+equal the one-model runs; `--device` of the analysis commands (issue 18)."""
 
 import json
 import subprocess
@@ -23,6 +24,10 @@ FRICTIONLESS_TOLERANCE = 1e-6
 """Largest force difference, as a fraction of the trajectory's largest force, without friction."""
 FRICTION_LAG_TOLERANCE = 1e-3
 """The same with friction (the lagged friction is converged only to this)."""
+MANY_MODELS_TOLERANCE = 1e-9
+"""Largest force difference, as a fraction of the trajectory's largest force, between a replay solved in a
+batch of many models and in a batch of its own model: each system iterates on its own, so only the order
+of floating-point sums may differ."""
 
 
 @pytest.fixture(scope="module")
@@ -126,3 +131,28 @@ def test_validate_on_the_cpu_device_gives_its_table(tiny: Path) -> None:
     summary = json.loads(result.output.strip().splitlines()[-1])
     rows = [(t["rows_reached"], t["rows_total"]) for t in summary["trajectories"]]
     assert len(rows) == 2 and all(reached == total > 0 for reached, total in rows)  # predicted to the end
+
+
+def test_a_prefetch_of_many_models_replays_like_one_model_at_a_time(data: CampaignData) -> None:
+    nominal = TwinModel(mesh_max_edge=data.mesh_max_edge)
+    models = [
+        nominal,
+        nominal.with_effects({"skin_modulus": {"scale": 1.2}}),
+        nominal.with_effects({"skin_thickness": {"scale": 0.9}}),
+        nominal.with_effects({"ft_gain": {"scale": 1.05}}),  # a measurement effect: the nominal replays
+        nominal.with_effects({"skin_relaxation": {"fraction": 0.4, "time_s": 0.5}}),  # timed: a run of its own
+    ]
+    one_model = Predictor("cpu")
+    solved = [one_model.prefetch(m, data.trajectories) for m in models]
+    assert solved == [len(data.trajectories)] * 3 + [0, len(data.trajectories)]
+    many_models = Predictor("cpu")
+    assert many_models.prefetch_many([(m, data.trajectories) for m in models]) == sum(solved)
+    assert many_models.prefetch_many([(m, data.trajectories) for m in models]) == 0  # all cached
+    forces = []
+    for model in models:
+        single = [one_model.predict(model, t) for t in data.trajectories]
+        batched = [many_models.predict(model, t) for t in data.trajectories]
+        _assert_same(single, batched, MANY_MODELS_TOLERANCE)
+        forces.append(np.concatenate([p.increment_force for p in single]))
+    # the models' replays differ: each system solved its own skin, not its neighbour's
+    assert np.nanmax(np.abs(forces[1] - forces[0])) > 1e-3 and np.nanmax(np.abs(forces[2] - forces[0])) > 1e-3

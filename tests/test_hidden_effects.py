@@ -42,15 +42,7 @@ def _loop(tmp_path: Path, hidden: str | None, predictor: Predictor) -> LoopResul
     )
 
 
-SURFACE_CONTACT_HELD_OUT = (
-    "since the indenter contact is integrated over the skin triangles (session 11, 2026-11-26, commit 4a9a5dd, "
-    "one run; found with the vertex contact of f74b6a5): registration_offset ranks first and is refitted to "
-    "0.99x the noise in sample, but its held-out residual is 1.04x against the noise test's 1.0228x on seed 5's "
-    "points, so the verdict is 'unexplained' (in the same run both F/T map cases pass); measured before the held-out "
-    "test allowed for the other folds' fit (twin/analysis/significance.py out_of_fold_excess); open defect"
-)
 CONFOUNDED = {
-    "registration_offset": SURFACE_CONTACT_HELD_OUT,
     "skin_relaxation": "on seed 5's points (2026-11-26, run alone at commits 1a5094d and 9424c0b) the 3x3 "
     "ft_calibration map ranks first in sample (evidence 771244 against 769451) and is the only candidate refitted "
     "here (top=1): 1.24x refitted, 2.19x held out, so the verdict is 'unexplained'; the hidden relaxation (fraction "

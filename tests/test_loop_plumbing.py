@@ -30,6 +30,9 @@ class _StepResponse:
         self.residual = type("R", (), {"values": rng.standard_normal(n)})()
         self.pattern = 3.0 * np.sign(np.sin(np.arange(n)))
 
+    def prefetch(self, predictor: object, models: list[TwinModel]) -> int:
+        return 0  # no replays to solve: `shifted` is analytic
+
     def shifted(self, predictor: object, model: TwinModel) -> np.ndarray:
         seconds = model.effects.get("time_delay", {}).get("seconds", 0.0)
         return self.pattern if seconds > 0.0 else np.zeros_like(self.pattern)
@@ -135,6 +138,9 @@ class _NarrowBasin:
         noise = rng.standard_normal(n)
         self.residual = type("R", (), {"values": self.pattern + noise})()
         self.nuisance = type("N", (), {"chi2": staticmethod(lambda v: float(np.nansum(v**2)))})()
+
+    def prefetch(self, predictor: object, models: list[TwinModel]) -> int:
+        return 0  # no replays to solve: `shifted` is analytic
 
     def shifted(self, predictor: object, model: TwinModel) -> np.ndarray:
         seconds = model.effects.get("time_delay", {}).get("seconds", 0.0)

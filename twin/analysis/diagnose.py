@@ -134,41 +134,78 @@ def linearise(
     effect: Effect, model: TwinModel, point: dict[str, float], predictor: Predictor, base: Base
 ) -> Linearisation:
     """Linearise the profiled whitened prediction change from the base to `model` with the effect at
-    `point`, by forward differences of each parameter's scale (backward at its upper bound). A probed
-    parameter at its probe value, where stepping it back to its off value turns the effect off, differs
-    back to that off point instead: the model as given, whose replays the base already holds (a relaxing
-    fraction's column costs no fe replay)."""
-    offset = base.shifted(predictor, model.with_effects({effect.name: point}))
-    columns = []
+    `point`, by forward differences of each parameter's scale (backward at its upper bound; see
+    `_column_steps`). The replays of the point and of every column are solved as one batch."""
+    steps = _column_steps(effect, model, point)
+    at_point = model.with_effects({effect.name: point})
+    base.prefetch(predictor, [at_point, *(changed for _, changed in steps)])
+    offset = base.shifted(predictor, at_point)
+    columns = [(base.shifted(predictor, changed) - offset) / step for step, changed in steps]
+    return Linearisation(point, offset, np.column_stack(columns))
+
+
+def _column_steps(effect: Effect, model: TwinModel, point: dict[str, float]) -> list[tuple[float, TwinModel]]:
+    """Per parameter, the finite-difference step (its scale; backward at its upper bound) and the model
+    with the effect at `point` so stepped. A probed parameter at its probe value, where stepping it back
+    to its off value turns the effect off, differs back to that off point instead: the model as given,
+    whose replays the base already holds (a relaxing fraction's column costs no fe replay)."""
+    steps = []
     for p in effect.parameters:
         step = p.scale if point[p.name] + p.scale <= p.upper else -p.scale
         probed = effect.probe.get(p.name) == point[p.name] != p.off
         if probed and effect.is_off({**point, p.name: p.off}) and effect.is_off(model.effects.get(effect.name)):
             step = p.off - point[p.name]
-        changed = model.with_effects({effect.name: {**point, p.name: point[p.name] + step}})
-        columns.append((base.shifted(predictor, changed) - offset) / step)
-    return Linearisation(point, offset, np.column_stack(columns))
+        steps.append((step, model.with_effects({effect.name: {**point, p.name: point[p.name] + step}})))
+    return steps
+
+
+def _linearisation_models(effect: Effect, model: TwinModel, point: dict[str, float]) -> list[TwinModel]:
+    """The models `linearise` predicts: the effect at `point`, then each column's step."""
+    return [model.with_effects({effect.name: point}), *(changed for _, changed in _column_steps(effect, model, point))]
 
 
 def sensitivity(effect: Effect, model: TwinModel, predictor: Predictor, base: Base) -> Linearisation:
-    """Linearise the effect where its fit is best begun: at the model's values, or, when the effect is
+    """Linearise the effect where its fit is best begun (`sensitivities` of this one effect)."""
+    return sensitivities([effect], model, predictor, base)[0]
+
+
+def sensitivities(effects: list[Effect], model: TwinModel, predictor: Predictor, base: Base) -> list[Linearisation]:
+    """Linearise each effect where its fit is best begun: at the model's values, or, when the effect is
     off there and declares a probe (parameters that act only once it is on), at the probe; and when it is
     off and declares starts (values across its range), at the start or the first linearisation's fit,
     whichever leaves the least profiled chi-square when predicted nonlinearly (one prediction each), so
-    an effect far from its off value is fitted about a point near it."""
-    point = effect.values(model.effects.get(effect.name))
-    off = effect.is_off(point)
-    if effect.probe and off:
-        point = {**point, **effect.probe}
-    lin = linearise(effect, model, point, predictor, base)
-    if not (off and effect.starts):
-        return lin
+    an effect far from its off value is fitted about a point near it. Each stage's replays, over all the
+    effects (the first linearisations, the trials, the second linearisations), are solved as one batch."""
+    points = []
+    for effect in effects:
+        point = effect.values(model.effects.get(effect.name))
+        points.append({**point, **effect.probe} if effect.probe and effect.is_off(point) else point)
+    base.prefetch(
+        predictor, [m for e, p in zip(effects, points, strict=True) for m in _linearisation_models(e, model, p)]
+    )
+    lins = [linearise(e, model, p, predictor, base) for e, p in zip(effects, points, strict=True)]
     r = base.residual.values
-    fitted = _clipped(effect, point, _linear_fit(effect, point, lin.jac, r - lin.offset))
-    trials = [fitted, *(effect.values({**point, **start}) for start in effect.starts)]
-    costs = [base.nuisance.chi2(r - base.shifted(predictor, model.with_effects({effect.name: t}))) for t in trials]
-    best = int(np.nanargmin(costs))
-    return lin if best == 0 else linearise(effect, model, trials[best], predictor, base)
+    trials: list[list[dict[str, float]]] = []
+    for effect, lin in zip(effects, lins, strict=True):
+        if not (effect.is_off(effect.values(model.effects.get(effect.name))) and effect.starts):
+            trials.append([])
+            continue
+        fitted = _clipped(effect, lin.point, _linear_fit(effect, lin.point, lin.jac, r - lin.offset))
+        trials.append([fitted, *(effect.values({**lin.point, **start}) for start in effect.starts)])
+    tried = [model.with_effects({e.name: t}) for e, ts in zip(effects, trials, strict=True) for t in ts]
+    base.prefetch(predictor, tried)
+    again: dict[int, dict[str, float]] = {}
+    for i, (effect, ts) in enumerate(zip(effects, trials, strict=True)):
+        if not ts:
+            continue
+        shifted = [base.shifted(predictor, model.with_effects({effect.name: t})) for t in ts]
+        best = int(np.nanargmin([base.nuisance.chi2(r - s) for s in shifted]))
+        if best > 0:
+            again[i] = ts[best]
+    base.prefetch(predictor, [m for i, p in again.items() for m in _linearisation_models(effects[i], model, p)])
+    for i, point in again.items():
+        lins[i] = linearise(effects[i], model, point, predictor, base)
+    return lins
 
 
 def _clipped(effect: Effect, point: dict[str, float], delta: np.ndarray) -> dict[str, float]:
@@ -203,7 +240,8 @@ def diagnose(
     With `nuisances`, the standard unknowns of a real campaign (`twin.analysis.nuisances`: registration
     per arm, skin per sensor) are fitted first, candidates are ranked on what remains (their signatures
     less what the nuisances can absorb) and are never the nuisance effects themselves.
-    on_progress(stage, effect) is called before each candidate's sensitivity ("evidence") and refit
+    on_progress(stage, effect) is called before each candidate is scored ("evidence"; every candidate's
+    sensitivity is solved first, their replays batched, `sensitivities`) and refitted
     ("refit"), and with ("nuisances", what) during the nuisance fit."""
     if top < 0:
         raise ValueError(f"the number of candidates to refit must be >= 0, got {top}")
@@ -222,10 +260,10 @@ def diagnose(
     excluded = set(model.effects) | (set(NUISANCE_EFFECTS) if fitted is not None else set())
     names = candidates if candidates is not None else [k for k in EFFECTS if k not in excluded]
     ranked: list[tuple[Candidate, Linearisation]] = []
-    for name in names:
+    lins = sensitivities([EFFECTS[name] for name in names], model, predictor, base)
+    for name, lin in zip(names, lins, strict=True):
         effect = EFFECTS[name]
         report("evidence", name)
-        lin = sensitivity(effect, model, predictor, base)
         scored = lin
         if fitted is not None:  # what a joint refit with the nuisances would leave of the effect's signature
             fitted.confounding(name, lin.jac)
@@ -251,6 +289,10 @@ def diagnose(
         if fitted is not None and candidate.name in fitted.cannot_tell_apart():
             candidate.identifiable = False  # never named: the nuisances could be what it fits
         _refit(candidate, model, predictor, base, lin)
+    refitted = [candidate for candidate, _ in ranked[:top]]
+    at_fits = [_linearisation_models(EFFECTS[c.name], model, c.refit_parameters) for c in refitted]
+    base.prefetch(predictor, [m for models in at_fits for m in models])  # every held-out judgement in one batch
+    for candidate in refitted:
         _judge_heldout(candidate, model, predictor, base)
     ordered = order_candidates([c for c, _ in ranked])
     base_test = base.noise_test(r)

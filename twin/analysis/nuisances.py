@@ -34,7 +34,7 @@ from scipy.optimize import lsq_linear
 
 from twin.analysis.data import CampaignData, TrajectoryRecord
 from twin.analysis.predict import Predictor, TwinModel
-from twin.analysis.residual import Base, base_residual
+from twin.analysis.residual import Base, base_residual, model_requests
 from twin.effects import EFFECTS
 
 SKIN_NUISANCES = ("skin_thickness", "skin_modulus", "indenter_friction")
@@ -274,22 +274,43 @@ def _jacobian(base: Base, model: TwinModel, predictor: Predictor, values: Nuisan
     """(N, k) finite-difference sensitivity of `base`'s profiled whitened prediction to each slot: forward
     (backward at an upper bound), and the other way too when the first step's replay fails on samples the
     current values reach (the one that fails on fewer is kept); `base` must be the residual at `values` or
-    the nominal one (differences only)."""
+    the nominal one (differences only). The replays of the values and of every first step are solved as
+    one batch."""
+    steps = [_steps(values, i) for i in range(len(values.slots))]
+    first = [values.moved(_along(len(steps), i, tries[0])) for i, tries in enumerate(steps) if tries]
+    _prefetch(base, model, predictor, [values, *first])
     here = _shifted(base, model, predictor, values)
     columns = []
-    for i, slot in enumerate(values.slots):
-        p = _parameter(slot)
+    for i, tries in enumerate(steps):
         tried = []
-        for step in (p.scale, -p.scale) if values.values[i] + p.scale <= p.upper else (-p.scale,):
-            if not p.lower <= values.values[i] + step <= p.upper:
-                continue
-            delta = np.zeros(len(values.slots))
-            delta[i] = step
-            tried.append((_shifted(base, model, predictor, values.moved(delta)) - here) / step)
+        for step in tries:
+            tried.append((_shifted(base, model, predictor, values.moved(_along(len(steps), i, step))) - here) / step)
             if np.isfinite(tried[-1]).sum() == np.isfinite(here).sum():
                 break
         columns.append(max(tried, key=lambda c: np.isfinite(c).sum()))
     return _usable(np.column_stack(columns))
+
+
+def _steps(values: NuisanceValues, i: int) -> tuple[float, ...]:
+    """Finite-difference steps of slot i to try in turn: forward then backward (backward alone at an upper
+    bound), those that stay within its bounds."""
+    p = _parameter(values.slots[i])
+    steps = (p.scale, -p.scale) if values.values[i] + p.scale <= p.upper else (-p.scale,)
+    return tuple(step for step in steps if p.lower <= values.values[i] + step <= p.upper)
+
+
+def _along(k: int, i: int, step: float) -> np.ndarray:
+    """(k,) move of `step` along slot i."""
+    delta = np.zeros(k)
+    delta[i] = step
+    return delta
+
+
+def _prefetch(base: Base, model: TwinModel, predictor: Predictor, candidates: list[NuisanceValues]) -> None:
+    """Solve the replays `_shifted` needs for every one of `candidates` as one batch (those not cached)."""
+    predictor.prefetch_many(
+        [request for v in candidates for request in model_requests([model], base.trajectories, v.model_for)]
+    )
 
 
 def _usable(jac: np.ndarray) -> np.ndarray:
@@ -348,17 +369,20 @@ def _gauss_newton(
 def _best_starts(nominal: Base, model: TwinModel, predictor: Predictor, fitted: _State) -> NuisanceValues:
     """The fitted values with each arm's registration replaced by whichever of its fit and
     `REGISTRATION_STARTS` leaves that arm's trajectories the least squared residual (one replay set per
-    start: every arm is moved to the same start at once)."""
+    start: every arm is moved to the same start at once; the starts' replays solved as one batch)."""
     slots, values = fitted.values.slots, np.array(fitted.values.values)
     arms = sorted({(s.sensor, s.arm) for s in slots if s.effect == REGISTRATION})
     index = nominal.residual.trajectory_index
     best = {arm: (_arm_cost(fitted.residual, index, nominal, arm), None) for arm in arms}
+    trials = []
     for offset in REGISTRATION_STARTS:
         trial = values.copy()
         for i, s in enumerate(slots):
             if s.effect == REGISTRATION:
                 trial[i] = offset["xyz".index(s.parameter[-1])]
-        moved = NuisanceValues(slots, tuple(float(v) for v in trial))
+        trials.append(NuisanceValues(slots, tuple(float(v) for v in trial)))
+    _prefetch(nominal, model, predictor, trials)  # every start's replays in one batch
+    for offset, moved in zip(REGISTRATION_STARTS, trials, strict=True):
         residual = nominal.residual.values - _shifted(nominal, model, predictor, moved)
         for arm in arms:
             cost = _arm_cost(residual, index, nominal, arm)

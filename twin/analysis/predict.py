@@ -17,7 +17,7 @@ from dataclasses import asdict, dataclass, field, replace
 
 import numpy as np
 
-from fe.batched_runner import PoseTrajectory, run_trajectories
+from fe.batched_runner import PoseTrajectory, can_share_batch, run_trajectories
 from fe.indentation import step_through
 from fe.params import SkinParameters
 from fe.results import IncrementResult
@@ -33,7 +33,8 @@ from twin.sim_backend import RELAXATION_SOLVE_INTERVAL_S
 MODEL_CACHE_SIZE = 24
 """Inflated fe models a Predictor keeps (first built dropped first); replays, small arrays, are all kept."""
 PREFETCH_SLOTS = 256
-"""Systems of one batched prefetch run at most (more trajectories queue for the slots that free up)."""
+"""Systems of one batched prefetch run at most (with one skin, more trajectories queue for the slots that
+free up; with several, more replays make more runs)."""
 
 
 @dataclass(frozen=True)
@@ -106,14 +107,49 @@ class _ReplayPlan:
     timed: bool
 
 
+@dataclass(frozen=True)
+class _PendingReplay:
+    """A replay to solve: the trajectory, its plan, the inflated fe model of its skin and that model's
+    read-out."""
+
+    trajectory: TrajectoryRecord
+    plan: _ReplayPlan
+    fe: BioTacModel
+    readout: SensorReadout
+
+
+def _batches(work: list[_PendingReplay]) -> list[list[_PendingReplay]]:
+    """The pending replays grouped into batched runs: one group per set of skins that can share a batch
+    (and all timed or none), a group of several skins cut into runs of at most `PREFETCH_SLOTS` systems."""
+    groups: list[list[_PendingReplay]] = []
+    for item in work:
+        for group in groups:
+            first = group[0]
+            if first.plan.timed == item.plan.timed and (
+                first.fe is item.fe or can_share_batch(first.fe.inflated_skin(), item.fe.inflated_skin())
+            ):
+                group.append(item)
+                break
+        else:
+            groups.append([item])
+    runs = []
+    for group in groups:
+        if all(item.fe is group[0].fe for item in group):
+            runs.append(group)
+        else:
+            runs.extend(group[i : i + PREFETCH_SLOTS] for i in range(0, len(group), PREFETCH_SLOTS))
+    return runs
+
+
 class Predictor:
     """Replays trajectories on a warp `device` ("cpu", "cuda", ...); inflated fe models and fe replays are
     cached.
 
     A replay depends only on the skin parameters, the mesh and the indenter path, so predictions that
     differ only in measurement effects reuse it. `predict` replays one trajectory at a time when its replay
-    is not cached; `prefetch` solves the missing replays of many trajectories of one model as the systems
-    of one batched run (`fe.batched_runner`), which is how a GPU is kept busy.
+    is not cached; `prefetch` solves the missing replays of many trajectories of one model, and
+    `prefetch_many` those of many models, as the systems of one batched run (`fe.batched_runner`), which is
+    how a GPU is kept busy and the per-round overhead of a run is paid once for them all.
     """
 
     def __init__(self, device: str = "cpu") -> None:
@@ -168,39 +204,62 @@ class Predictor:
         progress: Callable[[int, int], None] | None = None,
     ) -> int:
         """Solve the replays `model` needs for `trajectories` and does not have cached yet, all in one batched
-        run on the predictor's device (one system per trajectory, at most `PREFETCH_SLOTS` at once), so that
-        `predict` then finds them cached. Each replay is what `predict` would solve one at a time: the same
-        events, stopped at the first increment that does not converge (no cut-backs, no force limit).
+        run on the predictor's device (`prefetch_many` with one model). progress(done, total) after each
+        replay solved; returns how many were solved."""
+        return self.prefetch_many([(model, trajectories)], progress)
+
+    def prefetch_many(
+        self,
+        requests: Sequence[tuple[TwinModel, Sequence[TrajectoryRecord]]],
+        progress: Callable[[int, int], None] | None = None,
+    ) -> int:
+        """Solve the replays that the (model, trajectories) `requests` need and are not cached yet as the
+        systems of as few batched runs on the predictor's device as the skins allow, so that `predict` then
+        finds them cached. Each system carries its own model's inflated skin; replays that models share (same
+        skin, same path: models that differ only in measurement effects) are solved once. Systems are
+        grouped into one run when their skins share a mesh (`fe.batched_runner.can_share_batch`) and all or
+        none relax; a run of one skin queues its trajectories through at most `PREFETCH_SLOTS` systems, a
+        run of several holds at most `PREFETCH_SLOTS` systems, one per replay. Each replay is what `predict`
+        would solve one at a time: the same events, stopped at the first increment that does not converge.
         progress(done, total) after each replay solved; returns how many were solved."""
-        pending: dict[tuple, tuple[TrajectoryRecord, _ReplayPlan]] = {}
-        for trajectory in trajectories:
-            plan = self._plan(model, trajectory)
-            if plan.key not in self._replays:
-                pending.setdefault(plan.key, (trajectory, plan))
-        if not pending:
-            return 0
-        fe = self._model_fe(model)
-        readout = self.readout(fe)
+        pending: dict[tuple, _PendingReplay] = {}
+        for model, trajectories in requests:
+            for trajectory in trajectories:
+                plan = self._plan(model, trajectory)
+                if plan.key not in self._replays and plan.key not in pending:
+                    fe = self._model_fe(model)
+                    pending[plan.key] = _PendingReplay(trajectory, plan, fe, self.readout(fe))
         work = list(pending.values())
-        poses = [_pose_trajectory(trajectory, plan) for trajectory, plan in work]
-        solved: list[tuple] = []
+        solved = 0
+
+        def done() -> None:
+            nonlocal solved
+            solved += 1
+            if progress is not None:
+                progress(solved, len(work))
+
+        for batch in _batches(work):
+            self._solve(batch, done)
+        return len(work)
+
+    def _solve(self, batch: list[_PendingReplay], done: Callable[[], None]) -> None:
+        """Solve one batch of pending replays in one batched run and cache them; done() after each."""
+        skins = [item.fe.inflated_skin() for item in batch]
+        one_skin = all(item.fe is batch[0].fe for item in batch)
 
         def finished(index: int, increments: list[IncrementResult]) -> None:
-            plan = work[index][1]
-            self._replays[plan.key] = _replay_of(readout, plan.events, increments)
+            item = batch[index]
+            self._replays[item.plan.key] = _replay_of(item.readout, item.plan.events, increments)
             increments.clear()  # the displacement fields are read: free them as the run goes on
-            solved.append(plan.key)
-            if progress is not None:
-                progress(len(solved), len(work))
+            done()
 
         run_trajectories(
-            fe.inflated_skin(),
-            poses,
+            skins[0] if one_skin else skins,
+            [_pose_trajectory(item.trajectory, item.plan) for item in batch],
             self.device,
-            slots=min(len(poses), PREFETCH_SLOTS),
+            slots=min(len(batch), PREFETCH_SLOTS),
             on_trajectory=finished,
         )
-        return len(work)
 
     def predict(self, model: TwinModel, trajectory: TrajectoryRecord) -> Prediction:
         """The model's prediction of `trajectory` (see the module docstring)."""

@@ -14,7 +14,7 @@ A trajectory may be predicted by its own variant of the model (`ModelFor`): the 
 
 from __future__ import annotations
 
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass, replace
 
 import numpy as np
@@ -54,19 +54,27 @@ def fullrate_prediction(
     predictor: Predictor, model: TwinModel, trajectories: list[TrajectoryRecord], model_for: ModelFor = same_model
 ) -> list[np.ndarray]:
     """Per trajectory (T, 4): predicted tared force x, y, z (N) and PDC (counts), each trajectory by
-    model_for(model, trajectory); the missing replays of each distinct model solved as one batch first
-    (`Predictor.prefetch`)."""
+    model_for(model, trajectory); the missing replays solved as one batch first (`Predictor.prefetch_many`)."""
     models = [model_for(model, t) for t in trajectories]
-    groups: dict[str, tuple[TwinModel, list[TrajectoryRecord]]] = {}
-    for m, t in zip(models, trajectories, strict=True):
-        groups.setdefault(m.key(), (m, []))[1].append(t)
-    for m, members in groups.values():
-        predictor.prefetch(m, members)
+    predictor.prefetch_many(model_requests([model], trajectories, model_for))
     out = []
     for m, t in zip(models, trajectories, strict=True):
         p = predictor.predict(m, t)
         out.append(np.column_stack([p.force_fullrate, p.pdc_fullrate]))
     return out
+
+
+def model_requests(
+    models: Sequence[TwinModel], trajectories: list[TrajectoryRecord], model_for: ModelFor = same_model
+) -> list[tuple[TwinModel, list[TrajectoryRecord]]]:
+    """The (model, its trajectories) requests (`Predictor.prefetch_many`) that predicting every trajectory
+    under each of `models` makes, each trajectory by model_for(model, trajectory)."""
+    groups: dict[str, tuple[TwinModel, list[TrajectoryRecord]]] = {}
+    for model in models:
+        for t in trajectories:
+            m = model_for(model, t)
+            groups.setdefault(m.key(), (m, []))[1].append(t)
+    return list(groups.values())
 
 
 def measured(trajectory: TrajectoryRecord) -> np.ndarray:
@@ -189,6 +197,11 @@ class Base:
         """Profiled change of the whitened prediction from the base to `model` (NaN where it failed)."""
         predicted = fullrate_prediction(predictor, model, self.trajectories, self.model_for)
         return self.nuisance.project(whitened(predicted, self.masks, self.sigma) - self.prediction)
+
+    def prefetch(self, predictor: Predictor, models: Sequence[TwinModel]) -> int:
+        """Solve the replays that `shifted` needs for every model of `models` as one batch (those not cached
+        yet; `Predictor.prefetch_many`); returns how many were solved."""
+        return predictor.prefetch_many(model_requests(models, self.trajectories, self.model_for))
 
     def noise_test(self, values: np.ndarray, fitted: int | None = None, out_of_fold: OutOfFold = NO_FIT) -> NoiseTest:
         """The noise test (`twin.analysis.significance`) of a whitened residual on this residual's samples
