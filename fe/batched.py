@@ -628,7 +628,8 @@ class BatchedShell:
         it, `fe.contact.lag_candidates`); returns which systems changed ((B,) bool)."""
         force = self._lag_buf["vertex_force"]
         force.zero_()
-        surface = {**self._static, **self._lag_buf, "x": x, "want_hessian": 0, "active": self._all}
+        self._lag_buf["gradient"].zero_()
+        surface = {**self._static, **self._lag_buf, "x": x, "want_hessian": 0, "active": self._flags(mask)}
         surface["face_hessian"] = self.buf["membrane_hessian"]  # not written: want_hessian 0
         self._launch_faces(contact.indenter_surface_kernel, surface)
         self._stats.zero_()
