@@ -9,6 +9,7 @@ import os
 import signal
 import sys
 import tempfile
+import time
 from collections.abc import Callable, Iterator
 from contextlib import contextmanager
 from dataclasses import replace
@@ -80,9 +81,51 @@ def sigterm_as_interrupt() -> Iterator[None]:
         signal.signal(signal.SIGTERM, previous)
 
 
+PLAIN_PROGRESS_INTERVAL_S = 15.0
+"""Where stderr is not a terminal (a log file, a batch job), the progress is a plain line at most this often (s)."""
+
+
+class LoggedProgress(Progress):
+    """A rich progress bar that, where its console is not a terminal (so rich draws nothing), writes a plain line
+    "description done/total (elapsed s)" instead: once the work has run `interval_s`, then whenever a task's
+    description changes or it finishes, and at most every `interval_s` otherwise. Short runs stay silent."""
+
+    def __init__(self, *columns, interval_s: float = PLAIN_PROGRESS_INTERVAL_S, **kwargs) -> None:
+        super().__init__(*columns, **kwargs)
+        self.interval_s = interval_s
+        self._started = time.monotonic()
+        self._last_line = float("-inf")
+        self._last_description: dict[int, str] = {}
+
+    def update(self, task_id, *args, **kwargs) -> None:  # noqa: D102 (rich's)
+        super().update(task_id, *args, **kwargs)
+        self._log(task_id)
+
+    def advance(self, task_id, advance: float = 1) -> None:  # noqa: D102 (rich's)
+        super().advance(task_id, advance)
+        self._log(task_id)
+
+    def _log(self, task_id) -> None:
+        if self.console.is_terminal:
+            return
+        now = time.monotonic()
+        task = self._tasks[task_id]
+        changed = self._last_description.get(task_id) not in (None, task.description)
+        self._last_description[task_id] = task.description
+        finished = task.total is not None and task.completed >= task.total
+        due = changed or finished or now - self._last_line >= self.interval_s
+        if now - self._started < self.interval_s or not due:
+            return
+        self._last_line = now
+        total = "?" if task.total is None else f"{task.total:g}"
+        line = f"{task.description} {task.completed:g}/{total} ({now - self._started:.0f} s)"
+        self.console.print(line, markup=False, highlight=False)
+
+
 def progress_bar() -> Progress:
-    """A rich progress bar on stderr with elapsed time and ETA (stdout stays clean for JSON)."""
-    return Progress(
+    """A rich progress bar on stderr with elapsed time and ETA (stdout stays clean for JSON); plain lines where
+    stderr is not a terminal (`LoggedProgress`)."""
+    return LoggedProgress(
         TextColumn("{task.description}"),
         BarColumn(),
         TextColumn("{task.completed}/{task.total}"),
