@@ -365,6 +365,7 @@ class BatchedShell:
             "indenter_normal": z((B, V), wp.vec3d),
             "indenter_face_energy": z((B, nt), wp.float64),
             "indenter_face_gap": z((B, nt), wp.float64),
+            "indenter_face_moved": z((B, nt), wp.float64),
             "indenter_vertex_force": z((B, V), wp.vec3d),
         }
         self._lag_buf = {
@@ -580,6 +581,14 @@ class BatchedShell:
         values = {**self._static, "x": x, "gap": self.buf["indenter_gap"], "normal": self.buf["indenter_normal"]}
         self._launch_indenters(contact.indenter_gap_kernel, values)
         self._launch_faces(contact.indenter_face_gap_kernel, {**values, "face_gap": self.buf["indenter_face_gap"]})
+
+    def face_gap_change(self, x: wp.array, rows: np.ndarray) -> np.ndarray:
+        """The largest change (m) of a quadrature point's gap (`fe.contact.indenter_face_sweep_kernel`) over
+        the skin at positions x (B,V) as each indenter moves from its start pose to its pose (`set_poses`),
+        among the points in contact at either, for the systems `rows`: (k,)."""
+        moved = self.buf["indenter_face_moved"]
+        self._launch_faces(contact.indenter_face_sweep_kernel, {**self._static, "x": x, "face_moved": moved})
+        return get_rows(moved, rows).max(axis=1)
 
     def indenter_clearance(self, parts: wp.array, floor: np.ndarray, which: np.ndarray) -> np.ndarray:
         """Nearest approach (m) of each `which` system's (B,) bool indenter body to the rigid core at its pose,
