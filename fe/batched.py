@@ -87,6 +87,12 @@ class InflatedSkin:
     indenter_offset: float | None = None
     """Distance (m) the indenter keeps from the mid-surface (None: half the skin thickness)."""
 
+    @property
+    def indenter_half_layer(self) -> float:
+        """The half-layer h (m) between the mid-surface and the indenter: `indenter_offset`, else half the skin
+        thickness (the one rule of the contact kernels, the stepper's checks and `fe.sensor`'s first touch)."""
+        return 0.5 * self.params.thickness if self.indenter_offset is None else self.indenter_offset
+
     @classmethod
     def at_rest(
         cls,
@@ -304,7 +310,7 @@ class BatchedShell:
         per_batch = lambda values: arr(np.asarray(values, dtype=np.float64), wp.float64)  # noqa: E731
         z = lambda shape, dtype: wp.zeros(shape, dtype=dtype, device=device)  # noqa: E731
         cs = skin.contact
-        offsets = [0.5 * s.params.thickness if s.indenter_offset is None else s.indenter_offset for s in self.skins]
+        offsets = [s.indenter_half_layer for s in self.skins]
         self._static = {
             "triangles": arr(tri.astype(np.int32), wp.vec3i),
             "dm_inv": arr(dm_inv, wp.mat22d),

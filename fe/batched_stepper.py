@@ -191,9 +191,7 @@ class BatchedStepper:
         self._dt = np.zeros(B)
         self._depth, self._admitted_at = np.zeros(B), np.zeros(B)
         self._increment_travel = np.zeros((B, 3))
-        self._half = np.array(
-            [s.params.thickness / 2 if s.indenter_offset is None else s.indenter_offset for s in self.skins]
-        )
+        self._half = np.array([s.indenter_half_layer for s in self.skins])
         """(B,) half-layer (m) of each skin on the indenter's side (0: a zero-thickness membrane)."""
         self.too_large = np.zeros(B, dtype=bool)
         """Whether each system's last increment was refused as too large a step, before any solve."""
