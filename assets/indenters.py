@@ -39,6 +39,26 @@ HASH_OFFSET = 1000
 TOTAL_LENGTH = 17.86e-3
 #: Shank radius used by ``Indenter.mesh`` (capped at the head's own radius), m.
 SHANK_RADIUS = 3.6e-3
+#: The shank post of each kind, a round post on the z axis from z = base up: base (m) = sum_k c_k dims[k]
+#: + offset with the row (c_0, c_1, c_2, c_3, offset) here (the head's mid-height for spheres, cylinders and
+#: the box; the top of the ring's tube; 1 mm below the texture plate's top, its face rb plus 2 mm), its radius
+#: SHANK_RADIUS, capped at dims[0] (the head's radius) where the row's last entry is 1. One rule for
+#: ``Indenter.mesh``'s solid and the contact SDF (`fe.indenter_sdf.body_sdf_and_grad`, which reads this table).
+SHANK_POSTS: tuple[tuple[float, float, float, float, float, float], ...] = (
+    (1.0, 0.0, 0.0, 0.0, 0.0, 1.0),  # KIND_SPHERE: the centre, z = R
+    (0.0, 0.5, 0.0, 0.0, 0.0, 1.0),  # KIND_CYLINDER_FLAT: z = H / 2
+    (1.0, 0.0, 0.0, 0.0, 0.0, 1.0),  # KIND_CYLINDER_SIDE: the axis, z = R
+    (0.0, 0.0, 0.5, 0.0, 0.0, 0.0),  # KIND_BOX: z = H / 2
+    (0.0, 0.0, 1.0, 0.0, 0.0, 0.0),  # KIND_TORUS: the top of the tube, z = H
+    (1.0, 0.0, 0.0, 0.0, 1.0e-3, 0.0),  # KIND_TEXTURE: z = rb + 1 mm
+)
+
+
+def shank_post(kind: int, dims: tuple[float, float, float, float]) -> tuple[float, float]:
+    """(radius, base height) in m of indenter ``kind``'s shank post (`SHANK_POSTS`), indenter frame."""
+    *c, offset, capped = SHANK_POSTS[kind]
+    base = c[0] * dims[0] + c[1] * dims[1] + c[2] * dims[2] + c[3] * dims[3] + offset
+    return (min(SHANK_RADIUS, dims[0]) if capped else SHANK_RADIUS), base
 
 
 def _safe_unit(v: np.ndarray, fallback: np.ndarray) -> np.ndarray:
@@ -284,9 +304,7 @@ class Indenter:
             cap = np.maximum(rho - b, np.abs(p[:, 2] - (top + 0.5e-3)) - 0.5e-3)
             d = np.minimum(d, cap)
             top += 1.0e-3
-        radial = {KIND_SPHERE: a, KIND_CYLINDER_SIDE: a, KIND_CYLINDER_FLAT: a}.get(self.kind, SHANK_RADIUS)
-        rs = min(SHANK_RADIUS, radial)
-        z0 = {KIND_TEXTURE: top - 1.0e-3, KIND_TORUS: top - 1.0e-3}.get(self.kind, 0.5 * top)
+        rs, z0 = shank_post(self.kind, self.dims)
         shank = np.maximum(rho - rs, np.maximum(z0 - p[:, 2], p[:, 2] - TOTAL_LENGTH))
         return np.minimum(d, shank)
 

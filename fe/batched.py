@@ -87,6 +87,12 @@ class InflatedSkin:
     indenter_offset: float | None = None
     """Distance (m) the indenter keeps from the mid-surface (None: half the skin thickness)."""
 
+    @property
+    def indenter_half_layer(self) -> float:
+        """The half-layer h (m) between the mid-surface and the indenter: `indenter_offset`, else half the skin
+        thickness (the one rule of the contact kernels, the stepper's checks and `fe.sensor`'s first touch)."""
+        return 0.5 * self.params.thickness if self.indenter_offset is None else self.indenter_offset
+
     @classmethod
     def at_rest(
         cls,
@@ -304,7 +310,7 @@ class BatchedShell:
         per_batch = lambda values: arr(np.asarray(values, dtype=np.float64), wp.float64)  # noqa: E731
         z = lambda shape, dtype: wp.zeros(shape, dtype=dtype, device=device)  # noqa: E731
         cs = skin.contact
-        offsets = [0.5 * s.params.thickness if s.indenter_offset is None else s.indenter_offset for s in self.skins]
+        offsets = [s.indenter_half_layer for s in self.skins]
         self._static = {
             "triangles": arr(tri.astype(np.int32), wp.vec3i),
             "dm_inv": arr(dm_inv, wp.mat22d),
@@ -365,6 +371,7 @@ class BatchedShell:
             "indenter_normal": z((B, V), wp.vec3d),
             "indenter_face_energy": z((B, nt), wp.float64),
             "indenter_face_gap": z((B, nt), wp.float64),
+            "indenter_face_moved": z((B, nt), wp.float64),
             "indenter_vertex_force": z((B, V), wp.vec3d),
         }
         self._lag_buf = {
@@ -580,6 +587,14 @@ class BatchedShell:
         values = {**self._static, "x": x, "gap": self.buf["indenter_gap"], "normal": self.buf["indenter_normal"]}
         self._launch_indenters(contact.indenter_gap_kernel, values)
         self._launch_faces(contact.indenter_face_gap_kernel, {**values, "face_gap": self.buf["indenter_face_gap"]})
+
+    def face_gap_change(self, x: wp.array, rows: np.ndarray) -> np.ndarray:
+        """The largest change (m) of a quadrature point's gap (`fe.contact.indenter_face_sweep_kernel`) over
+        the skin at positions x (B,V) as each indenter moves from its start pose to its pose (`set_poses`),
+        among the points in contact at either, for the systems `rows`: (k,)."""
+        moved = self.buf["indenter_face_moved"]
+        self._launch_faces(contact.indenter_face_sweep_kernel, {**self._static, "x": x, "face_moved": moved})
+        return get_rows(moved, rows).max(axis=1)
 
     def indenter_clearance(self, parts: wp.array, floor: np.ndarray, which: np.ndarray) -> np.ndarray:
         """Nearest approach (m) of each `which` system's (B,) bool indenter body to the rigid core at its pose,

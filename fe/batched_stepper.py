@@ -191,9 +191,7 @@ class BatchedStepper:
         self._dt = np.zeros(B)
         self._depth, self._admitted_at = np.zeros(B), np.zeros(B)
         self._increment_travel = np.zeros((B, 3))
-        self._half = np.array(
-            [s.params.thickness / 2 if s.indenter_offset is None else s.indenter_offset for s in self.skins]
-        )
+        self._half = np.array([s.indenter_half_layer for s in self.skins])
         """(B,) half-layer (m) of each skin on the indenter's side (0: a zero-thickness membrane)."""
         self.too_large = np.zeros(B, dtype=bool)
         """Whether each system's last increment was refused as too large a step, before any solve."""
@@ -359,7 +357,8 @@ class BatchedStepper:
         """Whether the skin of systems `rows` at its last state (in the shell's `x_trial`) stays clear of the
         indenter along the whole move from its start pose to its new one ((k,) bool), and how far (m) the
         indenter's surface moves against that skin ((k,)): summed over the sweep's pieces, the largest change
-        of a skin vertex's gap among those touching at either end of the piece. Poses are sampled (rotations
+        of the gap of a skin vertex or of a quadrature point of the surface contact (`BatchedShell.
+        face_gap_change`) among those touching at either end of the piece. Poses are sampled (rotations
         by slerp, tips on the line) every half-thickness or less of the travel bound |dt| + |dtheta| r_head
         (`fe.indenter_sdf.head_radius`), so the skin is not passed unseen between samples; the shell's poses
         are left at the new ones."""
@@ -376,19 +375,22 @@ class BatchedStepper:
         # The start pose is needed only to measure a move that could exceed the limit (gap changes <= bound).
         first = 0 if np.any(bound > spacing) else 1
         before = None
+        last_rotation, last_translation = rotation.copy(), translation.copy()
         for step in range(first, int(pieces.max()) + 1):
             f = np.minimum(step / pieces, 1.0)
             rotation[rows] = Rotation.from_rotvec(f[:, None] * turn).as_matrix() @ start_r
             translation[rows] = start_t + f[:, None] * shift
-            shell.set_poses(rotation, translation, self._start_rotation, self._start_translation)
+            shell.set_poses(rotation, translation, last_rotation, last_translation)
             gap, _, face_gap = shell.proximity(shell.x_trial, rows)
             live = (step >= 1) & (step <= pieces)
             clear &= ~live | ((gap.min(axis=1) >= 0.0) & (face_gap >= 0.0))
             if before is not None:
                 touching = (gap < 0.0) | (before < 0.0)
                 moved = np.where(touching, np.abs(gap - before), 0.0).max(axis=1)
+                moved = np.maximum(moved, shell.face_gap_change(shell.x_trial, rows))
                 pressed += np.where(live, moved, 0.0)
             before = gap
+            last_rotation[rows], last_translation[rows] = rotation[rows], translation[rows]
         shell.set_poses(self.pose_rotation, self.pose_translation, self._start_rotation, self._start_translation)
         return clear, pressed
 

@@ -202,31 +202,39 @@ def core_contact_kernel(
 
 
 @wp.func
-def _sdf_world(kind: int, dims: wp.vec4d, rotation: wp.mat33d, translation: wp.vec3d, p: wp.vec3d) -> wp.float64:
-    """Signed distance (m) of world point p to the indenter body (head and shank) at pose (rotation, tip)."""
-    return body_sdf_and_grad(kind, dims, wp.transpose(rotation) @ (p - translation))[0]
+def _body_world(kind: int, dims: wp.vec4d, rotation: wp.mat33d, translation: wp.vec3d, p: wp.vec3d) -> wp.vec4d:
+    """(signed distance m, unit outward gradient in the world frame) of world point p to the indenter body
+    (head and shank, `fe.indenter_sdf.body_sdf_and_grad` in the indenter frame) at pose (rotation, tip)."""
+    local = body_sdf_and_grad(kind, dims, wp.transpose(rotation) @ (p - translation))
+    n = rotation @ wp.vec3d(local[1], local[2], local[3])
+    return wp.vec4d(local[0], n[0], n[1], n[2])
 
 
 @wp.func
-def _sdf_grad_world(kind: int, dims: wp.vec4d, rotation: wp.mat33d, translation: wp.vec3d, p: wp.vec3d) -> wp.vec3d:
-    """Unit outward gradient (world frame) of `_sdf_world`."""
-    r = body_sdf_and_grad(kind, dims, wp.transpose(rotation) @ (p - translation))
-    return rotation @ wp.vec3d(r[1], r[2], r[3])
+def indenter_gap_and_normal(
+    kind: int, dims: wp.vec4d, rotation: wp.mat33d, translation: wp.vec3d, offset: wp.float64, p: wp.vec3d
+) -> wp.vec4d:
+    """(gap m, unit outward normal in the world frame) of mid-surface point p to the indenter body at pose
+    (rotation, tip): `_body_world` minus the half-layer `offset` (m). The one gap rule of the skin vertices,
+    the quadrature points and the step guard."""
+    r = _body_world(kind, dims, rotation, translation, p)
+    return wp.vec4d(r[0] - offset, r[1], r[2], r[3])
 
 
 @wp.func
 def _sdf_curvature_world(
     kind: int, dims: wp.vec4d, rotation: wp.mat33d, translation: wp.vec3d, p: wp.vec3d, n: wp.vec3d
 ) -> wp.mat33d:
-    """Hessian (1/m, world frame, symmetrised) of `_sdf_world` at p, where its gradient is n: forward
-    differences of the analytic gradient over 1e-8 m (truncation ~1e-8 m |d3 SDF|, ~1e-5 of the curvature
-    of a 1.75 mm ball; three gradients where central differences take six)."""
+    """Hessian (1/m, world frame, symmetrised) of the indenter SDF (`_body_world`) at p, where its gradient
+    is n: forward differences of the analytic gradient over 1e-8 m (truncation ~1e-8 m |d3 SDF|, ~1e-5 of the
+    curvature of a 1.75 mm ball; three gradients where central differences take six)."""
     h = wp.float64(1e-8)
     curv = wp.mat33d()
     for j in range(3):
         dp = wp.vec3d()
         dp[j] = h
-        col = (_sdf_grad_world(kind, dims, rotation, translation, p + dp) - n) / h
+        r = _body_world(kind, dims, rotation, translation, p + dp)
+        col = (wp.vec3d(r[1], r[2], r[3]) - n) / h
         for i in range(3):
             curv[i, j] = col[i]
     return wp.float64(0.5) * (curv + wp.transpose(curv))
@@ -240,7 +248,7 @@ def _triangle_bound(
     centroid's distance to the farthest corner (the SDF is 1-Lipschitz)."""
     centre = (p0 + p1 + p2) / wp.float64(3.0)
     spread = wp.max(wp.length(p0 - centre), wp.max(wp.length(p1 - centre), wp.length(p2 - centre)))
-    return _sdf_world(kind, dims, rotation, translation, centre) - spread
+    return _body_world(kind, dims, rotation, translation, centre)[0] - spread
 
 
 @wp.func
@@ -294,7 +302,7 @@ def indenter_surface_kernel(
     h = offset[b]
     zero = wp.float64(0.0)
     face_energy[b, f] = zero
-    bound = _triangle_bound(shape, size, R, t, p0, p1, p2) - h
+    bound = _face_gap_bound(shape, size, R, t, h, p0, p1, p2)
     if bound > zero:
         face_gap[b, f] = bound
         return
@@ -307,11 +315,11 @@ def indenter_surface_kernel(
     for k in range(quadrature.shape[0]):
         q = quadrature[k]
         p = _at(p0, p1, p2, q)
-        local = body_sdf_and_grad(shape, size, wp.transpose(R) @ (p - t))
-        g = local[0] - h
+        gn = indenter_gap_and_normal(shape, size, R, t, h, p)
+        g = gn[0]
         least = wp.min(least, g)
         if g < zero:
-            n = R @ wp.vec3d(local[1], local[2], local[3])
+            n = wp.vec3d(gn[1], gn[2], gn[3])
             law = layer_response(g, h, layer_mu[b], q[3] * rest_area[f], kappa, min_stretch)
             e += law[0]
             dg = n * law[1]
@@ -339,6 +347,46 @@ def indenter_surface_kernel(
         wp.atomic_sub(vertex_force, b, tri[2], g2)
 
 
+@wp.func
+def _face_gap_bound(
+    kind: int,
+    dims: wp.vec4d,
+    rotation: wp.mat33d,
+    translation: wp.vec3d,
+    offset: wp.float64,
+    p0: wp.vec3d,
+    p1: wp.vec3d,
+    p2: wp.vec3d,
+) -> wp.float64:
+    """A lower bound (m) of the gap over triangle p0 p1 p2 (`_triangle_bound` minus the half-layer `offset`):
+    where positive, no quadrature point of the triangle is in contact."""
+    return _triangle_bound(kind, dims, rotation, translation, p0, p1, p2) - offset
+
+
+@wp.func
+def indenter_face_gap(
+    kind: int,
+    dims: wp.vec4d,
+    rotation: wp.mat33d,
+    translation: wp.vec3d,
+    offset: wp.float64,
+    p0: wp.vec3d,
+    p1: wp.vec3d,
+    p2: wp.vec3d,
+    quadrature: wp.array(dtype=wp.vec4d),
+) -> wp.float64:
+    """The smallest gap (m) over the quadrature points of triangle p0 p1 p2 to the indenter at pose
+    (rotation, tip), as `indenter_surface_kernel` reports it: `_face_gap_bound` where that is positive."""
+    bound = _face_gap_bound(kind, dims, rotation, translation, offset, p0, p1, p2)
+    if bound > wp.float64(0.0):
+        return bound
+    least = wp.float64(1.0e30)
+    for k in range(quadrature.shape[0]):
+        p = _at(p0, p1, p2, quadrature[k])
+        least = wp.min(least, indenter_gap_and_normal(kind, dims, rotation, translation, offset, p)[0])
+    return least
+
+
 @wp.kernel
 def indenter_face_gap_kernel(
     x: wp.array2d(dtype=wp.vec3d),
@@ -351,23 +399,57 @@ def indenter_face_gap_kernel(
     offset: wp.array(dtype=wp.float64),
     face_gap: wp.array2d(dtype=wp.float64),
 ):
-    """face_gap[b, f] (m): the smallest gap over skin triangle f's quadrature points to the indenter of batch
-    b, as `indenter_surface_kernel` reports it (the SDF lower bound where that clears the layer)."""
+    """face_gap[b, f] (m): `indenter_face_gap` of skin triangle f to the indenter of batch b."""
+    b, f = wp.tid()
+    tri = triangles[f]
+    face_gap[b, f] = indenter_face_gap(
+        kind[b], dims[b], rotation[b], translation[b], offset[b], x[b, tri[0]], x[b, tri[1]], x[b, tri[2]], quadrature
+    )
+
+
+@wp.kernel
+def indenter_face_sweep_kernel(
+    x: wp.array2d(dtype=wp.vec3d),
+    triangles: wp.array(dtype=wp.vec3i),
+    quadrature: wp.array(dtype=wp.vec4d),
+    kind: wp.array(dtype=wp.int32),
+    dims: wp.array(dtype=wp.vec4d),
+    rotation: wp.array(dtype=wp.mat33d),
+    translation: wp.array(dtype=wp.vec3d),
+    rotation_start: wp.array(dtype=wp.mat33d),
+    translation_start: wp.array(dtype=wp.vec3d),
+    offset: wp.array(dtype=wp.float64),
+    face_moved: wp.array2d(dtype=wp.float64),
+):
+    """face_moved[b, f] (m): the largest change of a quadrature point's gap (`indenter_gap_and_normal`) on
+    skin triangle f, fixed at x[b], as the indenter of batch b moves from pose (rotation_start,
+    translation_start) to (rotation, translation), among the points in contact at either pose (0 where the
+    triangle clears the layer at both, `_face_gap_bound`)."""
     b, f = wp.tid()
     tri = triangles[f]
     p0 = x[b, tri[0]]
     p1 = x[b, tri[1]]
     p2 = x[b, tri[2]]
+    shape = kind[b]
+    size = dims[b]
     h = offset[b]
-    bound = _triangle_bound(kind[b], dims[b], rotation[b], translation[b], p0, p1, p2) - h
-    if bound > wp.float64(0.0):
-        face_gap[b, f] = bound
-        return
-    least = wp.float64(1.0e30)
+    R = rotation[b]
+    t = translation[b]
+    R0 = rotation_start[b]
+    t0 = translation_start[b]
+    zero = wp.float64(0.0)
+    face_moved[b, f] = zero
+    if _face_gap_bound(shape, size, R, t, h, p0, p1, p2) > zero:
+        if _face_gap_bound(shape, size, R0, t0, h, p0, p1, p2) > zero:
+            return
+    largest = zero
     for k in range(quadrature.shape[0]):
         p = _at(p0, p1, p2, quadrature[k])
-        least = wp.min(least, _sdf_world(kind[b], dims[b], rotation[b], translation[b], p) - h)
-    face_gap[b, f] = least
+        now = indenter_gap_and_normal(shape, size, R, t, h, p)[0]
+        before = indenter_gap_and_normal(shape, size, R0, t0, h, p)[0]
+        if now < zero or before < zero:
+            largest = wp.max(largest, wp.abs(now - before))
+    face_moved[b, f] = largest
 
 
 @wp.kernel
@@ -404,9 +486,9 @@ def indenter_friction_kernel(
     R = rotation[b]
     t = translation[b]
     zero = wp.float64(0.0)
-    local = body_sdf_and_grad(kind[b], dims[b], wp.transpose(R) @ (p - t))
-    gap[b, v] = local[0] - offset[b]
-    normal[b, v] = R @ wp.vec3d(local[1], local[2], local[3])
+    gn = indenter_gap_and_normal(kind[b], dims[b], R, t, offset[b], p)
+    gap[b, v] = gn[0]
+    normal[b, v] = wp.vec3d(gn[1], gn[2], gn[3])
     e = zero
     grad = wp.vec3d()
     H = wp.mat33d()
@@ -454,8 +536,9 @@ def indenter_gap_kernel(
     """Gap (m) of skin vertex v to the indenter of batch b (kind[b], dims[b]; SDF minus the mid-surface
     offset), unit normal."""
     b, v = wp.tid()
-    gap[b, v] = _sdf_world(kind[b], dims[b], rotation[b], translation[b], x[b, v]) - offset[b]
-    normal[b, v] = _sdf_grad_world(kind[b], dims[b], rotation[b], translation[b], x[b, v])
+    gn = indenter_gap_and_normal(kind[b], dims[b], rotation[b], translation[b], offset[b], x[b, v])
+    gap[b, v] = gn[0]
+    normal[b, v] = wp.vec3d(gn[1], gn[2], gn[3])
 
 
 @wp.kernel
@@ -508,7 +591,7 @@ def _triangle_clearance(
             u = wp.float64(i) * scale
             v = wp.float64(j) * scale
             q = p0 * (wp.float64(1.0) - u - v) + p1 * u + p2 * v
-            least = wp.min(least, _sdf_world(kind, dims, rotation, translation, q))
+            least = wp.min(least, _body_world(kind, dims, rotation, translation, q)[0])
     return least
 
 

@@ -29,6 +29,7 @@ from assets.indenters import (
     KIND_SPHERE,
     KIND_TEXTURE,
     KIND_TORUS,
+    SHANK_POSTS,
     SHANK_RADIUS,
     TEXTURE_FILLET,
     TEXTURE_RIM,
@@ -43,6 +44,9 @@ _KX = wp.constant(KIND_TEXTURE)
 _HM = wp.constant(wp.int64(HASH_MODULUS))
 _HA = wp.constant(wp.int64(HASH_MULTIPLIER))
 _HO = wp.constant(wp.int64(HASH_OFFSET))
+_SHANK = wp.constant(wp.types.matrix(shape=(len(SHANK_POSTS), 6), dtype=wp.float64)(*sum(SHANK_POSTS, ())))
+"""`assets.indenters.SHANK_POSTS`, a row per kind code."""
+_N_SHANK = wp.constant(len(SHANK_POSTS))
 
 
 def _build(real, vec2, vec3, vec4, indenter_sdf_and_grad=None, body_sdf_and_grad=None):
@@ -209,28 +213,18 @@ def _build(real, vec2, vec3, vec4, indenter_sdf_and_grad=None, body_sdf_and_grad
     @wp.func
     def body_sdf_and_grad(kind: int, dims: vec4, p: vec3) -> vec4:  # noqa: F811
         """(signed distance, unit outward gradient) of indenter ``kind``'s head united with its shank, a
-        semi-infinite round post on the z axis (radius min(3.6 mm, head radius) for spheres and cylinders,
-        3.6 mm otherwise, from the head's mid-height up; from the top of the ring's tube and 1 mm below the
-        texture plate's top), as `assets.indenters.Indenter.mesh` builds the solid: the body cannot be
-        passed along its axis. Exact outside; inside, the nearer surface's distance."""
+        semi-infinite round post on the z axis (radius and base of `assets.indenters.SHANK_POSTS`, the rule
+        `assets.indenters.Indenter.mesh` builds the solid with): the body cannot be passed along its axis.
+        Exact outside; inside, the nearer surface's distance."""
         head = indenter_sdf_and_grad(kind, dims, p)
-        a = dims[0]
-        shank = real(SHANK_RADIUS)
-        base = real(0.0)
-        if kind == _KS or kind == _KCS:
-            shank = wp.min(shank, a)
-            base = a
-        elif kind == _KCF:
-            shank = wp.min(shank, a)
-            base = real(0.5) * dims[1]
-        elif kind == _KB:
-            base = real(0.5) * dims[2]
-        elif kind == _KT:
-            base = dims[2]
-        elif kind == _KX:
-            base = dims[1] + real(1.0e-3)
-        else:
+        if kind < 0 or kind >= _N_SHANK:
             return head
+        base = real(_SHANK[kind, 4])
+        for k in range(4):
+            base += real(_SHANK[kind, k]) * dims[k]
+        shank = real(SHANK_RADIUS)
+        if _SHANK[kind, 5] != wp.float64(0.0):
+            shank = wp.min(shank, dims[0])
         rad = radial(p[0], p[1])
         post = rounded_rect(rad[0] - shank, base - p[2], real(0.0))
         if post[0] < head[0]:

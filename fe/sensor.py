@@ -234,7 +234,7 @@ class BioTacModel:
         weights = rule(self.rest_skin.contact.surface_rule)[:, :3]
         points = np.einsum("qk,tkd->tqd", weights, vertices[self.geometry.skin.triangles]).reshape(-1, 3)
         x = np.concatenate([vertices, points])
-        half_t = 0.5 * self.params.thickness
+        half_t = self.rest_skin.indenter_half_layer
 
         def min_gap(s: float) -> float:
             local = (x - (point + s * direction)) @ rotation

@@ -5,6 +5,8 @@ Independent references: trimesh's signed distance to the core mesh; the indenter
 seconds.
 """
 
+import re
+
 import numpy as np
 import pytest
 import trimesh
@@ -131,6 +133,22 @@ def test_the_batched_runner_halves_a_step_too_large_like_the_one_trajectory_step
     jump, steps = run.results[0][-1], run.results[1][-1]
     assert jump.converged and steps.converged and run.counters["cut_backs"] == 3
     assert np.linalg.norm(jump.force - steps.force) <= 1e-3 * np.linalg.norm(steps.force)
+
+
+def test_the_step_guard_reads_the_quadrature_points_gaps(biotac: BioTacModel) -> None:
+    """Review (session 11): sphere_small (1.75 mm radius, smaller than a 3 mm skin triangle) 1.4 mm in one step
+    from first touch. The guard read only the skin vertices' gaps, which change 0.45 mm (the ball goes in
+    between them), and solved the step; the surface contact's quadrature points under the ball move with it,
+    their gaps closing by the whole 1.4 mm (a point on the ball's axis: exactly the travel), more than the
+    0.79 mm half-thickness. The step is now refused as too large before any solve, measured at the travel."""
+    name = "sphere_small"
+    path = biotac.plan_trajectory(get_indenter(name), POINT, 0.0, 0.0, 1e-3, 1e-3)
+    stepper = BatchedStepper(biotac.inflated_skin(), [name])
+    assert stepper.step(path.rotation[None], path.touch_point[None])[0].converged
+    deep = stepper.step(path.rotation[None], (path.touch_point + 1.4e-3 * path.direction)[None])[0]
+    assert stepper.too_large[0] and not deep.converged, deep.message
+    moved_mm = float(re.search(r"moves ([0-9.]+) mm", deep.message).group(1))
+    assert 1.3 <= moved_mm <= 1.4 + 1e-9, deep.message  # 1-Lipschitz: no gap changes by more than the travel
 
 
 def _deepest_reach(skin, indenter_name: str, rotation: np.ndarray, tip: np.ndarray, x: np.ndarray) -> float:
