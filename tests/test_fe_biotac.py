@@ -4,10 +4,11 @@ import numpy as np
 import pytest
 import warp as wp
 
-from assets.indenters import get_indenter
+from assets.indenters import INDENTERS, get_indenter
 from fe.indentation import IndentationStepper, drive
 from fe.params import SkinParameters
 from fe.sensor import SENSOR_THICKNESS, BioTacModel
+from fe.surface_quadrature import rule
 
 MIDLINE_POINT = np.array([-6e-3, 0.0, -9e-3])
 
@@ -101,3 +102,22 @@ def test_indenting_before_inflating_is_refused() -> None:
     model = BioTacModel(make_biotac(max_edge=3e-3))
     with pytest.raises(RuntimeError, match="inflate"):
         list(model.indent("sphere_medium", MIDLINE_POINT, depth=1e-3))
+
+
+@pytest.mark.parametrize("indenter_name, angle_deg", [("sphere_small", 0.0), ("cube", 30.0), ("ring", 0.0)])
+def test_the_first_touch_is_where_the_first_skin_point_meets_the_contact_law(
+    frictionless_biotac: BioTacModel, indenter_name: str, angle_deg: float
+) -> None:
+    """Checked against every vertex and quadrature point of the outer skin: none inside the indenter's contact
+    reach at the planned touch point, some 1 um deeper (the search drops points as its bracket narrows)."""
+    model, indenter = frictionless_biotac, INDENTERS[indenter_name]
+    path = model.plan_trajectory(indenter, np.array([-6e-3, 0.0, -9e-3]), angle_deg, 40.0, 1e-3, 1e-3)
+    x = model.inflated_skin().reference
+    weights = rule(model.rest_skin.contact.surface_rule)[:, :3]
+    points = np.concatenate([x, np.einsum("qk,tkd->tqd", weights, x[model.geometry.skin.triangles]).reshape(-1, 3)])
+
+    def smallest_gap(tip: np.ndarray) -> float:
+        return float(indenter.sdf((points - tip) @ path.rotation).min() - model.rest_skin.indenter_half_layer)
+
+    assert -1e-12 < smallest_gap(path.touch_point) < 1e-9
+    assert smallest_gap(path.touch_point + 1e-6 * path.direction) < -0.5e-6
