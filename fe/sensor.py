@@ -76,6 +76,7 @@ class BioTacModel:
         self.pressure = 0.0
         self.target_volume = self._volume0
         self._inflated: InflatedSkin | None = None
+        self._outer: tuple[np.ndarray, trimesh.Trimesh] | None = None
 
     # -- inflation ---------------------------------------------------------------------------
     def thickness(self, x: np.ndarray) -> float:
@@ -183,10 +184,14 @@ class BioTacModel:
 
     # -- indentation -------------------------------------------------------------------------
     def outer_surface(self) -> trimesh.Trimesh:
-        """Inflated outer skin surface (m): mid-surface offset by t/2 along the vertex normals."""
+        """Inflated outer skin surface (m): mid-surface offset by t/2 along the vertex normals (one mesh per
+        inflated state, so its spatial index is built once)."""
         x = self._require_reference()
-        tri = self.geometry.skin.triangles
-        return trimesh.Trimesh(x + 0.5 * self.params.thickness * vertex_normals(x, tri), tri, process=False)
+        if self._outer is None or self._outer[0] is not x:
+            tri = self.geometry.skin.triangles
+            outer = x + 0.5 * self.params.thickness * vertex_normals(x, tri)
+            self._outer = (x, trimesh.Trimesh(outer, tri, process=False))
+        return self._outer[1]
 
     def _require_reference(self) -> np.ndarray:
         if self.reference is None:
@@ -231,7 +236,8 @@ class BioTacModel:
         """Tip position (m) where the rigid indenter first touches the undeformed outer skin: where its contact
         law first acts, at a skin vertex or a quadrature point of a skin triangle (`fe.surface_quadrature`).
 
-        Bisection on the offset s (m) along `direction` from 30 mm back. The points that cannot hold the
+        Bisection on the offset s (m) along `direction`, in the last 1 mm step back (at most 30 mm) from the first
+        offset at which the contact acts to an offset at which it does not. The points that cannot hold the
         smallest gap anywhere in the remaining bracket are dropped as it narrows (the SDF changes by at most
         |ds| per ds of offset, taken with a factor of 2 of safety), so the bracket's decisions, and the
         touch point, are those of the search over every point at a fraction of its cost."""
@@ -244,11 +250,16 @@ class BioTacModel:
         def gaps(s: float, at: np.ndarray) -> np.ndarray:
             return indenter.sdf((at - (point + s * direction)) @ rotation) - half_t
 
-        lo, hi = -30e-3, 0.0
-        while gaps(hi, x).min() > 0:
-            hi += 1e-3
-        if gaps(lo, x).min() <= 0:
-            raise ValueError("indenter overlaps the skin even when retracted 30 mm")
+        step, lo, hi = 1e-3, None, 0.0
+        while gaps(hi, x).min() > 0:  # forward to the first offset at which the contact acts
+            lo, hi = hi, hi + step
+        while lo is None:  # it acts at 0: back to the last offset at which it does not
+            if hi <= -30e-3:
+                raise ValueError("indenter overlaps the skin even when retracted 30 mm")
+            if gaps(hi - step, x).min() > 0:
+                lo = hi - step
+            else:
+                hi -= step
         for _ in range(60):
             mid = 0.5 * (lo + hi)
             g = gaps(mid, x)
