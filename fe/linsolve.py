@@ -4,12 +4,14 @@ The matrices of one model share a sparsity pattern (fixed by `fe.assembly.BlockA
 symbolic analysis is done once per pattern and only the numeric factorisation is repeated.
 
 Backends: Intel MKL PARDISO (symmetric indefinite LDL^T with Bunch-Kaufman pivoting) through the
-optional `pypardiso` package when it is importable, else SciPy's SuperLU (LU in symmetric mode,
+optional `pypardiso` package when it is installed (MKL found), else SciPy's SuperLU (LU in symmetric mode,
 minimum-degree ordering of A^T + A), which is about four times slower on the BioTac meshes.
 """
 
 import ctypes
 import functools
+import importlib.metadata
+import importlib.util
 import os
 import weakref
 from collections.abc import Callable
@@ -199,8 +201,14 @@ _MKL_DOMAIN_PARDISO = 4
 
 
 def _pardiso_available() -> bool:
+    """Whether PARDISO can be used: not refused by BIOTAC_TWIN_SPARSE=superlu, `pypardiso` installed and MKL's
+    runtime found (`_mkl_runtime_path`, or else by importing pypardiso, which looks for it on import)."""
     if os.environ.get("BIOTAC_TWIN_SPARSE", "").lower() == "superlu":
         return False
+    if importlib.util.find_spec("pypardiso") is None:
+        return False
+    if _mkl_runtime_path() is not None:
+        return True
     try:
         import pypardiso  # noqa: F401
     except ImportError:
@@ -209,16 +217,40 @@ def _pardiso_available() -> bool:
 
 
 @functools.cache
-def _mkl_pardiso() -> Callable[..., None]:
-    """MKL's `pardiso` entry point, found once per process (pypardiso searches the file system for the
-    library on every construction, about 1 s), its PARDISO domain set to one thread unless
-    MKL_NUM_THREADS or MKL_DOMAIN_NUM_THREADS say otherwise (see `_Pardiso`)."""
+def _mkl_runtime_path() -> str | None:
+    """Where MKL's runtime library is: PYPARDISO_MKL_RT when set (pypardiso's own override), else the file
+    that the `mkl` wheel's record lists (a look-up in its metadata, milliseconds), None when neither says."""
+    if "PYPARDISO_MKL_RT" in os.environ:
+        return os.environ["PYPARDISO_MKL_RT"]
+    try:
+        files = importlib.metadata.files("mkl") or []
+    except importlib.metadata.PackageNotFoundError:
+        return None
+    return next((str(f.locate()) for f in files if f.name.startswith("libmkl_rt")), None)
+
+
+@functools.cache
+def _mkl_library() -> ctypes.CDLL:
+    """MKL's runtime library, loaded once per process: from `_mkl_runtime_path`, else as pypardiso finds it
+    (it searches the whole Python prefix with `glob`, seconds, on every solver construction)."""
+    path = _mkl_runtime_path()
+    if path is not None:
+        return ctypes.CDLL(path)
     import pypardiso
 
-    solver = pypardiso.PyPardisoSolver()
+    return pypardiso.PyPardisoSolver().libmkl
+
+
+@functools.cache
+def _mkl_pardiso() -> Callable[..., None]:
+    """MKL's `pardiso` entry point (`_mkl_library`), its PARDISO domain set to one thread unless
+    MKL_NUM_THREADS or MKL_DOMAIN_NUM_THREADS say otherwise (see `_Pardiso`)."""
+    library = _mkl_library()
     if "MKL_NUM_THREADS" not in os.environ and "MKL_DOMAIN_NUM_THREADS" not in os.environ:
-        solver.libmkl.MKL_Domain_Set_Num_Threads(ctypes.c_int(1), ctypes.c_int(_MKL_DOMAIN_PARDISO))
-    return solver._mkl_pardiso
+        library.MKL_Domain_Set_Num_Threads(ctypes.c_int(1), ctypes.c_int(_MKL_DOMAIN_PARDISO))
+    pardiso = library.pardiso
+    pardiso.restype = None
+    return pardiso
 
 
 class SymmetricSolver:

@@ -145,6 +145,14 @@ def test_a_fit_that_does_not_generalise_is_not_named_and_its_bound_is_said() -> 
     assert shown["candidates"][0]["at_bound"] == ["zx"] and shown["noise_rms_threshold"] == 1.02
 
 
+def test_the_json_takes_numpy_scalars_as_the_analysis_leaves_them() -> None:
+    # the noise test's verdict is a numpy.bool_ and the fits' numbers numpy floats; json refuses the former
+    judged = _candidate("ft_gain", np.float64(400.0), np.float64(1.0), np.float64(np.nan), np.bool_(True))
+    shown = json.loads(Diagnosis(np.float64(1.5), {}, [judged], "ft_gain", "", [], 1.02).to_json())
+    assert shown["candidates"][0]["heldout_is_noise"] is True
+    assert shown["candidates"][0]["evidence"] == 400.0 and shown["candidates"][0]["heldout_rms"] is None
+
+
 def test_the_effect_whose_held_out_residual_is_noise_is_named_even_behind_in_evidence() -> None:
     flexible = _candidate("ft_crosstalk", 900.0, 1.1, 1.5, False)
     right = _candidate("ft_calibration", 850.0, 1.0, 1.01, True)

@@ -89,7 +89,10 @@ class Diagnosis:
 
 
 def strict_json(value: object) -> object:
-    """`value` (nested dicts, lists, numbers) with every NaN or infinite float replaced by None."""
+    """`value` (nested dicts, lists, numbers) with every NaN or infinite float replaced by None and numpy
+    scalars (numpy.bool_ included) as Python ones."""
+    if isinstance(value, np.generic):
+        return strict_json(value.item())
     if isinstance(value, dict):
         return {k: strict_json(v) for k, v in value.items()}
     if isinstance(value, list | tuple):
