@@ -61,6 +61,22 @@ def shank_post(kind: int, dims: tuple[float, float, float, float]) -> tuple[floa
     return (min(SHANK_RADIUS, dims[0]) if capped else SHANK_RADIUS), base
 
 
+def head_extent(kind: int, dims: tuple[float, float, float, float]) -> tuple[float, float]:
+    """(radius, height) in m of indenter ``kind``'s pressing head, indenter frame: the largest distance of a
+    head point from the z axis and the head's z extent above the tip (the texture's up to the top of its
+    2 mm plate, face at rb); (0, 0) for an unknown kind. One rule for ``Indenter.head_height`` and the
+    sweep's ball about the tip (`fe.indenter_sdf.head_radius`)."""
+    a, b, c, e = dims
+    return {
+        KIND_SPHERE: (a, 2.0 * a),
+        KIND_CYLINDER_FLAT: (a, b),
+        KIND_CYLINDER_SIDE: (max(0.5 * b, a), 2.0 * a),
+        KIND_BOX: (float(np.hypot(a, b)), c),
+        KIND_TORUS: (b, c),
+        KIND_TEXTURE: (float(np.sqrt(2.0)) * e, a + 2.0e-3),
+    }.get(kind, (0.0, 0.0))
+
+
 def _safe_unit(v: np.ndarray, fallback: np.ndarray) -> np.ndarray:
     """Normalise the rows of ``v`` (N, k); rows of zero length become ``fallback`` (k,)."""
     n = np.linalg.norm(v, axis=1, keepdims=True)
@@ -281,16 +297,8 @@ class Indenter:
         return _sdf_and_grad(self.kind, self.dims, np.atleast_2d(np.asarray(points, dtype=float)))[1]
 
     def head_height(self) -> float:
-        """Height (z extent) of the analytic head above the tip, m."""
-        a, b, c, _ = self.dims
-        return {
-            KIND_SPHERE: 2.0 * a,
-            KIND_CYLINDER_FLAT: b,
-            KIND_CYLINDER_SIDE: 2.0 * a,
-            KIND_BOX: c,
-            KIND_TORUS: c,
-            KIND_TEXTURE: a + 2.0e-3,
-        }[self.kind]
+        """Height (z extent) of the analytic head above the tip, m (`head_extent`)."""
+        return head_extent(self.kind, self.dims)[1]
 
     def _solid_sdf(self, p: np.ndarray) -> np.ndarray:
         """SDF-like field of the closed solid (head, closed back, shank) used only for meshing."""

@@ -33,6 +33,7 @@ from assets.indenters import (
     SHANK_RADIUS,
     TEXTURE_FILLET,
     TEXTURE_RIM,
+    head_extent,
 )
 
 _KS = wp.constant(KIND_SPHERE)
@@ -267,16 +268,6 @@ def indenter_sdf_grad(kind: int, dims: wp.vec4d, p: wp.vec3d) -> wp.vec3d:  # no
 
 
 def head_radius(kind: int, dims: tuple[float, float, float, float]) -> float:
-    """Radius (m) of a ball about the tip holding indenter ``kind``'s pressing head (``dims`` of
-    `assets.indenters.Indenter`): a rotation by theta about the tip moves no head point more than
-    theta times it."""
-    a, b, c, e = dims
-    width, height = {
-        KIND_SPHERE: (a, 2.0 * a),
-        KIND_CYLINDER_FLAT: (a, b),
-        KIND_CYLINDER_SIDE: (max(0.5 * b, a), 2.0 * a),
-        KIND_BOX: (float(np.hypot(a, b)), c),
-        KIND_TORUS: (b, c),
-        KIND_TEXTURE: (float(np.sqrt(2.0)) * e, b + 2.0e-3),
-    }.get(kind, (0.0, 0.0))
-    return float(np.hypot(width, height))
+    """Radius (m) of a ball about the tip holding indenter ``kind``'s pressing head (`assets.indenters.
+    head_extent` of ``dims``): a rotation by theta about the tip moves no head point more than theta times it."""
+    return float(np.hypot(*head_extent(kind, dims)))
