@@ -602,11 +602,9 @@ class BatchedShell:
         `parts` (T_core,) per edge) where below `floor` (B,) m, a lower bound at least `floor` elsewhere;
         +inf for the other systems."""
         clearance = wp.full(self.batch, np.inf, dtype=wp.float64, device=self.device)
-        values = {**self.pose, "kind": self._kind, "dims": self._dims, "parts": parts, "clearance": clearance}
+        values = {"parts": parts, "clearance": clearance, "floor": self._per_system("floor", floor)}
         values |= {"core_vertices": self._core_vertices, "core_triangles": self._core_triangles}
-        values["floor"] = wp.array(np.asarray(floor, dtype=np.float64), dtype=wp.float64, device=self.device)
-        values["active"] = wp.array(np.asarray(which, dtype=np.int32), dtype=wp.int32, device=self.device)
-        launch(contact.indenter_clearance_kernel, (self.batch, len(parts)), values, self.device)
+        self._launch_indenters(contact.indenter_clearance_kernel, values | {"active": self._flags(which)}, len(parts))
         return clearance.numpy()
 
     def indenter_skin_clearance(
@@ -618,23 +616,20 @@ class BatchedShell:
         (`fe.contact.indenter_skin_clearance_kernel`), a lower bound at least `floor` elsewhere; +inf for the
         other systems."""
         clearance = wp.full((self.batch, self.n_triangles), np.inf, dtype=wp.float64, device=self.device)
-        arr = lambda a, dtype: wp.array(np.asarray(a, dtype=dtype), device=self.device)  # noqa: E731
-        values = {**self.pose, "kind": self._kind, "dims": self._dims, "clearance": clearance, "x": x}
-        values |= {"triangles": self._static["triangles"], "spacing": arr(spacing, np.float64)}
-        values |= {"floor": arr(floor, np.float64), "active": arr(which, np.int32)}
-        launch(contact.indenter_skin_clearance_kernel, (self.batch, self.n_triangles), values, self.device)
+        values = {"clearance": clearance, "x": x, "triangles": self._static["triangles"]}
+        values |= {"spacing": self._per_system("spacing", spacing), "floor": self._per_system("floor", floor)}
+        self._launch_faces(contact.indenter_skin_clearance_kernel, values | {"active": self._flags(which)})
         return clearance.numpy()
 
-    def _launch_indenters(self, kernel: wp.Kernel, values: dict) -> None:
-        """One launch of an indenter kernel for every system and skin vertex, each system with its own
-        indenter shape and pose."""
+    def _launch_indenters(self, kernel: wp.Kernel, values: dict, count: int | None = None) -> None:
+        """One launch of an indenter kernel for every system and each of `count` items (default the skin's
+        vertices), each system with its own indenter shape and pose."""
         values = {**values, **self.pose, "kind": self._kind, "dims": self._dims}
-        launch(kernel, (self.batch, self.n_vertices), values, self.device)
+        launch(kernel, (self.batch, self.n_vertices if count is None else count), values, self.device)
 
     def _launch_faces(self, kernel: wp.Kernel, values: dict) -> None:
         """`_launch_indenters` over the skin's triangles instead of its vertices."""
-        values = {**values, **self.pose, "kind": self._kind, "dims": self._dims}
-        launch(kernel, (self.batch, self.n_triangles), values, self.device)
+        self._launch_indenters(kernel, values, self.n_triangles)
 
     # -- Newton ------------------------------------------------------------------------------------
     def lag_contact(self, x: wp.array, mask: np.ndarray) -> np.ndarray:

@@ -242,13 +242,22 @@ def _sdf_curvature_world(
 
 @wp.func
 def _triangle_bound(
-    kind: int, dims: wp.vec4d, rotation: wp.mat33d, translation: wp.vec3d, p0: wp.vec3d, p1: wp.vec3d, p2: wp.vec3d
+    kind: int,
+    dims: wp.vec4d,
+    rotation: wp.mat33d,
+    translation: wp.vec3d,
+    offset: wp.float64,
+    p0: wp.vec3d,
+    p1: wp.vec3d,
+    p2: wp.vec3d,
 ) -> wp.float64:
-    """A lower bound (m) of the indenter SDF over triangle p0 p1 p2: its value at the centroid minus the
-    centroid's distance to the farthest corner (the SDF is 1-Lipschitz)."""
+    """A lower bound (m) of the indenter SDF minus `offset` (m; the half-layer for a gap, 0 for the SDF itself)
+    over triangle p0 p1 p2: its value at the centroid minus the centroid's distance to the farthest corner
+    (the SDF is 1-Lipschitz). Where positive for the half-layer, no quadrature point of the triangle is in
+    contact."""
     centre = (p0 + p1 + p2) / wp.float64(3.0)
     spread = wp.max(wp.length(p0 - centre), wp.max(wp.length(p1 - centre), wp.length(p2 - centre)))
-    return _body_world(kind, dims, rotation, translation, centre)[0] - spread
+    return _body_world(kind, dims, rotation, translation, centre)[0] - spread - offset
 
 
 @wp.func
@@ -302,7 +311,7 @@ def indenter_surface_kernel(
     h = offset[b]
     zero = wp.float64(0.0)
     face_energy[b, f] = zero
-    bound = _face_gap_bound(shape, size, R, t, h, p0, p1, p2)
+    bound = _triangle_bound(shape, size, R, t, h, p0, p1, p2)
     if bound > zero:
         face_gap[b, f] = bound
         return
@@ -347,46 +356,6 @@ def indenter_surface_kernel(
         wp.atomic_sub(vertex_force, b, tri[2], g2)
 
 
-@wp.func
-def _face_gap_bound(
-    kind: int,
-    dims: wp.vec4d,
-    rotation: wp.mat33d,
-    translation: wp.vec3d,
-    offset: wp.float64,
-    p0: wp.vec3d,
-    p1: wp.vec3d,
-    p2: wp.vec3d,
-) -> wp.float64:
-    """A lower bound (m) of the gap over triangle p0 p1 p2 (`_triangle_bound` minus the half-layer `offset`):
-    where positive, no quadrature point of the triangle is in contact."""
-    return _triangle_bound(kind, dims, rotation, translation, p0, p1, p2) - offset
-
-
-@wp.func
-def indenter_face_gap(
-    kind: int,
-    dims: wp.vec4d,
-    rotation: wp.mat33d,
-    translation: wp.vec3d,
-    offset: wp.float64,
-    p0: wp.vec3d,
-    p1: wp.vec3d,
-    p2: wp.vec3d,
-    quadrature: wp.array(dtype=wp.vec4d),
-) -> wp.float64:
-    """The smallest gap (m) over the quadrature points of triangle p0 p1 p2 to the indenter at pose
-    (rotation, tip), as `indenter_surface_kernel` reports it: `_face_gap_bound` where that is positive."""
-    bound = _face_gap_bound(kind, dims, rotation, translation, offset, p0, p1, p2)
-    if bound > wp.float64(0.0):
-        return bound
-    least = wp.float64(1.0e30)
-    for k in range(quadrature.shape[0]):
-        p = _at(p0, p1, p2, quadrature[k])
-        least = wp.min(least, indenter_gap_and_normal(kind, dims, rotation, translation, offset, p)[0])
-    return least
-
-
 @wp.kernel
 def indenter_face_gap_kernel(
     x: wp.array2d(dtype=wp.vec3d),
@@ -399,12 +368,21 @@ def indenter_face_gap_kernel(
     offset: wp.array(dtype=wp.float64),
     face_gap: wp.array2d(dtype=wp.float64),
 ):
-    """face_gap[b, f] (m): `indenter_face_gap` of skin triangle f to the indenter of batch b."""
+    """face_gap[b, f] (m): the smallest gap over the quadrature points of skin triangle f to the indenter of
+    batch b, as `indenter_surface_kernel` reports it: `_triangle_bound` where that is positive."""
     b, f = wp.tid()
     tri = triangles[f]
-    face_gap[b, f] = indenter_face_gap(
-        kind[b], dims[b], rotation[b], translation[b], offset[b], x[b, tri[0]], x[b, tri[1]], x[b, tri[2]], quadrature
-    )
+    p0 = x[b, tri[0]]
+    p1 = x[b, tri[1]]
+    p2 = x[b, tri[2]]
+    least = _triangle_bound(kind[b], dims[b], rotation[b], translation[b], offset[b], p0, p1, p2)
+    if least <= wp.float64(0.0):
+        least = wp.float64(1.0e30)
+        for k in range(quadrature.shape[0]):
+            p = _at(p0, p1, p2, quadrature[k])
+            gap = indenter_gap_and_normal(kind[b], dims[b], rotation[b], translation[b], offset[b], p)[0]
+            least = wp.min(least, gap)
+    face_gap[b, f] = least
 
 
 @wp.kernel
@@ -424,7 +402,7 @@ def indenter_face_sweep_kernel(
     """face_moved[b, f] (m): the largest change of a quadrature point's gap (`indenter_gap_and_normal`) on
     skin triangle f, fixed at x[b], as the indenter of batch b moves from pose (rotation_start,
     translation_start) to (rotation, translation), among the points in contact at either pose (0 where the
-    triangle clears the layer at both, `_face_gap_bound`)."""
+    triangle clears the layer at both, `_triangle_bound`)."""
     b, f = wp.tid()
     tri = triangles[f]
     p0 = x[b, tri[0]]
@@ -439,8 +417,8 @@ def indenter_face_sweep_kernel(
     t0 = translation_start[b]
     zero = wp.float64(0.0)
     face_moved[b, f] = zero
-    if _face_gap_bound(shape, size, R, t, h, p0, p1, p2) > zero:
-        if _face_gap_bound(shape, size, R0, t0, h, p0, p1, p2) > zero:
+    if _triangle_bound(shape, size, R, t, h, p0, p1, p2) > zero:
+        if _triangle_bound(shape, size, R0, t0, h, p0, p1, p2) > zero:
             return
     largest = zero
     for k in range(quadrature.shape[0]):
@@ -581,7 +559,7 @@ def _triangle_clearance(
 ) -> wp.float64:
     """`_triangle_bound` where that is at least `floor` (m); else the smallest indenter SDF over the nodes
     of the triangle's regular subdivision into parts^2 pieces."""
-    bound = _triangle_bound(kind, dims, rotation, translation, p0, p1, p2)
+    bound = _triangle_bound(kind, dims, rotation, translation, wp.float64(0.0), p0, p1, p2)
     if bound >= floor:
         return bound
     least = wp.float64(1.0e30)
@@ -610,7 +588,7 @@ def _split_clearance(
     """The indenter SDF's minimum (m) over triangle (p0, p0 + e1, p0 + e2) to the sampling of
     `_triangle_clearance` with nodes `parts` to an edge where below `floor` (m): the whole triangle's bound
     where that is at least `floor`, else its 8^2 (at most) similar pieces each bounded or sampled."""
-    whole = _triangle_bound(kind, dims, rotation, tip, p0, p0 + e1, p0 + e2)
+    whole = _triangle_bound(kind, dims, rotation, tip, wp.float64(0.0), p0, p0 + e1, p0 + e2)
     if whole >= floor:
         return whole
     k = wp.min(parts, _SPLIT)
