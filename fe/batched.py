@@ -394,7 +394,6 @@ class BatchedShell:
         self._scratch: dict[str, wp.array] = {}
         self._candidate = z((B, V), wp.float64)
         self._candidate_normal = z((B, V), wp.vec3d)
-        self._all = wp.array(np.ones(B, dtype=np.int32), dtype=wp.int32, device=device)
         self.pose = {name: z(B, wp.mat33d if "rotation" in name else wp.vec3d) for name in _POSE}
         far = np.tile([0.0, 0.0, 1.0], (B, 1))  # 1 m away: no contact until a pose is set
         self.set_poses(np.tile(np.eye(3), (B, 1, 1)), far, np.tile(np.eye(3), (B, 1, 1)), far)
@@ -785,7 +784,7 @@ class BatchedShell:
         if stepping.any():
             eta = self._forcing(state, lin)
             damping = np.where(stepping, _DAMPING[np.minimum(state.attempt, len(_DAMPING) - 1)], 0.0)
-            dp, ok = self._direction(lin, state.pressure, c, stepping, damping, eta)
+            dp, ok = self._direction(state.pressure, c, stepping, damping, eta)
             curvature = self._curvature(stepping)
             ok &= (curvature > 0.0) | ((state.attempt > 0) & (c != 0.0))
             self._start_search(state, lin, c, dp, curvature, stepping & ok)
@@ -861,7 +860,6 @@ class BatchedShell:
 
     def _direction(
         self,
-        lin: BatchLinearization,
         pressure: np.ndarray,
         c: np.ndarray,
         mask: np.ndarray,

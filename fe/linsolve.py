@@ -52,7 +52,6 @@ class _PardisoFactor:
     def __init__(self, pardiso: ctypes.CDLL, indptr: np.ndarray, indices: np.ndarray, single: bool) -> None:
         self._pardiso = pardiso
         self._dtype = np.float32 if single else np.float64
-        self._pointer = ctypes.POINTER(ctypes.c_float if single else ctypes.c_double)
         self._n = len(indptr) - 1
         self._indptr, self._indices = indptr.astype(np.int32), indices.astype(np.int32)
         self._data = np.zeros(len(indices), dtype=self._dtype)
@@ -66,7 +65,8 @@ class _PardisoFactor:
         self._iparm[27] = 1 if single else 0
         self._iparm[34] = 1  # zero-based indices
         self._call(11, np.zeros((self._n, 1)))
-        weakref.finalize(self, _release_pardiso, pardiso, self._handle, self._iparm)
+        release = (-1, np.zeros(1, dtype=self._dtype), self._indptr, self._indices, np.zeros((1, 1)))
+        weakref.finalize(self, _pardiso_phase, pardiso, self._handle, self._iparm, *release)
 
     def factorize(self, data: np.ndarray) -> None:
         """Numeric factorisation of the upper-triangle values `data` (in the analysed pattern)."""
@@ -78,31 +78,9 @@ class _PardisoFactor:
         return self._call(33, rhs).astype(np.float64)
 
     def _call(self, phase: int, rhs: np.ndarray) -> np.ndarray:
-        columns = np.asfortranarray(rhs, dtype=self._dtype)
-        out = np.zeros_like(columns)
-        int_p = ctypes.POINTER(ctypes.c_int32)
-        error = ctypes.c_int32(0)
-        self._pardiso(
-            self._handle.ctypes.data_as(ctypes.POINTER(ctypes.c_int64)),
-            ctypes.byref(ctypes.c_int32(1)),  # maxfct
-            ctypes.byref(ctypes.c_int32(1)),  # mnum
-            ctypes.byref(ctypes.c_int32(-2)),  # real symmetric indefinite
-            ctypes.byref(ctypes.c_int32(phase)),
-            ctypes.byref(ctypes.c_int32(self._n)),
-            self._data.ctypes.data_as(self._pointer),
-            self._indptr.ctypes.data_as(int_p),
-            self._indices.ctypes.data_as(int_p),
-            None,  # perm
-            ctypes.byref(ctypes.c_int32(columns.shape[1])),
-            self._iparm.ctypes.data_as(int_p),
-            ctypes.byref(ctypes.c_int32(0)),  # msglvl
-            columns.ctypes.data_as(self._pointer),
-            out.ctypes.data_as(self._pointer),
-            ctypes.byref(error),
+        return _pardiso_phase(
+            self._pardiso, self._handle, self._iparm, phase, self._data, self._indptr, self._indices, rhs
         )
-        if error.value != 0:
-            raise SingularMatrixError(f"PARDISO phase {phase} failed with error {error.value}")
-        return out
 
 
 class _Pardiso:
@@ -175,25 +153,46 @@ class _Pardiso:
         return self._double.solve(columns).reshape(rhs.shape)
 
 
-def _release_pardiso(pardiso: ctypes.CDLL, handle: np.ndarray, iparm: np.ndarray) -> None:
-    """Free the memory PARDISO holds for `handle` (phase -1)."""
+def _pardiso_phase(
+    pardiso: ctypes.CDLL,
+    handle: np.ndarray,
+    iparm: np.ndarray,
+    phase: int,
+    data: np.ndarray,
+    indptr: np.ndarray,
+    indices: np.ndarray,
+    rhs: np.ndarray,
+) -> np.ndarray:
+    """One PARDISO call for `handle` (real symmetric indefinite, one matrix, quiet): `phase` on the matrix
+    of upper-triangle CSR (`data` in the factor's precision, int32 `indptr`, `indices`) with right-hand
+    sides `rhs` (n, k); returns the solutions (n, k) in `data`'s precision (phase -1 frees the handle's
+    memory, whatever the matrix)."""
+    pointer = ctypes.POINTER(ctypes.c_float if data.dtype == np.float32 else ctypes.c_double)
+    columns = np.asfortranarray(rhs, dtype=data.dtype)
+    out = np.zeros_like(columns)
     int_p = ctypes.POINTER(ctypes.c_int32)
-    one, zero, phase, mtype = ctypes.c_int32(1), ctypes.c_int32(0), ctypes.c_int32(-1), ctypes.c_int32(-2)
-    dummy = np.zeros(1)
+    error = ctypes.c_int32(0)
     pardiso(
         handle.ctypes.data_as(ctypes.POINTER(ctypes.c_int64)),
-        *(ctypes.byref(v) for v in (one, one, mtype, phase, zero)),
-        dummy.ctypes.data_as(ctypes.POINTER(ctypes.c_double)),
-        None,
-        None,
-        None,
-        ctypes.byref(one),
+        ctypes.byref(ctypes.c_int32(1)),  # maxfct
+        ctypes.byref(ctypes.c_int32(1)),  # mnum
+        ctypes.byref(ctypes.c_int32(-2)),  # real symmetric indefinite
+        ctypes.byref(ctypes.c_int32(phase)),
+        ctypes.byref(ctypes.c_int32(len(indptr) - 1)),
+        data.ctypes.data_as(pointer),
+        indptr.ctypes.data_as(int_p),
+        indices.ctypes.data_as(int_p),
+        None,  # perm
+        ctypes.byref(ctypes.c_int32(columns.shape[1])),
         iparm.ctypes.data_as(int_p),
-        ctypes.byref(zero),
-        dummy.ctypes.data_as(ctypes.POINTER(ctypes.c_double)),
-        dummy.ctypes.data_as(ctypes.POINTER(ctypes.c_double)),
-        ctypes.byref(ctypes.c_int32(0)),
+        ctypes.byref(ctypes.c_int32(0)),  # msglvl
+        columns.ctypes.data_as(pointer),
+        out.ctypes.data_as(pointer),
+        ctypes.byref(error),
     )
+    if error.value != 0:
+        raise SingularMatrixError(f"PARDISO phase {phase} failed with error {error.value}")
+    return out
 
 
 _MKL_DOMAIN_PARDISO = 4

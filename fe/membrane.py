@@ -14,7 +14,6 @@ from fe.wptypes import mat32d, mat99d
 
 wp.set_module_options({"enable_backward": False})  # no adjoint kernels: nothing differentiates them
 
-_ZERO = wp.float64(0.0)
 
 
 @wp.func
