@@ -302,6 +302,11 @@ def _cg_direction(
     p[c, v] = z[c, v] + beta[c] * p[c, v]
 
 
+HessianTerms = list[tuple[int, wp.array, np.ndarray | None]]
+"""Element Hessians to assemble: per term its element family (index into `BlockPattern.block_of`), the (B, E_f)
+matrices of that family and a per-system scale (B,) or None (1)."""
+
+
 @dataclass
 class BlockPattern:
     """3x3-block CSR pattern over `n_nodes` nodes, shared by a batch; `block_of[f]` (E_f, k_f^2) is the
@@ -360,12 +365,7 @@ class BatchedBlockMatrix:
         self.preconditioner = wp.zeros((batch, pattern.n_nodes), dtype=wp.mat33d, device=device)
         self._ones = arr(np.ones(batch), wp.float64)
 
-    def assemble(
-        self,
-        terms: list[tuple[int, wp.array, np.ndarray | None]],
-        shift: np.ndarray,
-        active: np.ndarray | None = None,
-    ) -> None:
+    def assemble(self, terms: HessianTerms, shift: np.ndarray, active: np.ndarray | None = None) -> None:
         """Sum element Hessians, each term (family index, (B, E_f) matrices, per-system scale (B,) or None),
         eliminate fixed DOFs, add the relative damping `shift` (B,) to the diagonal, and refresh the
         block-Jacobi preconditioner, for the `active` systems ((B,) bool; all by default; the others' matrices
@@ -433,9 +433,7 @@ class BatchedCG:
         self._max_iterations = -1
         self._graph = None
 
-    def assemble(
-        self, terms: list[tuple[int, wp.array, np.ndarray | None]], shift: np.ndarray, active: np.ndarray | None = None
-    ) -> None:
+    def assemble(self, terms: HessianTerms, shift: np.ndarray, active: np.ndarray | None = None) -> None:
         """`BatchedBlockMatrix.assemble` of the solver's matrix."""
         self.matrix.assemble(terms, shift, active)
 

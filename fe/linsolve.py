@@ -21,7 +21,7 @@ import scipy.sparse as sp
 import scipy.sparse.linalg as spla
 import warp as wp
 
-from fe.device_solver import CG_CONVERGED, CG_NEGATIVE_CURVATURE, BlockPattern
+from fe.device_solver import CG_CONVERGED, CG_NEGATIVE_CURVATURE, BlockPattern, HessianTerms
 
 
 class SingularMatrixError(RuntimeError):
@@ -316,9 +316,7 @@ class BatchedDirectSolver:
         self.x = None
         """(C, V) vec3d solutions of the last solve (a warp array on the matrix's device, owned here)."""
 
-    def assemble(
-        self, terms: list[tuple[int, wp.array, np.ndarray | None]], shift: np.ndarray, active: np.ndarray | None = None
-    ) -> None:
+    def assemble(self, terms: HessianTerms, shift: np.ndarray, active: np.ndarray | None = None) -> None:
         """`fe.device_solver.BatchedBlockMatrix.assemble`: sum the element Hessians of each term (family, (B, E_f)
         matrices, per-system scale or None) over the free DOFs and add the relative damping `shift` (B,)
         (shift x the node's unconstrained diagonal-block trace / 3) to the free diagonal, for the `active`

@@ -15,7 +15,6 @@ from fe.wptypes import mat32d, mat99d
 wp.set_module_options({"enable_backward": False})  # no adjoint kernels: nothing differentiates them
 
 
-
 @wp.func
 def edge_gradient(a: int, dm_inv: wp.mat22d) -> wp.vec2d:
     """Row a of dF/dx for node a of the triangle: F = sum_a x_a (x) g_a."""

@@ -96,9 +96,6 @@ class BioTacModel:
             return half
         return self._solve_volume(volume, middle, splits - 1)
 
-    def _inflated_thickness(self) -> float:
-        return self.thickness(self._inflation.x[0])
-
     def inflate(self, target_thickness: float | None = SENSOR_THICKNESS, volume_step: float = 0.02) -> InflationResult:
         """Inflate to `target_thickness` (m), or by the thermal rule when it is None; the added fluid volume is
         then scaled by `SkinParameters.inflation_volume_scale` (the fill / pretension knob).
@@ -114,15 +111,15 @@ class BioTacModel:
                 raise ValueError("thermal inflation needs a geometry with a positive cavity_volume_reference")
             dv_total = beta_v * (self.params.fluid_temperature - self.params.reference_temperature)
             return self._fill(v, v + self.params.inflation_volume_scale * dv_total, volume_step)
-        if target_thickness <= self._inflated_thickness():
+        if target_thickness <= self.thickness(self._inflation.x[0]):
             raise ValueError(f"target thickness {target_thickness * 1e3:.2f} mm is below the unpressurised one")
-        lo_v, lo_t = v, self._inflated_thickness()
+        lo_v, lo_t = v, self.thickness(self._inflation.x[0])
         for _ in range(200):
             hi_v = lo_v + volume_step * abs(self._volume0)
             converged, message = self._solve_volume(hi_v, lo_v)
             if not converged:
                 return self._finish(lo_v, False, f"inflation stalled: {message}")
-            hi_t = self._inflated_thickness()
+            hi_t = self.thickness(self._inflation.x[0])
             if hi_t >= target_thickness:
                 break
             lo_v, lo_t = hi_v, hi_t
@@ -135,7 +132,7 @@ class BioTacModel:
             if not converged:
                 return self._finish(state_v, False, f"inflation refinement failed: {message}")
             state_v = v
-            t_now = self._inflated_thickness()
+            t_now = self.thickness(self._inflation.x[0])
             if abs(t_now - target_thickness) < 1e-6:
                 break
             if t_now < target_thickness:

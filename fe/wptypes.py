@@ -51,7 +51,6 @@ if not _cuda_driver_loadable():
     _init_without_driver_warning()
 
 
-
 def host_device() -> str:
     """The warp device for a model's own solves (inflation): "cpu" where warp can compile CPU kernels, else
     the default CUDA device (a GPU machine whose warp ships without its CPU compiler)."""
