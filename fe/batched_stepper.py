@@ -21,7 +21,6 @@ import time
 from collections.abc import Sequence
 
 import numpy as np
-import scipy.sparse as sp
 import warp as wp
 from scipy.spatial.transform import Rotation, Slerp
 
@@ -29,6 +28,7 @@ from assets.indenters import Indenter, get_indenter
 from fe.batched import BatchedShell, InflatedSkin, NewtonBatch, get_rows, put_rows
 from fe.indenter_sdf import head_radius
 from fe.results import IncrementResult
+from fe.shell import lumped_areas
 from fe.viscoelastic import SkinRelaxation
 
 MAX_CUTS = 3
@@ -146,10 +146,7 @@ class BatchedStepper:
         self.shell = BatchedShell(skin, [(s.kind, s.dims) for s in shapes], device, forcing=forcing, linear=linear)
         self.skins, self.skin = self.shell.skins, self.shell.skin
         skin = self.skin
-        B, V, T = self.batch, len(skin.vertices), len(skin.triangles)
-        rows = skin.triangles.ravel()
-        # (V, T) incidence / 3: lumped vertex areas of a deformed mesh in one product.
-        self._lump = sp.csr_matrix((np.full(3 * T, 1.0 / 3.0), (rows, np.repeat(np.arange(T), 3))), shape=(V, T))
+        B, V = self.batch, len(skin.vertices)
         self.reference = np.stack([s.reference for s in self.skins]).astype(np.float64)
         """(B,V,3) starting (inflated) positions (m) of each system."""
         self.reference_pressure = np.array([s.pressure for s in self.skins], dtype=np.float64)
@@ -595,8 +592,7 @@ class BatchedStepper:
         """System i's finished increment: contact area and radius from its final positions x (V,3) m and
         indenter gaps (V,) m."""
         state, in_contact = self.newton, gap < 0.0
-        p0, p1, p2 = (x[self.skin.triangles[:, k]] for k in range(3))
-        vertex_area = self._lump @ (0.5 * np.linalg.norm(np.cross(p1 - p0, p2 - p0), axis=1))
+        vertex_area = lumped_areas(x, self.skin.triangles)
         axis = self.pose_rotation[i, :, 2]
         rel = x - self.pose_translation[i]
         radial = rel - np.outer(rel @ axis, axis)

@@ -36,6 +36,7 @@ import numpy as np
 from scipy import sparse
 
 from assets.biotac import BioTacGeometry, Electrodes, electrode_table
+from fe.shell import lumped_areas
 
 N_ELECTRODES = 19
 ADC_MAX = 4095.0
@@ -126,13 +127,6 @@ class ElectrodeParameters:
         return out
 
 
-def _vertex_areas(vertices: np.ndarray, triangles: np.ndarray) -> np.ndarray:
-    """(V,) lumped vertex areas (m^2): a third of each adjacent triangle's area."""
-    p = vertices[triangles]
-    area = 0.5 * np.linalg.norm(np.cross(p[:, 1] - p[:, 0], p[:, 2] - p[:, 0]), axis=1)
-    return np.bincount(triangles.ravel(), weights=np.repeat(area / 3.0, 3), minlength=len(vertices))
-
-
 class ElectrodeModel:
     """The 19 electrodes of one sensor, reading a deformed skin mesh.
 
@@ -206,7 +200,7 @@ class ElectrodeModel:
         self._normals = electrodes.normals
         self._patches = self._select_patches()
         self._index_patches()
-        self._areas = _vertex_areas(self.reference, self._triangles)
+        self._areas = lumped_areas(self.reference, self._triangles)
         self._rest_impedance = self.impedance(self.reference)
         if not np.all(np.isfinite(self._rest_impedance)):
             raise ValueError("an electrode sees no skin at the reference state (check the geometry/reference)")

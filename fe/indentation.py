@@ -83,12 +83,9 @@ class IndentationStepper:
 
     def step(self, rotation: np.ndarray, translation: np.ndarray, time_s: float | None = None) -> IncrementResult:
         """Move the indenter to the pose (rotation (3,3) body->sensor, tip position (3,) m) at time `time_s`
-        (s, any clock, non-decreasing between steps; None: no time passes) and re-solve."""
-        if self.failure is not None:
-            raise RuntimeError(f"the last step did not converge ({self.failure}); call reset() before stepping again")
+        (s, any clock, non-decreasing between steps; None: no time passes) and re-solve. The engine's
+        `fe.batched_stepper.BatchedStepper.admit` refuses a bad pose and a step after a failed one (`reset`)."""
         rotation, translation = np.asarray(rotation, dtype=np.float64), np.asarray(translation, dtype=np.float64)
-        if rotation.shape != (3, 3) or translation.shape != (3,):
-            raise ValueError("an indenter pose is a rotation (3,3) and a translation (3,)")
         # A failed step (not converged, or inadmissible) is cut back as `fe.batched_runner.run_trajectories` does.
         target, plan = (rotation, translation, time_s), CutBack(self.max_cuts)
         while True:
