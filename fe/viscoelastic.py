@@ -79,9 +79,10 @@ def frozen_stress_kernel(
         hessian[b, t] = H
 
 
-def step_factors(fractions: np.ndarray, times: np.ndarray, dt: float) -> tuple[np.ndarray, np.ndarray]:
-    """Per branch: decay exp(-dt / tau_i) and weight g_i gamma_i of the elastic stress change over dt (s)."""
-    if dt < 0:
+def step_factors(fractions: np.ndarray, times: np.ndarray, dt: float | np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Per branch: decay exp(-dt / tau_i) and weight g_i gamma_i of the elastic stress change over dt (s; one
+    for every branch, or one per branch)."""
+    if np.any(np.asarray(dt) < 0):
         raise ValueError(f"time step {dt} s must be non-negative")
     x = dt / times
     with np.errstate(divide="ignore", invalid="ignore"):
@@ -116,13 +117,6 @@ class SkinRelaxation:
         self.bending_elastic = np.zeros((shell.batch, n_bend, 3))
         """Dihedral-angle changes (B,n_bending,3) rad at the last accepted state."""
 
-    def _factors(self, rows: np.ndarray, dt: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        decay, weight = np.ones(len(rows)), np.zeros(len(rows))
-        for k, (i, step) in enumerate(zip(rows, dt, strict=True)):
-            d, w = step_factors(self.fractions[i : i + 1], self.times[i : i + 1], float(step))
-            decay[k], weight[k] = d[0], w[0]
-        return decay, weight
-
     def reset(self, rows: np.ndarray, x: np.ndarray) -> None:
         """Systems `rows` fully relaxed at positions x (k,V,3) m (h = 0), at their long-term moduli."""
         self.membrane[rows], self.bending[rows] = 0.0, 0.0
@@ -140,7 +134,7 @@ class SkinRelaxation:
     def prepare(self, rows: np.ndarray, dt: np.ndarray) -> None:
         """Install the algorithmic moduli of steps of dt (k,) s into systems `rows`: scale c = g_inf + g gamma,
         frozen membrane stress a = decay h - g gamma N_e,old, bending rest angles shifted by -a_bend / c."""
-        decay, weight = self._factors(rows, dt)
+        decay, weight = step_factors(self.fractions[rows], self.times[rows], np.asarray(dt, dtype=float))
         scale = self.long_term[rows] + weight
         d4, w4 = decay[:, None, None, None], weight[:, None, None, None]
         frozen = d4 * self.membrane[rows] - w4 * self.membrane_elastic[rows]
@@ -149,7 +143,7 @@ class SkinRelaxation:
 
     def advance(self, rows: np.ndarray, dt: np.ndarray, x: np.ndarray) -> None:
         """Accept steps of dt (k,) s of systems `rows` that converged at positions x (k,V,3) m."""
-        decay, weight = self._factors(rows, dt)
+        decay, weight = step_factors(self.fractions[rows], self.times[rows], np.asarray(dt, dtype=float))
         for k, i in enumerate(rows):
             stress, angles = self.shell.membrane_stress(x[k], i), self.shell.bending_angle_change(x[k])
             self.membrane[i] = decay[k] * self.membrane[i] + weight[k] * (stress - self.membrane_elastic[i])
