@@ -4,6 +4,8 @@ An effect has named parameters (off value, bounds, typical scale, units), the ch
 whether it acts on the physics (the fe model: skin parameters, the indenter path) or on the
 measurement (the F/T signal chain). The base model has every effect off. The same code puts a hidden
 effect into a plant and an added effect into a model, so what is fitted is what was simulated.
+The effects on the skin are built from the parameter table (`fe.params`: each field's `Knob`); the path
+and F/T effects are declared here.
 
 Values are plain dicts: {effect name: {parameter name: value}}; missing effects or parameters are off.
 """
@@ -117,6 +119,7 @@ SKIN_KNOBS = _skin_knobs()
 
 
 def _skin_effect(name: str, knobs: tuple[tuple[str, Knob], ...]) -> Effect:
+    """The physics effect `name` that moves the knobs' fields."""
     first = knobs[0][1]
     return Effect(
         name,
