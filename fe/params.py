@@ -9,6 +9,35 @@ from typing import Any
 
 
 @dataclass(frozen=True)
+class Knob:
+    """How a candidate effect (twin.effects) moves one skin field: the effect's parameter and its search range.
+
+    `acts="set"`: the effect's value is the field (off value: the field's default, units: the field's);
+    `acts="scale"`: a factor on the nominal field (off value 1, units "1"). An effect over several fields names
+    the same effect, description and channels on each; its parameters follow field order.
+    """
+
+    effect: str
+    parameter: str
+    acts: str
+    search: tuple[float, float]
+    """Bounds (of the value or of the factor) that diagnosis and the nuisance fit search within."""
+    scale: float
+    """Typical magnitude: finite-difference step and optimiser scaling."""
+    description: str
+    channels: tuple[str, ...]
+    hidden: tuple[float, float]
+    """Range of a hidden size (twin.hidden): drawn U(low, high), or off +- U(low, high) with `hidden_both_ways`."""
+    hidden_both_ways: bool = False
+    probe: float | None = None
+    """Value to linearise at while the effect is off, for a parameter that does nothing at its off value."""
+
+    def __post_init__(self) -> None:
+        if self.acts not in ("set", "scale"):
+            raise ValueError(f"{self.effect}.{self.parameter}: acts={self.acts!r} is neither 'set' nor 'scale'")
+
+
+@dataclass(frozen=True)
 class Parameter:
     """What is declared of one skin parameter besides its nominal value (the `SkinParameters` field's default,
     which is also its off value for a physics term that is off by default)."""
@@ -18,13 +47,23 @@ class Parameter:
     """The range `SkinParameters` accepts (None: any value of the field's type)."""
     paper: tuple[float, float] | None = None
     """The paper's SLSQP calibration bounds, for the parameters its calibration fits (twin.analysis.calibrate)."""
+    effect: Knob | None = None
+    """The candidate effect that moves this field, if any."""
 
 
 def _parameter(
-    default: Any, units: str, physical: tuple[float, float] | None, paper: tuple[float, float] | None = None
+    default: Any,
+    units: str,
+    physical: tuple[float, float] | None,
+    paper: tuple[float, float] | None = None,
+    effect: Knob | None = None,
 ) -> Any:
     """A `SkinParameters` field with its `Parameter` declared beside it (in the field's metadata)."""
-    return field(default=default, metadata={"parameter": Parameter(units, physical, paper)})
+    return field(default=default, metadata={"parameter": Parameter(units, physical, paper, effect)})
+
+
+_SKIN_CHANNELS = ("force", "pdc", "electrodes")
+_RELAXATION = "The skin is viscoelastic: one Prony branch relaxes a fraction of its moduli with a time constant."
 
 
 @dataclass(frozen=True)
@@ -32,11 +71,58 @@ class SkinParameters:
     """Material and loading parameters of the BioTac skin model (SI units, temperatures in C); each field's
     units and ranges are declared with it (`SKIN_PARAMETERS`)."""
 
-    thickness: float = _parameter(1.57e-3, "m", (1e-5, 1e-2), paper=(1e-3, 2e-3))
+    thickness: float = _parameter(
+        1.57e-3,
+        "m",
+        (1e-5, 1e-2),
+        paper=(1e-3, 2e-3),
+        effect=Knob(
+            effect="skin_thickness",
+            parameter="scale",
+            acts="scale",
+            search=(0.6, 1.5),
+            scale=0.05,
+            description="Skin shell thickness differs from the model's (scale factor on t_s).",
+            channels=_SKIN_CHANNELS,
+            hidden=(0.12, 0.25),
+            hidden_both_ways=True,
+        ),
+    )
     """Skin shell thickness t_s (m)."""
-    mu_nh: float = _parameter(2.80e5, "Pa", (1e2, 1e9), paper=(1e5, 1e6))
+    mu_nh: float = _parameter(
+        2.80e5,
+        "Pa",
+        (1e2, 1e9),
+        paper=(1e5, 1e6),
+        effect=Knob(
+            effect="skin_modulus",
+            parameter="scale",
+            acts="scale",
+            search=(0.5, 2.0),
+            scale=0.05,
+            description="Skin shear modulus differs from the model's (scale factor on mu_NH).",
+            channels=_SKIN_CHANNELS,
+            hidden=(0.15, 0.3),
+            hidden_both_ways=True,
+        ),
+    )
     """Neo-Hookean shear modulus mu_NH (Pa)."""
-    friction: float = _parameter(0.186, "1", (0.0, 5.0), paper=(0.1, 1.0))
+    friction: float = _parameter(
+        0.186,
+        "1",
+        (0.0, 5.0),
+        paper=(0.1, 1.0),
+        effect=Knob(
+            effect="indenter_friction",
+            parameter="scale",
+            acts="scale",
+            search=(0.0, 5.0),
+            scale=0.25,
+            description="Coulomb friction between indenter and skin differs (scale factor on mu_fr).",
+            channels=("force",),
+            hidden=(2.5, 4.0),
+        ),
+    )
     """Coulomb friction coefficient mu_fr between indenter and skin."""
     fluid_temperature: float = _parameter(29.19, "C", (-20.0, 150.0), paper=(25.0, 35.0))
     """Fluid temperature T_fl (C) of the thermal inflation parametrisation."""
@@ -46,18 +132,92 @@ class SkinParameters:
     """Temperature (C) at which the fluid fills the unpressurised cavity."""
     bending: bool = _parameter(True, "bool", None)
     """Include discrete-shell bending (plate stiffness mu t^3 / 3)."""
-    inflation_volume_scale: float = _parameter(1.0, "1", (0.5, 2.0))
+    inflation_volume_scale: float = _parameter(
+        1.0,
+        "1",
+        (0.5, 2.0),
+        effect=Knob(
+            effect="fill_volume",
+            parameter="scale",
+            acts="scale",
+            search=(0.7, 1.4),
+            scale=0.03,
+            description="The sensor holds more or less fluid than the model (skin pretension; scale on the inflation "
+            "volume).",
+            channels=_SKIN_CHANNELS,
+            hidden=(0.08, 0.15),
+            hidden_both_ways=True,
+        ),
+    )
     """Fill (pretension) knob: the inflated sensor holds this multiple of the fluid volume that inflation adds
     to the unpressurised cavity (to the 15.1 mm thickness, or by the thermal rule); 1 = off."""
-    relaxation_fraction: float = _parameter(0.0, "1", (0.0, 0.95))
+    relaxation_fraction: float = _parameter(
+        0.0,
+        "1",
+        (0.0, 0.95),
+        effect=Knob(
+            effect="skin_relaxation",
+            parameter="fraction",
+            acts="set",
+            search=(0.0, 0.6),
+            scale=0.05,
+            description=_RELAXATION,
+            channels=_SKIN_CHANNELS,
+            hidden=(0.2, 0.4),
+            probe=0.15,
+        ),
+    )
     """Prony fraction g of one quasi-linear-viscoelastic branch of the skin (membrane and bending): moduli
     relax from mu_nh (instantaneous) to (1 - g) mu_nh (long-term) as exp(-t / relaxation_time_s); 0 = off."""
-    relaxation_time_s: float = _parameter(1.0, "s", (1e-3, 1e4))
+    relaxation_time_s: float = _parameter(
+        1.0,
+        "s",
+        (1e-3, 1e4),
+        effect=Knob(
+            effect="skin_relaxation",
+            parameter="time_s",
+            acts="set",
+            search=(0.05, 10.0),
+            scale=0.2,
+            description=_RELAXATION,
+            channels=_SKIN_CHANNELS,
+            hidden=(0.3, 1.0),
+        ),
+    )
     """Relaxation time tau (s) of the Prony branch (used only when relaxation_fraction > 0)."""
-    gent_inverse_jm: float = _parameter(0.0, "1", (0.0, 10.0))
+    gent_inverse_jm: float = _parameter(
+        0.0,
+        "1",
+        (0.0, 10.0),
+        effect=Knob(
+            effect="skin_stiffening",
+            parameter="inverse_jm",
+            acts="set",
+            search=(0.0, 2.0),
+            scale=0.1,
+            description="The skin stiffens with strain beyond Neo-Hookean (Gent, parameter 1/J_m).",
+            channels=_SKIN_CHANNELS,
+            hidden=(0.3, 0.8),
+        ),
+    )
     """Gent strain stiffening 1/J_m (-): energy -(mu t / 2) J_m ln(1 - (I1 - 3) / J_m) per reference area,
     I1 = tr C + 1/det C; the membrane locks at I1 = 3 + J_m. 0 = off (Neo-Hookean)."""
-    air_volume_fraction: float = _parameter(0.0, "1", (0.0, 0.5))
+    air_volume_fraction: float = _parameter(
+        0.0,
+        "1",
+        (0.0, 0.5),
+        effect=Knob(
+            effect="trapped_air",
+            parameter="fraction",
+            acts="set",
+            search=(0.0, 0.5),
+            scale=0.02,
+            description="A gas bubble in the fluid (volume fraction of the cavity) makes the fluid compressible "
+            "(Boyle).",
+            channels=_SKIN_CHANNELS,
+            hidden=(0.2, 0.35),
+        ),
+    )
     """Trapped air: gas volume as a fraction of the fluid cavity volume at the inflated reference state (at the
     absolute pressure p_atm + p_ref), compressed isothermally (Boyle) during indentation; 0 = off."""
 

@@ -31,10 +31,12 @@ CANDIDATES = ["fill_volume", "skin_stiffening", "time_delay", "ft_drift", "ft_ga
 
 
 SURFACE_CONTACT_NUISANCES = (
-    "since the indenter contact is integrated over the skin triangles (session 11, 2026-11-26, merge 12a8146; both "
-    "tests pass with the fe of a9bd57b and the same analysis code): on this realistic null the nuisance fit reaches "
-    "1.03x in sample but runs to its bounds (skin thickness x0.60, modulus x0.50, friction x1.77, registration dz "
-    "+0.97 mm, strongly correlated) and leaves 1.22x held out, so the verdict is 'unexplained'; open defect"
+    "since the indenter contact is integrated over the skin triangles (session 11, merge 12a8146) the plant's "
+    "indenter never touches its skin in this campaign: its registration error leaves the deepest true pose 0.03 mm "
+    "(normal) and 0.02 mm (angled) past the touch point, and both trajectories' forces are noise (0.99-1.17x); the "
+    "vertex contact's 0.12 mm deeper depth zero gave the normal press a 0.05 N graze, which the old pass rested on. "
+    "With no contact the skin nuisances are unconstrained (the fit ends at its bounds, 1.22x held out) and a delay "
+    "is unobservable; the campaign must press past the registration error (docs/analysis.md); open defect"
 )
 """Why the two realistic-plant cases are expected failures for now (measured; see docs/analysis.md)."""
 

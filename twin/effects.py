@@ -4,6 +4,8 @@ An effect has named parameters (off value, bounds, typical scale, units), the ch
 whether it acts on the physics (the fe model: skin parameters, the indenter path) or on the
 measurement (the F/T signal chain). The base model has every effect off. The same code puts a hidden
 effect into a plant and an added effect into a model, so what is fitted is what was simulated.
+The effects on the skin are built from the parameter table (`fe.params`: each field's `Knob`); the path
+and F/T effects are declared here.
 
 Values are plain dicts: {effect name: {parameter name: value}}; missing effects or parameters are off.
 """
@@ -12,10 +14,11 @@ from __future__ import annotations
 
 from collections.abc import Callable
 from dataclasses import dataclass, field, replace
+from functools import partial
 
 import numpy as np
 
-from fe.params import SkinParameters
+from fe.params import SKIN_PARAMETERS, Knob, SkinParameters
 
 EffectValues = dict[str, dict[str, float]]
 CleanWrench = Callable[[np.ndarray], np.ndarray]
@@ -77,35 +80,59 @@ class Effect:
         return all(values[p.name] == p.off for p in self.parameters)
 
 
-# -- how each effect acts -----------------------------------------------------------------------------
-def _thickness(skin: SkinParameters, v: dict[str, float]) -> SkinParameters:
-    return replace(skin, thickness=skin.thickness * v["scale"])
+# -- the skin effects, built from the parameter table (fe.params: each field's Knob) ----------------------
+def _knob_parameter(field_name: str, knob: Knob) -> EffectParameter:
+    """The effect parameter of a knob: a factor on the nominal (off 1, units 1) or the field's value itself
+    (off its default, units its own)."""
+    if knob.acts == "scale":
+        off, units = 1.0, "1"
+    else:
+        off, units = float(getattr(SkinParameters(), field_name)), SKIN_PARAMETERS[field_name].units
+    return EffectParameter(knob.parameter, off, knob.search[0], knob.search[1], knob.scale, units)
 
 
-def _friction(skin: SkinParameters, v: dict[str, float]) -> SkinParameters:
-    return replace(skin, friction=skin.friction * v["scale"])
+def _apply_knobs(knobs: tuple[tuple[str, Knob], ...], skin: SkinParameters, v: dict[str, float]) -> SkinParameters:
+    """`skin` with each knob's field set to its parameter's value or scaled by it."""
+    return replace(
+        skin,
+        **{
+            field_name: v[knob.parameter] if knob.acts == "set" else getattr(skin, field_name) * v[knob.parameter]
+            for field_name, knob in knobs
+        },
+    )
 
 
-def _modulus(skin: SkinParameters, v: dict[str, float]) -> SkinParameters:
-    return replace(skin, mu_nh=skin.mu_nh * v["scale"])
+def _skin_knobs() -> dict[str, tuple[tuple[str, Knob], ...]]:
+    """Effect name -> its (field, knob) pairs in field order; an effect's knobs must agree on its texts."""
+    grouped: dict[str, list[tuple[str, Knob]]] = {}
+    for field_name, parameter in SKIN_PARAMETERS.items():
+        if parameter.effect is not None:
+            grouped.setdefault(parameter.effect.effect, []).append((field_name, parameter.effect))
+    for name, knobs in grouped.items():
+        if len({(knob.description, knob.channels) for _, knob in knobs}) != 1:
+            raise RuntimeError(f"the knobs of effect {name!r} disagree on its description or channels")
+    return {name: tuple(knobs) for name, knobs in grouped.items()}
 
 
-def _relaxation(skin: SkinParameters, v: dict[str, float]) -> SkinParameters:
-    return replace(skin, relaxation_fraction=v["fraction"], relaxation_time_s=v["time_s"])
+SKIN_KNOBS = _skin_knobs()
+"""The skin effects of the parameter table: effect name -> ((SkinParameters field, Knob), ...), field order."""
 
 
-def _stiffening(skin: SkinParameters, v: dict[str, float]) -> SkinParameters:
-    return replace(skin, gent_inverse_jm=v["inverse_jm"])
+def _skin_effect(name: str, knobs: tuple[tuple[str, Knob], ...]) -> Effect:
+    """The physics effect `name` that moves the knobs' fields."""
+    first = knobs[0][1]
+    return Effect(
+        name,
+        first.description,
+        "physics",
+        tuple(_knob_parameter(field_name, knob) for field_name, knob in knobs),
+        first.channels,
+        skin=partial(_apply_knobs, knobs),
+        probe={knob.parameter: knob.probe for _, knob in knobs if knob.probe is not None},
+    )
 
 
-def _trapped_air(skin: SkinParameters, v: dict[str, float]) -> SkinParameters:
-    return replace(skin, air_volume_fraction=v["fraction"])
-
-
-def _fill_volume(skin: SkinParameters, v: dict[str, float]) -> SkinParameters:
-    return replace(skin, inflation_volume_scale=skin.inflation_volume_scale * v["scale"])
-
-
+# -- the effects declared here: the indenter path and the F/T measurement ------------------------------------
 def _registration(tips: np.ndarray, v: dict[str, float]) -> np.ndarray:
     return tips + np.array([v["dx"], v["dy"], v["dz"]])
 
@@ -170,69 +197,9 @@ _REGISTRATION_STARTS = tuple({axis: sign * 1e-3} for axis in ("dx", "dy", "dz") 
 """A millimetre along each axis, both ways: where a registration search also looks (paper: 0.5-1.5 mm)."""
 
 
-EFFECTS: dict[str, Effect] = {
+_DECLARED: dict[str, Effect] = {
     e.name: e
     for e in (
-        Effect(
-            "skin_thickness",
-            "Skin shell thickness differs from the model's (scale factor on t_s).",
-            "physics",
-            (EffectParameter("scale", 1.0, 0.6, 1.5, 0.05, "1"),),
-            ("force", "pdc", "electrodes"),
-            skin=_thickness,
-        ),
-        Effect(
-            "skin_modulus",
-            "Skin shear modulus differs from the model's (scale factor on mu_NH).",
-            "physics",
-            (EffectParameter("scale", 1.0, 0.5, 2.0, 0.05, "1"),),
-            ("force", "pdc", "electrodes"),
-            skin=_modulus,
-        ),
-        Effect(
-            "indenter_friction",
-            "Coulomb friction between indenter and skin differs (scale factor on mu_fr).",
-            "physics",
-            (EffectParameter("scale", 1.0, 0.0, 5.0, 0.25, "1"),),
-            ("force",),
-            skin=_friction,
-        ),
-        Effect(
-            "skin_relaxation",
-            "The skin is viscoelastic: one Prony branch relaxes a fraction of its moduli with a time constant.",
-            "physics",
-            (
-                EffectParameter("fraction", 0.0, 0.0, 0.6, 0.05, "1"),
-                EffectParameter("time_s", 1.0, 0.05, 10.0, 0.2, "s"),
-            ),
-            ("force", "pdc", "electrodes"),
-            skin=_relaxation,
-            probe={"fraction": 0.15},
-        ),
-        Effect(
-            "skin_stiffening",
-            "The skin stiffens with strain beyond Neo-Hookean (Gent, parameter 1/J_m).",
-            "physics",
-            (EffectParameter("inverse_jm", 0.0, 0.0, 2.0, 0.1, "1"),),
-            ("force", "pdc", "electrodes"),
-            skin=_stiffening,
-        ),
-        Effect(
-            "trapped_air",
-            "A gas bubble in the fluid (volume fraction of the cavity) makes the fluid compressible (Boyle).",
-            "physics",
-            (EffectParameter("fraction", 0.0, 0.0, 0.5, 0.02, "1"),),
-            ("force", "pdc", "electrodes"),
-            skin=_trapped_air,
-        ),
-        Effect(
-            "fill_volume",
-            "The sensor holds more or less fluid than the model (skin pretension; scale on the inflation volume).",
-            "physics",
-            (EffectParameter("scale", 1.0, 0.7, 1.4, 0.03, "1"),),
-            ("force", "pdc", "electrodes"),
-            skin=_fill_volume,
-        ),
         Effect(
             "registration_offset",
             "The indenter path is offset from where registration says it is (biotac frame).",
@@ -290,7 +257,27 @@ EFFECTS: dict[str, Effect] = {
         ),
     )
 }
-"""The effect library, keyed by name."""
+LIBRARY_ORDER = (
+    "skin_thickness",
+    "skin_modulus",
+    "indenter_friction",
+    "skin_relaxation",
+    "skin_stiffening",
+    "trapped_air",
+    "fill_volume",
+    "registration_offset",
+    "time_delay",
+    "ft_drift",
+    "ft_crosstalk",
+    "ft_gain",
+    "ft_calibration",
+)
+"""The library's order (what `twin effects` lists and the order diagnosis keeps among equal candidates)."""
+_LIBRARY = {name: _skin_effect(name, knobs) for name, knobs in SKIN_KNOBS.items()} | _DECLARED
+if sorted(_LIBRARY) != sorted(LIBRARY_ORDER):
+    raise RuntimeError(f"LIBRARY_ORDER {sorted(LIBRARY_ORDER)} must list exactly the effects {sorted(_LIBRARY)}")
+EFFECTS: dict[str, Effect] = {name: _LIBRARY[name] for name in LIBRARY_ORDER}
+"""The effect library, keyed by name: the skin effects of the parameter table and those declared here."""
 
 UNLISTED_EFFECTS: dict[str, Effect] = {
     "ft_nonlinearity": Effect(

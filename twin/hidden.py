@@ -15,7 +15,7 @@ from pathlib import Path
 
 import numpy as np
 
-from twin.effects import EFFECTS, UNLISTED_EFFECTS, EffectValues
+from twin.effects import EFFECTS, SKIN_KNOBS, UNLISTED_EFFECTS, EffectValues
 
 
 def _either(rng: np.random.Generator, low: float, high: float, centre: float = 1.0) -> float:
@@ -45,14 +45,24 @@ def _calibration(rng: np.random.Generator) -> dict[str, float]:
     return {axis + axis: _either(rng, 0.08, 0.15), cross: _signed(rng, 0.05, 0.1)}
 
 
+def _from_table(name: str) -> Callable[[np.random.Generator], dict[str, float]]:
+    """The draw of a skin effect from its knobs' hidden ranges (fe.params), parameter by parameter."""
+    pairs = tuple(zip(EFFECTS[name].parameters, (knob for _, knob in SKIN_KNOBS[name]), strict=True))
+
+    def draw(rng: np.random.Generator) -> dict[str, float]:
+        return {
+            parameter.name: _either(rng, *knob.hidden, centre=parameter.off)
+            if knob.hidden_both_ways
+            else float(rng.uniform(*knob.hidden))
+            for parameter, knob in pairs
+        }
+
+    return draw
+
+
 HIDDEN_DRAWS: dict[str, Callable[[np.random.Generator], dict[str, float]]] = {
-    "skin_thickness": lambda rng: {"scale": _either(rng, 0.12, 0.25)},
-    "skin_modulus": lambda rng: {"scale": _either(rng, 0.15, 0.3)},
-    "indenter_friction": lambda rng: {"scale": float(rng.uniform(2.5, 4.0))},
-    "skin_relaxation": lambda rng: {"fraction": float(rng.uniform(0.2, 0.4)), "time_s": float(rng.uniform(0.3, 1.0))},
-    "skin_stiffening": lambda rng: {"inverse_jm": float(rng.uniform(0.3, 0.8))},
-    "trapped_air": lambda rng: {"fraction": float(rng.uniform(0.2, 0.35))},
-    "fill_volume": lambda rng: {"scale": _either(rng, 0.08, 0.15)},
+    name: _from_table(name) for name in SKIN_KNOBS
+} | {
     "registration_offset": _registration,
     "time_delay": lambda rng: {"seconds": float(rng.uniform(0.04, 0.12))},
     "ft_drift": lambda rng: {f"f{a}_rate": _signed(rng, 0.002, 0.006) for a in "xyz"},
@@ -61,7 +71,8 @@ HIDDEN_DRAWS: dict[str, Callable[[np.random.Generator], dict[str, float]]] = {
     "ft_calibration": _calibration,
     "ft_nonlinearity": lambda rng: {"coefficient": _signed(rng, 0.08, 0.15)},
 }
-"""How each effect's hidden size is drawn (the library's and the unlisted ones)."""
+"""How each effect's hidden size is drawn (the library's and the unlisted ones): the skin effects from the
+parameter table, the structured ones (registration, the F/T maps) by their own draw."""
 
 if set(HIDDEN_DRAWS) != set(EFFECTS) | set(UNLISTED_EFFECTS):
     raise RuntimeError("every effect needs a hidden-size draw")
