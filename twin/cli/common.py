@@ -109,7 +109,7 @@ class LoggedProgress(Progress):
         if self.console.is_terminal:
             return
         now = time.monotonic()
-        task = self._tasks[task_id]
+        task = next(t for t in self.tasks if t.id == task_id)
         changed = self._last_description.get(task_id) not in (None, task.description)
         self._last_description[task_id] = task.description
         finished = task.total is not None and task.completed >= task.total
