@@ -20,6 +20,7 @@ import tempfile
 from collections.abc import Callable
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 
@@ -37,7 +38,7 @@ from twin.fe_models import inflated_model
 from twin.planning import PlannedTrajectory, plan_statistics, plan_trajectory, scene_tool_tip
 from twin.plant import Plant, make_plant, rigid_transform
 from twin.processing import process
-from twin.protocol import QUICK_SETTINGS, ProtocolSettings, TrajectorySpec, plan_specs
+from twin.protocol import QUICK_SETTINGS, PathDraw, ProtocolSettings, TrajectorySpec, draw_paths, plan_spec
 from twin.readout import electrode_model
 from twin.registration import simulate_registration
 from twin.scene import SceneParameters, TestbedScene
@@ -113,13 +114,21 @@ def true_biotac_pose(plant: Plant, sensor_id: int, scene: TestbedScene) -> np.nd
     return true_mount_pose(plant, sensor_id, scene) @ seat
 
 
-def plan_campaign(config: CampaignConfig, plant: Plant | None = None, executor: Executor | None = None) -> CampaignPlan:
-    """Sample the trajectories, register each sensor, and plan joint paths (dropping what cannot run): here,
-    or each trajectory's on a worker of `executor` (set up by `init_worker(config, plant)`), the same plan."""
+def plan_campaign(
+    config: CampaignConfig,
+    plant: Plant | None = None,
+    executor: Executor | None = None,
+    on_stage: Callable[[str, int, int], None] | None = None,
+) -> CampaignPlan:
+    """Sample the trajectories, register each sensor, and plan each trajectory's first touch on the nominal skin
+    and its joint paths (dropping what cannot run): here, or on the workers of `executor` (each set up by
+    `init_worker(config, plant)`), the same plan. `on_stage(stage, done, total)` is told how far each stage
+    ("first touches", "joint paths") has come, in trajectories."""
     plant = plant if plant is not None else make_plant(list(config.sensors), config.seed)
+    planner = _Planner(config, plant, executor, on_stage)
     geometry = make_biotac(config.mesh_max_edge)
-    nominal = inflated_model(geometry, config.nominal)
-    specs = plan_specs(nominal, list(config.indenters), config.settings, config.seed)
+    draws = draw_paths(geometry, list(config.indenters), config.settings, config.seed)
+    specs = planner.run("first touches", _plan_spec, list(enumerate(draws)))
     scene = TestbedScene(config.scene)
     jobs, registration, errors = [], {}, {}
     for sid in config.sensors:
@@ -140,46 +149,68 @@ def plan_campaign(config: CampaignConfig, plant: Plant | None = None, executor: 
         wanted = set(config.indenters_for(sid))
         per_arm = {arm: registration[(sid, arm)] for arm in ARMS}
         jobs += [(spec, sid, per_arm) for spec in specs if spec.indenter in wanted]
-    planned = _plan_trajectories(jobs, scene, executor, (config, plant))
+    planned = planner.run("joint paths", _plan_joints, jobs)
     for round_ in range(1, config.settings.replacement_rounds + 1):
         uncovered = _uncovered(config, planned)
         if not uncovered:
             break
-        extra = plan_specs(
-            nominal, sorted({name for _, name in uncovered}), config.settings, config.seed + round_, len(specs)
-        )
+        draws = draw_paths(geometry, sorted({name for _, name in uncovered}), config.settings, config.seed + round_)
+        extra = planner.run("first touches", _plan_spec, list(enumerate(draws, start=len(specs))))
         specs += extra
         jobs = []
         for sid in sorted({s for s, _ in uncovered}):
             names = {name for s, name in uncovered if s == sid}
             per_arm = {arm: registration[(sid, arm)] for arm in ARMS}
             jobs += [(spec, sid, per_arm) for spec in extra if spec.indenter in names]
-        planned += _plan_trajectories(jobs, scene, executor, (config, plant))
+        planned += planner.run("joint paths", _plan_joints, jobs)
     return CampaignPlan(config, specs, planned, registration, errors)
 
 
-PlanJob = tuple[TrajectorySpec, int, dict[str, np.ndarray]]
-"""A trajectory to plan: its spec, its sensor id and the sensor's estimated robot<-biotac 4x4 per arm."""
+@dataclass
+class _Planner:
+    """Runs planning tasks (`task(worker, *job)`, a module-level function) in the jobs' order: on a
+    `CampaignWorker` of this process, or on the executor's workers; tells `on_stage(stage, done, total)`."""
+
+    config: CampaignConfig
+    plant: Plant
+    executor: Executor | None
+    on_stage: Callable[[str, int, int], None] | None = None
+    _here: CampaignWorker | None = field(default=None, init=False, repr=False)
+
+    def run(self, stage: str, task: Callable[..., Any], jobs: list[tuple]) -> list:
+        if self.executor is None:
+            if self._here is None:
+                self._here = CampaignWorker(self.config, self.plant)
+            done = ((k, task(self._here, *job)) for k, job in enumerate(jobs))
+        else:
+            indexed = [(task, k, job) for k, job in enumerate(jobs)]
+            done = self.executor.map_unordered(_indexed_task, indexed, init_worker, (self.config, self.plant))
+        found = {}
+        for k, result in done:
+            found[k] = result
+            if self.on_stage:
+                self.on_stage(stage, len(found), len(jobs))
+        if len(found) != len(jobs):
+            raise RuntimeError(f"the executor ran {len(found)} of {len(jobs)} planning tasks")
+        return [found[k] for k in range(len(jobs))]
 
 
-def _plan_trajectories(
-    jobs: list[PlanJob], scene: TestbedScene, executor: Executor | None, setup_args: tuple[CampaignConfig, Plant]
-) -> list[PlannedTrajectory]:
-    """`plan_trajectory` of every job, in their order: on `scene` here, or on the executor's workers."""
-    if executor is None:
-        return [plan_trajectory(scene, *job) for job in jobs]
-    indexed = [(k, *job) for k, job in enumerate(jobs)]
-    found = dict(executor.map_unordered(_plan_task, indexed, init_worker, setup_args))
-    if len(found) != len(jobs):
-        raise RuntimeError(f"the executor planned {len(found)} of {len(jobs)} trajectories")
-    return [found[k] for k in range(len(jobs))]
+def _indexed_task(task: Callable[..., Any], index: int, job: tuple) -> tuple[int, Any]:
+    """Executor task (after `init_worker`): the job's index and `task(this process's worker, *job)`."""
+    return index, task(process_worker(), *job)
 
 
-def _plan_task(
-    index: int, spec: TrajectorySpec, sensor_id: int, registration: dict[str, np.ndarray]
-) -> tuple[int, PlannedTrajectory]:
-    """Executor task (after `init_worker`): the job's index and its plan, on the worker's reset testbed."""
-    return index, plan_trajectory(process_worker().scene(), spec, sensor_id, registration)
+def _plan_spec(worker: CampaignWorker, trajectory_id: int, draw: PathDraw) -> TrajectorySpec:
+    """The draw's trajectory (its first touch) on the campaign's nominal inflated skin."""
+    return plan_spec(worker.nominal(), draw, worker.config.settings, trajectory_id)
+
+
+def _plan_joints(
+    worker: CampaignWorker, spec: TrajectorySpec, sensor_id: int, registration: dict[str, np.ndarray]
+) -> PlannedTrajectory:
+    """The trajectory's joint paths on the worker's reset testbed; `registration`: the sensor's estimated
+    robot<-biotac 4x4 per arm."""
+    return plan_trajectory(worker.scene(), spec, sensor_id, registration)
 
 
 def _uncovered(config: CampaignConfig, planned: list[PlannedTrajectory]) -> set[tuple[int, str]]:
@@ -199,6 +230,7 @@ class CampaignWorker:
     geometry: BioTacGeometry = field(init=False)
     models: dict = field(default_factory=dict)
     _scene: TestbedScene | None = field(default=None, init=False, repr=False)
+    _nominal: BioTacModel | None = field(default=None, init=False, repr=False)
 
     def __post_init__(self) -> None:
         self.geometry = make_biotac(self.config.mesh_max_edge)
@@ -211,6 +243,13 @@ class CampaignWorker:
         else:
             self._scene.reset()
         return self._scene
+
+    def nominal(self) -> BioTacModel:
+        """The campaign's nominal skin (`CampaignConfig.nominal`) inflated on the campaign's mesh, built once per
+        process: the skin the protocol's first touches are planned on."""
+        if self._nominal is None:
+            self._nominal = inflated_model(self.geometry, self.config.nominal)
+        return self._nominal
 
     def sensor(self, sid: int) -> tuple[BioTacModel, ElectrodeModel]:
         """Plant sensor `sid`'s fe model and electrodes (`plant_sensor_models`), built once per process."""
@@ -494,6 +533,7 @@ def run_campaign(
     on_trajectory: Callable[[int, dict[str, np.ndarray]], None] | None = None,
     restart: bool = False,
     runner: TrajectoryRunner = one_at_a_time,
+    on_plan: Callable[[str, int, int], None] | None = None,
 ) -> CampaignResult:
     """Plan and run the campaign into `out_dir` (one HDF5 per sensor); resumes from existing parts.
 
@@ -501,6 +541,7 @@ def run_campaign(
     left to its owner to close) through `runner` (default
     `one_at_a_time`; `twin.campaign_batched.BatchedRunner` solves the fe of all of them as one batch); the
     files do not depend on the executor, and on the runner only within the fe engine's tolerance.
+    on_plan(stage, done, total) is told how far planning has come (`plan_campaign`'s `on_stage`);
     on_progress(done, total) is called after each trajectory; on_trajectory(sensor id, part arrays as
     `twin.dataset.read_part` returns them) after each one that ran now (a live view). Parts live in
     `out_dir/parts` until the sensor files are assembled; they are kept so that a later run can resume
@@ -517,7 +558,7 @@ def run_campaign(
     own_executor = executor is None
     executor = executor if executor is not None else LocalExecutor(max(1, workers))
     try:  # one pool (one start-up a worker) plans and runs the trajectories
-        plan = plan_campaign(config, plant, executor)
+        plan = plan_campaign(config, plant, executor, on_plan)
         jobs = [job for job in plan.planned if job.kept]
         slots = {}
         for job in jobs:

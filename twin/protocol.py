@@ -12,7 +12,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from assets.biotac import sample_ventral_points
+from assets.biotac import BioTacGeometry, sample_ventral_points
 from assets.indenters import INDENTERS, get_indenter
 from fe.sensor import BioTacModel
 
@@ -114,48 +114,65 @@ def depth_schedule(depth: float, settings: ProtocolSettings) -> tuple[np.ndarray
     return values, increments
 
 
-def plan_specs(
-    model: BioTacModel,
+@dataclass(frozen=True)
+class PathDraw:
+    """One drawn trajectory before its first touch is found: the indenter, the ventral point (m, biotac frame),
+    the tilt from the inward normal and its azimuth (rad), and the depth past first contact (m)."""
+
+    indenter: str
+    point: np.ndarray
+    angle: float
+    azimuth: float
+    depth: float
+
+
+def draw_paths(
+    geometry: BioTacGeometry,
     indenters: list[str] | None = None,
     settings: ProtocolSettings = ProtocolSettings(),
     seed: int = 0,
-    first_id: int = 0,
-) -> list[TrajectorySpec]:
-    """Seeded random ventral points per indenter; one normal and `angled_per_point` angled paths each.
+) -> list[PathDraw]:
+    """Seeded random ventral points per indenter; one normal and `angled_per_point` angled paths each, in a
+    fixed order (indenter, point, path), so the same seed gives the same draws.
 
-    `model` must be inflated (its outer surface defines first contact). Azimuths of the angled paths
-    are spread evenly around the normal with a random phase per point. Trajectory ids are assigned in
-    a fixed order (indenter, point, path) starting at `first_id`, so the same seed gives the same ids.
+    Azimuths of the angled paths are spread evenly around the normal with a random phase per point.
     """
     names = list(INDENTERS) if indenters is None else list(indenters)
     rng = np.random.default_rng(seed)
-    specs: list[TrajectorySpec] = []
+    draws: list[PathDraw] = []
     for name in names:
-        indenter = get_indenter(name)
-        points, _ = sample_ventral_points(model.geometry, settings.points_per_indenter, rng)
+        points, _ = sample_ventral_points(geometry, settings.points_per_indenter, rng)
         phases = rng.uniform(0.0, 2.0 * np.pi, size=len(points))
         for point, phase in zip(points, phases, strict=True):
-            paths = [(0.0, 0.0, settings.normal_depth)]
+            draws.append(PathDraw(name, point, 0.0, 0.0, settings.normal_depth))
             for j in range(settings.angled_per_point):
                 azimuth = phase + 2.0 * np.pi * j / settings.angled_per_point
-                paths.append((np.radians(settings.angle_deg), azimuth, settings.angled_depth))
-            for angle, azimuth, depth in paths:
-                planned = model.plan_trajectory(
-                    indenter, point, np.degrees(angle), np.degrees(azimuth), depth, settings.step
+                draws.append(
+                    PathDraw(name, point, float(np.radians(settings.angle_deg)), azimuth, settings.angled_depth)
                 )
-                depths, increments = depth_schedule(depth, settings)
-                specs.append(
-                    TrajectorySpec(
-                        trajectory_id=first_id + len(specs),
-                        indenter=name,
-                        point=point,
-                        angle=float(angle),
-                        azimuth=float(azimuth % (2.0 * np.pi)),
-                        touch_point=planned.touch_point,
-                        direction=planned.direction,
-                        rotation=planned.rotation,
-                        depths=depths,
-                        increment=increments,
-                    )
-                )
-    return specs
+    return draws
+
+
+def plan_spec(model: BioTacModel, draw: PathDraw, settings: ProtocolSettings, trajectory_id: int) -> TrajectorySpec:
+    """The trajectory of `draw` on `model`, which must be inflated (its outer surface defines first contact)."""
+    planned = model.plan_trajectory(
+        get_indenter(draw.indenter),
+        draw.point,
+        np.degrees(draw.angle),
+        np.degrees(draw.azimuth),
+        draw.depth,
+        settings.step,
+    )
+    depths, increments = depth_schedule(draw.depth, settings)
+    return TrajectorySpec(
+        trajectory_id=trajectory_id,
+        indenter=draw.indenter,
+        point=draw.point,
+        angle=float(draw.angle),
+        azimuth=float(draw.azimuth % (2.0 * np.pi)),
+        touch_point=planned.touch_point,
+        direction=planned.direction,
+        rotation=planned.rotation,
+        depths=depths,
+        increment=increments,
+    )

@@ -187,9 +187,11 @@ def run(
             from twin.campaign import one_at_a_time, run_campaign
             from twin.campaign_batched import BatchedRunner
 
+            stage_task = progress.add_task("planning", total=None)
+
             def stage(name: str, done: int, total: int) -> None:
-                label = {"schedules": "fe schedules", "fe": f"fe batch on {device}", "synthesis": "synthesis"}[name]
-                progress.update(task, description=f"trajectories ({label} {done}/{total})")
+                label = {"schedules": "fe schedules", "fe": f"fe batch on {device}"}.get(name, name)
+                progress.update(stage_task, description=label, completed=done, total=total)
 
             runner = one_at_a_time if device is None else BatchedRunner(device, slots, stage)
             on_trajectory = viewer.log_trajectory if viewer else None
@@ -204,6 +206,7 @@ def run(
                             on_trajectory=on_trajectory,
                             restart=restart,
                             runner=runner,
+                            on_plan=stage,
                         )
                     )
             except KeyboardInterrupt as exc:
