@@ -126,3 +126,17 @@ def test_a_schedule_pass_without_electrode_counts_draws_the_same_noise(
     assert np.isnan(bare.electrodes).all() and np.isnan(bare.pdc).all()
     assert np.isfinite(full.electrodes).all() and np.ptp(full.electrodes[:, 0]) > 0  # noisy counts
     assert bare_schedules[0].same_as(full_schedules[0])
+
+
+def test_a_trajectory_error_names_its_trajectory() -> None:
+    from types import SimpleNamespace
+
+    from twin.campaign import naming_trajectory
+
+    job = SimpleNamespace(sensor_id=2, spec=SimpleNamespace(trajectory_id=17))
+    with pytest.raises(ValueError, match=r"^sensor 2 trajectory 17: the recording is empty$"):
+        with naming_trajectory(job):
+            raise ValueError("the recording is empty")
+    with pytest.raises(RuntimeError, match=r"^a skin fault$"):  # only bad-input errors are renamed
+        with naming_trajectory(job):
+            raise RuntimeError("a skin fault")

@@ -17,7 +17,8 @@ import json
 import os
 import shutil
 import tempfile
-from collections.abc import Callable
+from collections.abc import Callable, Iterator
+from contextlib import contextmanager
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
 from typing import Any
@@ -467,8 +468,19 @@ def write_trajectory_part(
 def _run_one(job: PlannedTrajectory, slot: int, registration: np.ndarray, parts_dir: str) -> tuple[int, int, bool]:
     """Executor task: one trajectory, its fe solved one increment at a time, to its part file."""
     worker = process_worker()
-    backend, recording = simulate_trajectory(worker, job, slot)
-    return write_trajectory_part(worker, (job, slot, registration, parts_dir), backend, recording)
+    with naming_trajectory(job):
+        backend, recording = simulate_trajectory(worker, job, slot)
+        return write_trajectory_part(worker, (job, slot, registration, parts_dir), backend, recording)
+
+
+@contextmanager
+def naming_trajectory(job: PlannedTrajectory) -> Iterator[None]:
+    """Re-raise a ValueError from inside with the trajectory it came from ("sensor S trajectory T: ..."), so
+    that the one-line error a campaign ends with says which of its hundreds of trajectories to look at."""
+    try:
+        yield
+    except ValueError as exc:
+        raise ValueError(f"sensor {job.sensor_id} trajectory {job.spec.trajectory_id}: {exc}") from exc
 
 
 Finished = Callable[[int, int, bool], None]

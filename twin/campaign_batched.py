@@ -40,6 +40,7 @@ from twin.campaign import (
     Finished,
     TrajectoryTask,
     init_worker,
+    naming_trajectory,
     process_worker,
     simulate_trajectory,
     write_trajectory_part,
@@ -156,7 +157,8 @@ def plan_schedule(
         recorders.append(ScheduleRecorder(model, indenter))
         return recorders[-1]
 
-    simulate_trajectory(worker, job, slot, recorder, electrode_counts=False)  # its recording is not kept
+    with naming_trajectory(job):
+        simulate_trajectory(worker, job, slot, recorder, electrode_counts=False)  # its recording is not kept
     if len(recorders) > 1:
         raise RuntimeError(f"trajectory {job.spec.trajectory_id} attached {len(recorders)} indenters, not one")
     schedule = recorders[0].schedule() if recorders else ScheduleRecorder(model, job.spec.indenter).schedule()
@@ -233,7 +235,8 @@ def synthesise_part(
     path = solves_path(task)
     schedule, increments = read_solves(path)
     try:
-        sid, tid, complete = synthesise(process_worker(), task, schedule, increments)
+        with naming_trajectory(job):
+            sid, tid, complete = synthesise(process_worker(), task, schedule, increments)
     except ScheduleExhausted:
         return _key(task), None
     path.unlink()
@@ -302,7 +305,10 @@ class BatchedRunner:
                 self._stage("fe", done, len(tasks))
 
             skin = worker.sensor(sid)[0].inflated_skin()
-            poses = [schedules[_key(t)].poses() for t in mine]
+            poses = []
+            for t in mine:
+                with naming_trajectory(t[0]):
+                    poses.append(schedules[_key(t)].poses())
             run_trajectories(skin, poses, self.device, self.slots, force_limit, on_trajectory=ended)
 
     def _synthesise(
