@@ -99,8 +99,10 @@ def run_trajectories(
     max_cuts: int = MAX_CUTS,
     linear: str = "auto",
 ) -> BatchedRun:
-    """Solve every trajectory's poses in order on `slots` continuously batched systems on the warp `device`;
-    `on_trajectory(index, increments)` is called as each trajectory ends (for progress and streaming). After
+    """Solve every trajectory's poses in order on `slots` continuously batched systems on the warp `device`,
+    the trajectories with the most poses first where they share one skin (so that few long ones do not start
+    last and run on alone at the end); `on_trajectory(index, increments)` is called as each trajectory ends
+    (for progress and streaming; `index` into `trajectories`, whatever the order they ran in). After
     `time_limit_s` the run stops where it is (`BatchedRun.complete` False; unfinished trajectories keep the
     increments they finished). `forcing`, `linear`: the CG tolerance rule and linear algebra of
     `fe.batched.BatchedShell`. A failed increment is cut back: retried from the last accepted pose through
@@ -122,8 +124,11 @@ def run_trajectories(
     if not isinstance(skin, InflatedSkin) and slots < len(trajectories):
         raise ValueError(f"one skin per trajectory needs a system each: {len(trajectories)} > {slots} slots")
     start = time.perf_counter()
-    stepper = BatchedStepper(skin, [t.indenter for t in trajectories[:slots]], device, forcing, linear)
-    schedule = _Schedule(trajectories, force_limit, on_trajectory, stepper, max_cuts)
+    order = list(range(len(trajectories)))
+    if isinstance(skin, InflatedSkin):  # one skin: any slot runs any trajectory, the longest first
+        order.sort(key=lambda k: -len(trajectories[k].rotations))
+    stepper = BatchedStepper(skin, [trajectories[k].indenter for k in order[:slots]], device, forcing, linear)
+    schedule = _Schedule(trajectories, order, force_limit, on_trajectory, stepper, max_cuts)
     round_end_s: list[float] = []
     round_systems: list[int] = []
     complete = True
@@ -156,17 +161,19 @@ def run_trajectories(
 
 
 class _Schedule:
-    """Which trajectory and pose each slot is at; records results and refills slots."""
+    """Which trajectory and pose each slot is at; records results and refills slots, taking the trajectories in
+    `order`."""
 
     def __init__(
         self,
         trajectories: Sequence[PoseTrajectory],
+        order: Sequence[int],
         force_limit: float,
         on_trajectory: Callable[[int, list[IncrementResult]], None] | None,
         stepper: BatchedStepper,
         max_cuts: int,
     ) -> None:
-        self.trajectories, self.queue = trajectories, deque(range(len(trajectories)))
+        self.trajectories, self.queue = trajectories, deque(order)
         self.force_limit, self.on_trajectory, self.stepper = force_limit, on_trajectory, stepper
         n = stepper.batch
         self.results: list[list[IncrementResult]] = [[] for _ in trajectories]

@@ -192,6 +192,28 @@ def test_continuous_batching_matches_the_cpu_stepper(
         assert any(len(t) < len(STEPS) for t in run.results)
 
 
+def test_the_longest_trajectories_start_first(frictionless_biotac: BioTacModel) -> None:
+    """On one slot the trajectory with the most poses runs first, then the others by length (ties in their
+    order); each one's increments are those it gets when run alone."""
+    model = frictionless_biotac
+    full = [_pose_trajectory(name, p) for (name, *_), p in zip(PATHS, _paths(model), strict=True)]
+    lengths = (2, len(STEPS), 3)
+    trajectories = [
+        PoseTrajectory(t.indenter, t.rotations[:n], t.translations[:n]) for t, n in zip(full, lengths, strict=True)
+    ]
+    skin = model.inflated_skin()
+    ended: list[int] = []
+    run = run_trajectories(skin, trajectories, "cpu", slots=1, on_trajectory=lambda k, _: ended.append(k))
+    assert ended == [1, 2, 0]
+    for trajectory, together in zip(trajectories, run.results, strict=True):
+        alone = run_trajectories(skin, [trajectory], "cpu", slots=1).results[0]
+        assert len(together) == len(alone) == len(trajectory.rotations)
+        for a, b in zip(alone, together, strict=True):
+            assert a.converged and b.converged
+            np.testing.assert_array_equal(a.force, b.force)
+            np.testing.assert_array_equal(a.displacement, b.displacement)
+
+
 def test_trapped_air_in_a_batch_follows_boyle_and_bad_poses_are_refused(frictionless_biotac: BioTacModel) -> None:
     """Two presses with a bubble of 10 % of the fluid, stepped together: the liquid is incompressible, so
     the enclosed volume changes by exactly the bubble's Boyle's-law change, (p_atm + p) V_air = k."""
