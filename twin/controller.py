@@ -8,6 +8,7 @@ a backend fault as incomplete instead of losing it.
 
 from __future__ import annotations
 
+from contextlib import suppress
 from dataclasses import dataclass
 
 import numpy as np
@@ -70,7 +71,10 @@ def move_to(backend: Backend, arm: str, joints: np.ndarray, tick: float, timeout
 def execute(
     backend: Backend, spec: TrajectorySpec, arm: str, joint_path: np.ndarray, settings: ProtocolSettings
 ) -> Recording:
-    """Run `spec` on `backend` with `arm` following `joint_path` (K, 7); never raises on a backend fault."""
+    """Run `spec` on `backend` with `arm` following `joint_path` (K, 7); never raises on a backend fault. A fault
+    before the tare (e.g. the simulated skin refusing the standoff pose, when the plant's registration and skin
+    put it in contact already) still records one sample, read where the fault left the testbed, as the tare of
+    a press without rows; only a backend that cannot even be read then leaves the recording empty."""
     if joint_path.shape != (len(spec.depths), 7):
         raise ValueError(f"joint path must be ({len(spec.depths)}, 7), got {joint_path.shape}")
     tick = 1.0 / settings.sample_rate_hz
@@ -94,6 +98,9 @@ def execute(
                     _retract(backend, arm, joint_path[0], tick)
                     return recorder.finish(False, f"force limit {settings.force_limit:g} N exceeded ({force:.2f} N)")
     except BackendError as exc:
+        if not recorder.rows:  # a fault before the tare: keep the one sample where it stopped (a press without rows)
+            with suppress(BackendError):
+                recorder.add(backend.read(), float(spec.depths[0]), -1)
         _retract(backend, arm, joint_path[0], tick)
         return recorder.finish(False, f"backend fault: {exc}")
     return recorder.finish(True, "ok")
