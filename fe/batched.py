@@ -3,9 +3,9 @@
 `InflatedSkin` is the model (mesh, core, parameters, settings) with its starting state; `BatchedShell` stacks
 B independent systems of it (each with its own indenter, pose, friction lagging, viscoelastic state and
 trapped air) into warp arrays with a leading batch axis and evaluates every energy term for all of them with
-one launch per kernel (the kernels of fe/membrane.py, fe/viscoelastic.py, fe/bending.py, fe/volume.py and
-fe/contact.py), then assembles the B Newton matrices into one batched block-sparse matrix on the device.
-The linear algebra follows the device: one sparse direct factorisation per system on the CPU
+one launch per kernel (the kernels of fe/membrane.py, with the viscoelastic frozen stress, fe/bending.py,
+fe/volume.py and fe/contact.py), then assembles the B Newton matrices into one batched block-sparse matrix on
+the device. The linear algebra follows the device: one sparse direct factorisation per system on the CPU
 (`fe.linsolve.BatchedDirectSolver`: PARDISO or SuperLU, with chord steps that reuse it near convergence),
 batched CG on a GPU (`fe.device_solver.BatchedCG`). Newton solves the KKT system of the held volume through
 its Schur complement (K u1 = -r, K u2 = b; trapped air adds its compliance), backtracks on an
@@ -33,7 +33,7 @@ import numpy as np
 import warp as wp
 
 from fe import batched_kernels as bk
-from fe import bending, contact, membrane, viscoelastic, volume
+from fe import bending, contact, membrane, volume
 from fe.device_solver import CG_NEGATIVE_CURVATURE, BatchedBlockMatrix, BatchedCG, BlockPattern
 from fe.linsolve import BatchedDirectSolver
 from fe.newton import NewtonSettings
@@ -303,7 +303,7 @@ class BatchedShell:
         self._stencils = stencils
         self.n_triangles, self.n_bending = len(tri), len(stencils)
         self.relaxes = any(p.relaxation_fraction > 0.0 for p in params)
-        """Whether the membrane's frozen (viscoelastic) stress term is evaluated."""
+        """Whether the skin relaxes (viscoelastic: the membrane's frozen stresses and the bending rest angles move)."""
         self.air = TrappedAir(np.array([s.air_boyle for s in self.skins], dtype=np.float64))
         """The cavity's trapped air, one bubble per system (`fe.trapped_air`)."""
         arr = lambda a, dtype: wp.array(a, dtype=dtype, device=device)  # noqa: E731
@@ -489,13 +489,6 @@ class BatchedShell:
             {**common, "energy": buf["membrane_energy"], "gradient": elastic, "hessian": buf["membrane_hessian"]},
             dev,
         )
-        if self.relaxes:
-            launch(
-                viscoelastic.frozen_stress_kernel,
-                (B, nt),
-                {**common, "energy": buf["membrane_energy"], "gradient": elastic, "hessian": buf["membrane_hessian"]},
-                dev,
-            )
         if nh:
             launch(
                 bending.bending_kernel,
