@@ -27,7 +27,6 @@ import time
 from collections.abc import Sequence
 from dataclasses import asdict, dataclass, fields
 from pathlib import Path
-from typing import TYPE_CHECKING
 
 import numpy as np
 import warp as wp
@@ -36,15 +35,11 @@ from fe import batched_kernels as bk
 from fe import bending, contact, membrane, volume
 from fe.device_solver import CG_NEGATIVE_CURVATURE, BatchedBlockMatrix, BatchedCG, BlockPattern
 from fe.linsolve import BatchedDirectSolver
-from fe.newton import NewtonSettings
-from fe.params import ContactSettings, SkinParameters
+from fe.params import ContactSettings, NewtonSettings, SkinParameters
 from fe.shell import lumped_areas
 from fe.surface_quadrature import rule
 from fe.trapped_air import TrappedAir
 from fe.wptypes import mat99d, mat1818d, vec6i
-
-if TYPE_CHECKING:
-    from fe.sensor import BioTacModel
 
 _ENERGY_RESOLUTION = 1e-12
 LINEAR_SOLVERS = ("auto", "direct", "cg")
@@ -126,11 +121,6 @@ class InflatedSkin:
             target_volume=float("nan"),
             indenter_offset=indenter_offset,
         )
-
-    @classmethod
-    def from_model(cls, model: BioTacModel) -> InflatedSkin:
-        """The inflated state of a `fe.sensor.BioTacModel` (inflate() it first)."""
-        return model.inflated_skin()
 
     def save(self, path: Path) -> None:
         """Write to an .npz file (arrays, plus the settings as JSON)."""
@@ -681,7 +671,7 @@ class BatchedShell:
         return self.evaluate(self.x_trial, hessians, pressure, running)
 
     def settle(self, state: NewtonBatch, lin: BatchLinearization) -> np.ndarray:
-        """Decide the line-search trials just evaluated (`fe.newton._line_search`'s acceptance rules, one
+        """Decide the line-search trials just evaluated (the acceptance rules of the backtracking, one
         trial per round): accepted systems move there, the others shorten their step (`_backtrack`), and a
         search that runs out of backtracks goes on with the residual norm, then with the next damping.
         Returns the running systems evaluated at their (possibly new) positions, ready for `check` and
@@ -726,7 +716,7 @@ class BatchedShell:
         return stopped
 
     def check(self, state: NewtonBatch, lin: BatchLinearization, friction: bool, at_x: np.ndarray) -> np.ndarray:
-        """The stopping rules (`fe.newton.NewtonSettings`) for the running systems evaluated at their
+        """The stopping rules (`fe.params.NewtonSettings`) for the running systems evaluated at their
         positions (`at_x`): refresh lagged friction near convergence (`friction`), then stop systems that
         converged, failed or reached the iteration limit. Returns the systems that stopped now ((B,) bool);
         their residual and volume are recorded in `state`."""
@@ -817,7 +807,7 @@ class BatchedShell:
         curvature: np.ndarray,
         which: np.ndarray,
     ) -> None:
-        """Set up the backtracking of `fe.newton._line_search` along (self.dq, dp) for the systems in `which`:
+        """Set up the backtracking line search along (self.dq, dp) for the systems in `which`:
         on the merit function E - p_new (V - V0) + rho/2 (V - V0)^2 where its slope is resolved, else on the
         residual norm; the first trial is the full step."""
         cc = np.where(c != 0.0, c * c, 1.0)

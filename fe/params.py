@@ -1,4 +1,4 @@
-"""Parameters of the skin model and of its numerics, with physical-bounds checks.
+"""Parameters of the skin model and of its numerics (contact, Newton), with physical-bounds checks.
 
 Defaults are the paper's calibrated optimum (Narang et al., Table I): t_s = 1.57e-3 m,
 mu_NH = 2.80e5 Pa, mu_fr = 0.186, T_fl = 29.19 C with beta_T = 0.01 /C.
@@ -284,3 +284,26 @@ class ContactSettings:
             raise ValueError(f"max_penetration={self.max_penetration} must be positive")
         if not 0.0 < self.min_stretch < 1.0:
             raise ValueError(f"min_stretch={self.min_stretch} must be within (0, 1)")
+
+
+@dataclass(frozen=True)
+class NewtonSettings:
+    """Newton's stopping rules and step controls (`fe.batched.BatchedShell`, which solves grad E(x) - p grad V(x)
+    = 0 and V(x) = V_target for the free positions x (m) and the fluid pressure p (Pa), the Lagrange multiplier
+    of the volume constraint, through the bordered KKT system's Schur complement, backtracking on an
+    augmented-Lagrangian merit function): residual force (infinity norm), relative volume error, iteration cap.
+
+    The residual must fall below max(force_tolerance (N), relative_force_tolerance x the largest nodal
+    load |grad E| or |p grad V|), i.e. a part-per-million balance of every node's forces by default.
+    """
+
+    force_tolerance: float = 1e-10
+    relative_force_tolerance: float = 1e-6
+    volume_tolerance: float = 1e-10
+    max_iterations: int = 60
+    max_backtracks: int = 30
+    refresh_factor: float = 1e5
+    """Lagged quantities are refreshed, and chord steps tried, once the residual is below refresh_factor x
+    its tolerance."""
+    chord_contraction: float = 0.2
+    """A chord step (last factorisation reused) is kept when it cuts the residual by at least this factor."""

@@ -16,8 +16,7 @@ from assets.indenters import Indenter, get_indenter
 from fe.batched import InflatedSkin
 from fe.batched_stepper import BatchedStepper
 from fe.indentation import IncrementResult, IndentationStepper, Trajectory, drive
-from fe.newton import NewtonSettings
-from fe.params import ContactSettings, SkinParameters
+from fe.params import ContactSettings, NewtonSettings, SkinParameters
 from fe.surface_quadrature import rule
 from fe.trapped_air import TrappedAir
 from fe.wptypes import host_device
