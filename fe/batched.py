@@ -554,29 +554,21 @@ class BatchedShell:
         liquid = totals[:, 0] - self.air.volume(pressure)
         return BatchLinearization(energy, liquid, stats[:, 0].copy(), np.sqrt(stats[:, 1]), stats[:, 2].copy())
 
-    def proximity(self, x: wp.array, rows: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    def proximity(self, x: wp.array, rows: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
         """Gap (k,V) m of each skin vertex (negative inside the contact band) and unit SDF normals (k,V,3) of x
-        to each indenter, and the smallest gap over every skin triangle's quadrature points (k,) m (negative:
-        the surface contact acts, whatever the vertices' gaps), for the systems `rows` (k,) (the shell's gap
-        buffers then hold all B systems' values)."""
-        self._gaps(x)
-        face_gap = get_rows(self.buf["indenter_face_gap"], rows).min(axis=1)
-        return get_rows(self.buf["indenter_gap"], rows), get_rows(self.buf["indenter_normal"], rows), face_gap
-
-    def _gaps(self, x: wp.array) -> None:
-        """Indenter gaps and normals of positions x (B,V), and the triangles' smallest quadrature-point gaps,
-        into the shell's buffers."""
-        values = {**self._static, "x": x, "gap": self.buf["indenter_gap"], "normal": self.buf["indenter_normal"]}
+        to each indenter, the smallest gap over every skin triangle's quadrature points (k,) m (negative: the
+        surface contact acts, whatever the vertices' gaps), and the largest change (k,) m of a quadrature
+        point's gap as each indenter moves from its start pose to its pose (`set_poses`), among the points in
+        contact at either (`fe.contact.indenter_face_gap_kernel`), for the systems `rows` (k,) (the shell's
+        gap buffers then hold all B systems' values)."""
+        buf = self.buf
+        values = {**self._static, "x": x, "gap": buf["indenter_gap"], "normal": buf["indenter_normal"]}
         self._launch_indenters(contact.indenter_gap_kernel, values)
-        self._launch_faces(contact.indenter_face_gap_kernel, {**values, "face_gap": self.buf["indenter_face_gap"]})
-
-    def face_gap_change(self, x: wp.array, rows: np.ndarray) -> np.ndarray:
-        """The largest change (m) of a quadrature point's gap (`fe.contact.indenter_face_sweep_kernel`) over
-        the skin at positions x (B,V) as each indenter moves from its start pose to its pose (`set_poses`),
-        among the points in contact at either, for the systems `rows`: (k,)."""
-        moved = self.buf["indenter_face_moved"]
-        self._launch_faces(contact.indenter_face_sweep_kernel, {**self._static, "x": x, "face_moved": moved})
-        return get_rows(moved, rows).max(axis=1)
+        values |= {"face_gap": buf["indenter_face_gap"], "face_moved": buf["indenter_face_moved"]}
+        self._launch_faces(contact.indenter_face_gap_kernel, values)
+        face_gap = get_rows(buf["indenter_face_gap"], rows).min(axis=1)
+        moved = get_rows(buf["indenter_face_moved"], rows).max(axis=1)
+        return get_rows(buf["indenter_gap"], rows), get_rows(buf["indenter_normal"], rows), face_gap, moved
 
     def indenter_clearance(self, parts: wp.array, floor: np.ndarray, which: np.ndarray) -> np.ndarray:
         """Nearest approach (m) of each `which` system's (B,) bool indenter body to the rigid core at its pose,
