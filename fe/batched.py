@@ -623,12 +623,8 @@ class BatchedShell:
         stats = self._stats.numpy()
         changed = mask & (stats[:, 0] > self.skin.contact.friction_tolerance * np.maximum(stats[:, 1], 1e-12))
         if changed.any():
-            wp.launch(
-                bk.lag_apply,
-                (self.batch, self.n_vertices),
-                [self._flags(changed), self._candidate, self._candidate_normal, self.lagged_force, self.lagged_normal],
-                device=self.device,
-            )
+            lagged = (self.lagged_force, self.lagged_normal)
+            self._launch_vertices(bk.lag_apply, self._flags(changed), self._candidate, self._candidate_normal, *lagged)
         return changed
 
     def begin(self, state: NewtonBatch, which: np.ndarray, pressure: np.ndarray) -> None:
@@ -775,8 +771,7 @@ class BatchedShell:
         the linear solver holds from an earlier iterate (no assembly, no factorisation), tried at full length
         in the next round (`settle` keeps it when the residual falls by `chord_contraction`). Returns the
         systems that got one; the others are marked as having failed a chord here."""
-        B = self.batch
-        wp.launch(bk.newton_rhs, (B, self.n_vertices), [self.residual, self.bvec, self.rhs], device=self.device)
+        self._launch_vertices(bk.newton_rhs, self.residual, self.bvec, self.rhs)
         u, _, solved = self.linear.resolve(self.rhs, self._system_of, np.concatenate([which, which]))
         dp, ok = self._bordered(u, solved, c, state.pressure, which)
         state.chord_failed |= which & ~ok
@@ -843,7 +838,7 @@ class BatchedShell:
     ) -> tuple[np.ndarray, np.ndarray]:
         """Assemble K = H_E - p H_V (+ damping), solve K u1 = -r, K u2 = b (`self.linear`); dq of the masked
         systems (in self.dq; the other rows keep theirs) and dp (B,)."""
-        buf, B = self.buf, self.batch
+        buf = self.buf
         start = time.perf_counter()
         self.linear.assemble(
             [
@@ -856,7 +851,7 @@ class BatchedShell:
             damping,
             mask,
         )
-        wp.launch(bk.newton_rhs, (B, self.n_vertices), [self.residual, self.bvec, self.rhs], device=self.device)
+        self._launch_vertices(bk.newton_rhs, self.residual, self.bvec, self.rhs)
         active = np.concatenate([mask, mask])
         u, iterations, state = self.linear.solve(
             self.rhs, self._system_of, active, np.concatenate([eta, eta]), self.cg_max_iterations
@@ -879,12 +874,7 @@ class BatchedShell:
         schur = bu2 + self.air.compliance(pressure)
         ok &= np.isfinite(schur) & (schur != 0.0)
         dp = np.where(ok, -(c + bu1) / np.where(ok, schur, 1.0), 0.0)
-        wp.launch(
-            bk.combine,
-            (B, self.n_vertices),
-            [u, self._per_system("dp", dp), self._flags(mask), self.dq],
-            device=self.device,
-        )
+        self._launch_vertices(bk.combine, u, self._per_system("dp", dp), self._flags(mask), self.dq)
         return dp, ok
 
     def _two_dots(self, x: wp.array, a: wp.array, b: wp.array) -> tuple[np.ndarray, np.ndarray]:
@@ -901,12 +891,11 @@ class BatchedShell:
 
     def _axpy(self, x: wp.array, step: np.ndarray, out: wp.array) -> None:
         """out = x + step dq per system (rows with step 0 copied from x, whatever dq holds)."""
-        wp.launch(
-            bk.axpy,
-            (self.batch, self.n_vertices),
-            [x, self._per_system("step", step), self.dq, out],
-            device=self.device,
-        )
+        self._launch_vertices(bk.axpy, x, self._per_system("step", step), self.dq, out)
+
+    def _launch_vertices(self, kernel: wp.Kernel, *args: wp.array) -> None:
+        """Launch `kernel` over every (system, skin vertex) with the positional arguments `args`."""
+        wp.launch(kernel, (self.batch, self.n_vertices), list(args), device=self.device)
 
     def _flags(self, mask: np.ndarray) -> wp.array:
         """(B,) int32 flags of a boolean mask, in a device array reused between calls."""

@@ -346,7 +346,7 @@ class BatchedStepper:
             travel = translation - self._start_translation
             self._increment_travel[solving] = travel[solving]
             self._admitted_at[solving] = start
-            self._start_solves(solving, travel)
+            self._begin(solving, self._predict(np.flatnonzero(solving), travel[solving]))  # warm-started
         free = {int(i): self._free_result(int(i), float(depth[i])) for i in np.flatnonzero(untouched | released)}
         return free | refused
 
@@ -439,11 +439,6 @@ class BatchedStepper:
             self.x[done], self.pressure[done] = get_rows(shell.x, done), state.pressure[done]
         state.target[which & ~converged] = held[which & ~converged]
         return converged, list(state.message)
-
-    def _start_solves(self, solving: np.ndarray, travel: np.ndarray) -> None:
-        """Warm-start the `solving` systems from their last equilibria and begin their Newton solves."""
-        rows = np.flatnonzero(solving)
-        self._begin(solving, self._predict(rows, travel[rows]))
 
     def _begin(self, which: np.ndarray, start: np.ndarray) -> None:
         """Begin Newton for the `which` systems from positions `start` (k,V,3) m, their last equilibria being

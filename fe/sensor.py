@@ -78,10 +78,13 @@ class BioTacModel:
         self._outer: tuple[np.ndarray, trimesh.Trimesh] | None = None
 
     # -- inflation ---------------------------------------------------------------------------
+    def _outer_vertices(self, x: np.ndarray) -> np.ndarray:
+        """The outer skin surface's vertices (V,3) m: mid-surface x offset by t/2 along the vertex normals."""
+        return x + 0.5 * self.params.thickness * vertex_normals(x, self.geometry.skin.triangles)
+
     def thickness(self, x: np.ndarray) -> float:
         """Sensor thickness (m): fixed dorsal top minus the lowest point of the outer skin surface."""
-        outer = x + 0.5 * self.params.thickness * vertex_normals(x, self.geometry.skin.triangles)
-        return float(self.geometry.dorsal_top_z - outer[:, 2].min())
+        return float(self.geometry.dorsal_top_z - self._outer_vertices(x)[:, 2].min())
 
     def _solve_volume(self, volume: float, start_volume: float, splits: int = 4) -> tuple[bool, str]:
         """Equilibrium at `volume` (m^3) from the state held at `start_volume`; a jump that does not converge
@@ -110,9 +113,9 @@ class BioTacModel:
                 raise ValueError("thermal inflation needs a geometry with a positive cavity_volume_reference")
             dv_total = beta_v * (self.params.fluid_temperature - self.params.reference_temperature)
             return self._fill(v, v + self.params.inflation_volume_scale * dv_total, volume_step)
-        if target_thickness <= self.thickness(self._inflation.x[0]):
-            raise ValueError(f"target thickness {target_thickness * 1e3:.2f} mm is below the unpressurised one")
         lo_v, lo_t = v, self.thickness(self._inflation.x[0])
+        if target_thickness <= lo_t:
+            raise ValueError(f"target thickness {target_thickness * 1e3:.2f} mm is below the unpressurised one")
         for _ in range(200):
             hi_v = lo_v + volume_step * abs(self._volume0)
             converged, message = self._solve_volume(hi_v, lo_v)
@@ -184,9 +187,7 @@ class BioTacModel:
         inflated state, so its spatial index is built once)."""
         x = self._require_reference()
         if self._outer is None or self._outer[0] is not x:
-            tri = self.geometry.skin.triangles
-            outer = x + 0.5 * self.params.thickness * vertex_normals(x, tri)
-            self._outer = (x, trimesh.Trimesh(outer, tri, process=False))
+            self._outer = (x, trimesh.Trimesh(self._outer_vertices(x), self.geometry.skin.triangles, process=False))
         return self._outer[1]
 
     def _require_reference(self) -> np.ndarray:
