@@ -56,6 +56,8 @@ class BioTacModel:
         self.geometry = geometry
         self.params = params
         self.newton = newton
+        self._thermal_volume = params.thermal_expansion * geometry.cavity_volume_reference
+        """beta_T V_cavity (m^3/C): the fluid volume the thermal parametrisation adds per degree."""
         skin, core = geometry.skin, geometry.core
         self.rest_skin = InflatedSkin.at_rest(
             skin.vertices,
@@ -105,13 +107,12 @@ class BioTacModel:
         Volume steps are `volume_step` of the initial enclosed volume until the thickness is bracketed,
         then secant refinement to 1 um. The skin has its long-term (fully relaxed) moduli.
         """
-        beta_v = self.params.thermal_expansion * self.geometry.cavity_volume_reference
         self._inflation.reset()
         v = self._volume0
         if target_thickness is None:
-            if beta_v <= 0:
+            if self._thermal_volume <= 0:
                 raise ValueError("thermal inflation needs a geometry with a positive cavity_volume_reference")
-            dv_total = beta_v * (self.params.fluid_temperature - self.params.reference_temperature)
+            dv_total = self._thermal_volume * (self.params.fluid_temperature - self.params.reference_temperature)
             return self._fill(v, v + self.params.inflation_volume_scale * dv_total, volume_step)
         lo_v, lo_t = v, self.thickness(self._inflation.x[0])
         if target_thickness <= lo_t:
@@ -164,8 +165,8 @@ class BioTacModel:
         self.target_volume = volume
         self._inflated = None
         dv = volume - self._volume0
-        beta_v = self.params.thermal_expansion * self.geometry.cavity_volume_reference
-        t_eq = self.params.reference_temperature + dv / beta_v if beta_v > 0 else float("nan")
+        rise = dv / self._thermal_volume if self._thermal_volume > 0 else float("nan")
+        t_eq = self.params.reference_temperature + rise  # C
         return InflationResult(dv, self.pressure, self.thickness(self.reference), t_eq, converged, message)
 
     def inflated_skin(self) -> InflatedSkin:
