@@ -107,7 +107,7 @@ def plan_batch(args: argparse.Namespace) -> tuple[InflatedSkin, dict[str, np.nda
         raise RuntimeError("inflation did not converge")
     names = list(INDENTERS) if args.indenters == "all" else args.indenters.split(",")
     paths = random_paths(model, _count(args), names, args.seed, args.depth_mm * 1e-3)
-    skin = InflatedSkin.from_model(model)
+    skin = model.inflated_skin()
     if folder is not None:
         folder.mkdir(parents=True, exist_ok=True)
         skin.save(folder / "skin.npz")

@@ -16,8 +16,7 @@ import trimesh
 from assets.indenters import get_indenter
 from fe.batched import InflatedSkin
 from fe.batched_stepper import BatchedStepper
-from fe.newton import NewtonSettings
-from fe.params import SkinParameters
+from fe.params import NewtonSettings, SkinParameters
 from fe.shell import ShellMesh
 
 

@@ -3,9 +3,9 @@
 `InflatedSkin` is the model (mesh, core, parameters, settings) with its starting state; `BatchedShell` stacks
 B independent systems of it (each with its own indenter, pose, friction lagging, viscoelastic state and
 trapped air) into warp arrays with a leading batch axis and evaluates every energy term for all of them with
-one launch per kernel (the kernels of fe/membrane.py, fe/viscoelastic.py, fe/bending.py, fe/volume.py and
-fe/contact.py), then assembles the B Newton matrices into one batched block-sparse matrix on the device.
-The linear algebra follows the device: one sparse direct factorisation per system on the CPU
+one launch per kernel (the kernels of fe/membrane.py, with the viscoelastic frozen stress, fe/bending.py,
+fe/volume.py and fe/contact.py), then assembles the B Newton matrices into one batched block-sparse matrix on
+the device. The linear algebra follows the device: one sparse direct factorisation per system on the CPU
 (`fe.linsolve.BatchedDirectSolver`: PARDISO or SuperLU, with chord steps that reuse it near convergence),
 batched CG on a GPU (`fe.device_solver.BatchedCG`). Newton solves the KKT system of the held volume through
 its Schur complement (K u1 = -r, K u2 = b; trapped air adds its compliance), backtracks on an
@@ -27,24 +27,19 @@ import time
 from collections.abc import Sequence
 from dataclasses import asdict, dataclass, fields
 from pathlib import Path
-from typing import TYPE_CHECKING
 
 import numpy as np
 import warp as wp
 
 from fe import batched_kernels as bk
-from fe import bending, contact, membrane, viscoelastic, volume
+from fe import bending, contact, membrane, volume
 from fe.device_solver import CG_NEGATIVE_CURVATURE, BatchedBlockMatrix, BatchedCG, BlockPattern
 from fe.linsolve import BatchedDirectSolver
-from fe.newton import NewtonSettings
-from fe.params import ContactSettings, SkinParameters
+from fe.params import ContactSettings, NewtonSettings, SkinParameters
 from fe.shell import lumped_areas
 from fe.surface_quadrature import rule
 from fe.trapped_air import TrappedAir
 from fe.wptypes import mat99d, mat1818d, vec6i
-
-if TYPE_CHECKING:
-    from fe.sensor import BioTacModel
 
 _ENERGY_RESOLUTION = 1e-12
 LINEAR_SOLVERS = ("auto", "direct", "cg")
@@ -126,11 +121,6 @@ class InflatedSkin:
             target_volume=float("nan"),
             indenter_offset=indenter_offset,
         )
-
-    @classmethod
-    def from_model(cls, model: BioTacModel) -> InflatedSkin:
-        """The inflated state of a `fe.sensor.BioTacModel` (inflate() it first)."""
-        return model.inflated_skin()
 
     def save(self, path: Path) -> None:
         """Write to an .npz file (arrays, plus the settings as JSON)."""
@@ -303,7 +293,7 @@ class BatchedShell:
         self._stencils = stencils
         self.n_triangles, self.n_bending = len(tri), len(stencils)
         self.relaxes = any(p.relaxation_fraction > 0.0 for p in params)
-        """Whether the membrane's frozen (viscoelastic) stress term is evaluated."""
+        """Whether the skin relaxes (viscoelastic: the membrane's frozen stresses and the bending rest angles move)."""
         self.air = TrappedAir(np.array([s.air_boyle for s in self.skins], dtype=np.float64))
         """The cavity's trapped air, one bubble per system (`fe.trapped_air`)."""
         arr = lambda a, dtype: wp.array(a, dtype=dtype, device=device)  # noqa: E731
@@ -489,13 +479,6 @@ class BatchedShell:
             {**common, "energy": buf["membrane_energy"], "gradient": elastic, "hessian": buf["membrane_hessian"]},
             dev,
         )
-        if self.relaxes:
-            launch(
-                viscoelastic.frozen_stress_kernel,
-                (B, nt),
-                {**common, "energy": buf["membrane_energy"], "gradient": elastic, "hessian": buf["membrane_hessian"]},
-                dev,
-            )
         if nh:
             launch(
                 bending.bending_kernel,
@@ -571,29 +554,21 @@ class BatchedShell:
         liquid = totals[:, 0] - self.air.volume(pressure)
         return BatchLinearization(energy, liquid, stats[:, 0].copy(), np.sqrt(stats[:, 1]), stats[:, 2].copy())
 
-    def proximity(self, x: wp.array, rows: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    def proximity(self, x: wp.array, rows: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
         """Gap (k,V) m of each skin vertex (negative inside the contact band) and unit SDF normals (k,V,3) of x
-        to each indenter, and the smallest gap over every skin triangle's quadrature points (k,) m (negative:
-        the surface contact acts, whatever the vertices' gaps), for the systems `rows` (k,) (the shell's gap
-        buffers then hold all B systems' values)."""
-        self._gaps(x)
-        face_gap = get_rows(self.buf["indenter_face_gap"], rows).min(axis=1)
-        return get_rows(self.buf["indenter_gap"], rows), get_rows(self.buf["indenter_normal"], rows), face_gap
-
-    def _gaps(self, x: wp.array) -> None:
-        """Indenter gaps and normals of positions x (B,V), and the triangles' smallest quadrature-point gaps,
-        into the shell's buffers."""
-        values = {**self._static, "x": x, "gap": self.buf["indenter_gap"], "normal": self.buf["indenter_normal"]}
+        to each indenter, the smallest gap over every skin triangle's quadrature points (k,) m (negative: the
+        surface contact acts, whatever the vertices' gaps), and the largest change (k,) m of a quadrature
+        point's gap as each indenter moves from its start pose to its pose (`set_poses`), among the points in
+        contact at either (`fe.contact.indenter_face_gap_kernel`), for the systems `rows` (k,) (the shell's
+        gap buffers then hold all B systems' values)."""
+        buf = self.buf
+        values = {**self._static, "x": x, "gap": buf["indenter_gap"], "normal": buf["indenter_normal"]}
         self._launch_indenters(contact.indenter_gap_kernel, values)
-        self._launch_faces(contact.indenter_face_gap_kernel, {**values, "face_gap": self.buf["indenter_face_gap"]})
-
-    def face_gap_change(self, x: wp.array, rows: np.ndarray) -> np.ndarray:
-        """The largest change (m) of a quadrature point's gap (`fe.contact.indenter_face_sweep_kernel`) over
-        the skin at positions x (B,V) as each indenter moves from its start pose to its pose (`set_poses`),
-        among the points in contact at either, for the systems `rows`: (k,)."""
-        moved = self.buf["indenter_face_moved"]
-        self._launch_faces(contact.indenter_face_sweep_kernel, {**self._static, "x": x, "face_moved": moved})
-        return get_rows(moved, rows).max(axis=1)
+        values |= {"face_gap": buf["indenter_face_gap"], "face_moved": buf["indenter_face_moved"]}
+        self._launch_faces(contact.indenter_face_gap_kernel, values)
+        face_gap = get_rows(buf["indenter_face_gap"], rows).min(axis=1)
+        moved = get_rows(buf["indenter_face_moved"], rows).max(axis=1)
+        return get_rows(buf["indenter_gap"], rows), get_rows(buf["indenter_normal"], rows), face_gap, moved
 
     def indenter_clearance(self, parts: wp.array, floor: np.ndarray, which: np.ndarray) -> np.ndarray:
         """Nearest approach (m) of each `which` system's (B,) bool indenter body to the rigid core at its pose,
@@ -648,12 +623,8 @@ class BatchedShell:
         stats = self._stats.numpy()
         changed = mask & (stats[:, 0] > self.skin.contact.friction_tolerance * np.maximum(stats[:, 1], 1e-12))
         if changed.any():
-            wp.launch(
-                bk.lag_apply,
-                (self.batch, self.n_vertices),
-                [self._flags(changed), self._candidate, self._candidate_normal, self.lagged_force, self.lagged_normal],
-                device=self.device,
-            )
+            lagged = (self.lagged_force, self.lagged_normal)
+            self._launch_vertices(bk.lag_apply, self._flags(changed), self._candidate, self._candidate_normal, *lagged)
         return changed
 
     def begin(self, state: NewtonBatch, which: np.ndarray, pressure: np.ndarray) -> None:
@@ -688,7 +659,7 @@ class BatchedShell:
         return self.evaluate(self.x_trial, hessians, pressure, running)
 
     def settle(self, state: NewtonBatch, lin: BatchLinearization) -> np.ndarray:
-        """Decide the line-search trials just evaluated (`fe.newton._line_search`'s acceptance rules, one
+        """Decide the line-search trials just evaluated (the acceptance rules of the backtracking, one
         trial per round): accepted systems move there, the others shorten their step (`_backtrack`), and a
         search that runs out of backtracks goes on with the residual norm, then with the next damping.
         Returns the running systems evaluated at their (possibly new) positions, ready for `check` and
@@ -733,7 +704,7 @@ class BatchedShell:
         return stopped
 
     def check(self, state: NewtonBatch, lin: BatchLinearization, friction: bool, at_x: np.ndarray) -> np.ndarray:
-        """The stopping rules (`fe.newton.NewtonSettings`) for the running systems evaluated at their
+        """The stopping rules (`fe.params.NewtonSettings`) for the running systems evaluated at their
         positions (`at_x`): refresh lagged friction near convergence (`friction`), then stop systems that
         converged, failed or reached the iteration limit. Returns the systems that stopped now ((B,) bool);
         their residual and volume are recorded in `state`."""
@@ -800,8 +771,7 @@ class BatchedShell:
         the linear solver holds from an earlier iterate (no assembly, no factorisation), tried at full length
         in the next round (`settle` keeps it when the residual falls by `chord_contraction`). Returns the
         systems that got one; the others are marked as having failed a chord here."""
-        B = self.batch
-        wp.launch(bk.newton_rhs, (B, self.n_vertices), [self.residual, self.bvec, self.rhs], device=self.device)
+        self._launch_vertices(bk.newton_rhs, self.residual, self.bvec, self.rhs)
         u, _, solved = self.linear.resolve(self.rhs, self._system_of, np.concatenate([which, which]))
         dp, ok = self._bordered(u, solved, c, state.pressure, which)
         state.chord_failed |= which & ~ok
@@ -824,7 +794,7 @@ class BatchedShell:
         curvature: np.ndarray,
         which: np.ndarray,
     ) -> None:
-        """Set up the backtracking of `fe.newton._line_search` along (self.dq, dp) for the systems in `which`:
+        """Set up the backtracking line search along (self.dq, dp) for the systems in `which`:
         on the merit function E - p_new (V - V0) + rho/2 (V - V0)^2 where its slope is resolved, else on the
         residual norm; the first trial is the full step."""
         cc = np.where(c != 0.0, c * c, 1.0)
@@ -868,7 +838,7 @@ class BatchedShell:
     ) -> tuple[np.ndarray, np.ndarray]:
         """Assemble K = H_E - p H_V (+ damping), solve K u1 = -r, K u2 = b (`self.linear`); dq of the masked
         systems (in self.dq; the other rows keep theirs) and dp (B,)."""
-        buf, B = self.buf, self.batch
+        buf = self.buf
         start = time.perf_counter()
         self.linear.assemble(
             [
@@ -881,7 +851,7 @@ class BatchedShell:
             damping,
             mask,
         )
-        wp.launch(bk.newton_rhs, (B, self.n_vertices), [self.residual, self.bvec, self.rhs], device=self.device)
+        self._launch_vertices(bk.newton_rhs, self.residual, self.bvec, self.rhs)
         active = np.concatenate([mask, mask])
         u, iterations, state = self.linear.solve(
             self.rhs, self._system_of, active, np.concatenate([eta, eta]), self.cg_max_iterations
@@ -904,12 +874,7 @@ class BatchedShell:
         schur = bu2 + self.air.compliance(pressure)
         ok &= np.isfinite(schur) & (schur != 0.0)
         dp = np.where(ok, -(c + bu1) / np.where(ok, schur, 1.0), 0.0)
-        wp.launch(
-            bk.combine,
-            (B, self.n_vertices),
-            [u, self._per_system("dp", dp), self._flags(mask), self.dq],
-            device=self.device,
-        )
+        self._launch_vertices(bk.combine, u, self._per_system("dp", dp), self._flags(mask), self.dq)
         return dp, ok
 
     def _two_dots(self, x: wp.array, a: wp.array, b: wp.array) -> tuple[np.ndarray, np.ndarray]:
@@ -926,12 +891,11 @@ class BatchedShell:
 
     def _axpy(self, x: wp.array, step: np.ndarray, out: wp.array) -> None:
         """out = x + step dq per system (rows with step 0 copied from x, whatever dq holds)."""
-        wp.launch(
-            bk.axpy,
-            (self.batch, self.n_vertices),
-            [x, self._per_system("step", step), self.dq, out],
-            device=self.device,
-        )
+        self._launch_vertices(bk.axpy, x, self._per_system("step", step), self.dq, out)
+
+    def _launch_vertices(self, kernel: wp.Kernel, *args: wp.array) -> None:
+        """Launch `kernel` over every (system, skin vertex) with the positional arguments `args`."""
+        wp.launch(kernel, (self.batch, self.n_vertices), list(args), device=self.device)
 
     def _flags(self, mask: np.ndarray) -> wp.array:
         """(B,) int32 flags of a boolean mask, in a device array reused between calls."""

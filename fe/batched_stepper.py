@@ -319,7 +319,7 @@ class BatchedStepper:
         free_now = np.zeros(self.batch, dtype=bool)
         free_ref = np.zeros(self.batch, dtype=bool)
         free_now[rows], pressed = self._sweep(rows)
-        gap_ref, _, face_ref = shell.proximity(self._reference_w, rows)
+        gap_ref, _, face_ref, _ = shell.proximity(self._reference_w, rows)
         free_ref[rows] = (gap_ref.min(axis=1) >= 0.0) & (face_ref >= 0.0)
         relaxed = np.ones(self.batch, dtype=bool)
         if self.relaxation is not None:
@@ -346,7 +346,7 @@ class BatchedStepper:
             travel = translation - self._start_translation
             self._increment_travel[solving] = travel[solving]
             self._admitted_at[solving] = start
-            self._start_solves(solving, travel)
+            self._begin(solving, self._predict(np.flatnonzero(solving), travel[solving]))  # warm-started
         free = {int(i): self._free_result(int(i), float(depth[i])) for i in np.flatnonzero(untouched | released)}
         return free | refused
 
@@ -354,8 +354,8 @@ class BatchedStepper:
         """Whether the skin of systems `rows` at its last state (in the shell's `x_trial`) stays clear of the
         indenter along the whole move from its start pose to its new one ((k,) bool), and how far (m) the
         indenter's surface moves against that skin ((k,)): summed over the sweep's pieces, the largest change
-        of the gap of a skin vertex or of a quadrature point of the surface contact (`BatchedShell.
-        face_gap_change`) among those touching at either end of the piece. Poses are sampled (rotations
+        of the gap of a skin vertex or of a quadrature point of the surface contact (`BatchedShell.proximity`)
+        among those touching at either end of the piece. Poses are sampled (rotations
         by slerp, tips on the line) every half-thickness or less of the travel bound |dt| + |dtheta| r_head
         (`fe.indenter_sdf.head_radius`), so the skin is not passed unseen between samples; the shell's poses
         are left at the new ones."""
@@ -378,13 +378,13 @@ class BatchedStepper:
             rotation[rows] = Rotation.from_rotvec(f[:, None] * turn).as_matrix() @ start_r
             translation[rows] = start_t + f[:, None] * shift
             shell.set_poses(rotation, translation, last_rotation, last_translation)
-            gap, _, face_gap = shell.proximity(shell.x_trial, rows)
+            gap, _, face_gap, face_moved = shell.proximity(shell.x_trial, rows)
             live = (step >= 1) & (step <= pieces)
             clear &= ~live | ((gap.min(axis=1) >= 0.0) & (face_gap >= 0.0))
             if before is not None:
                 touching = (gap < 0.0) | (before < 0.0)
                 moved = np.where(touching, np.abs(gap - before), 0.0).max(axis=1)
-                moved = np.maximum(moved, shell.face_gap_change(shell.x_trial, rows))
+                moved = np.maximum(moved, face_moved)
                 pressed += np.where(live, moved, 0.0)
             before = gap
             last_rotation[rows], last_translation[rows] = rotation[rows], translation[rows]
@@ -440,11 +440,6 @@ class BatchedStepper:
         state.target[which & ~converged] = held[which & ~converged]
         return converged, list(state.message)
 
-    def _start_solves(self, solving: np.ndarray, travel: np.ndarray) -> None:
-        """Warm-start the `solving` systems from their last equilibria and begin their Newton solves."""
-        rows = np.flatnonzero(solving)
-        self._begin(solving, self._predict(rows, travel[rows]))
-
     def _begin(self, which: np.ndarray, start: np.ndarray) -> None:
         """Begin Newton for the `which` systems from positions `start` (k,V,3) m, their last equilibria being
         the increment's start (friction slip) and their lagged contact forces taken at `start`."""
@@ -466,7 +461,7 @@ class BatchedStepper:
         share = np.where(has_motion, np.clip(repeat, 0.0, 1.0), 0.0)
         x = self.x[rows] + share[:, None, None] * np.where(has_motion[:, None, None], self._motion[rows], 0.0)
         put_rows(self.shell.x_trial, rows, x)
-        gap, normal, _ = self.shell.proximity(self.shell.x_trial, rows)
+        gap, normal, _, _ = self.shell.proximity(self.shell.x_trial, rows)
         depth = np.minimum(self._gap[rows] + share[:, None] * self._gap_change[rows], 0.0)
         x += np.maximum(depth - gap, 0.0)[:, :, None] * normal
         return np.where(self.shell.fixed, self.x[rows], x)

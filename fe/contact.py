@@ -317,9 +317,7 @@ def indenter_surface_kernel(
         return
     H = mat99d()
     e = zero
-    g0 = wp.vec3d()
-    g1 = wp.vec3d()
-    g2 = wp.vec3d()
+    nodal = wp.mat33d()  # row i: the gradient on node i
     least = wp.float64(1.0e30)
     for k in range(quadrature.shape[0]):
         q = quadrature[k]
@@ -331,10 +329,7 @@ def indenter_surface_kernel(
             n = wp.vec3d(gn[1], gn[2], gn[3])
             law = layer_response(g, h, layer_mu[b], q[3] * rest_area[f], kappa, min_stretch)
             e += law[0]
-            dg = n * law[1]
-            g0 += dg * q[0]
-            g1 += dg * q[1]
-            g2 += dg * q[2]
+            nodal += wp.outer(wp.vec3d(q[0], q[1], q[2]), n * law[1])
             if want_hessian != 0:
                 K = law[2] * wp.outer(n, n) + law[1] * _sdf_curvature_world(shape, size, R, t, p, n)
                 for i in range(3):
@@ -348,12 +343,9 @@ def indenter_surface_kernel(
     if least < zero:
         if want_hessian != 0:
             face_hessian[b, f] = face_hessian[b, f] + H
-        wp.atomic_add(gradient, b, tri[0], g0)
-        wp.atomic_add(gradient, b, tri[1], g1)
-        wp.atomic_add(gradient, b, tri[2], g2)
-        wp.atomic_sub(vertex_force, b, tri[0], g0)
-        wp.atomic_sub(vertex_force, b, tri[1], g1)
-        wp.atomic_sub(vertex_force, b, tri[2], g2)
+        for i in range(3):
+            wp.atomic_add(gradient, b, tri[i], nodal[i])
+            wp.atomic_sub(vertex_force, b, tri[i], nodal[i])
 
 
 @wp.kernel
@@ -365,44 +357,18 @@ def indenter_face_gap_kernel(
     dims: wp.array(dtype=wp.vec4d),
     rotation: wp.array(dtype=wp.mat33d),
     translation: wp.array(dtype=wp.vec3d),
-    offset: wp.array(dtype=wp.float64),
-    face_gap: wp.array2d(dtype=wp.float64),
-):
-    """face_gap[b, f] (m): the smallest gap over the quadrature points of skin triangle f to the indenter of
-    batch b, as `indenter_surface_kernel` reports it: `_triangle_bound` where that is positive."""
-    b, f = wp.tid()
-    tri = triangles[f]
-    p0 = x[b, tri[0]]
-    p1 = x[b, tri[1]]
-    p2 = x[b, tri[2]]
-    least = _triangle_bound(kind[b], dims[b], rotation[b], translation[b], offset[b], p0, p1, p2)
-    if least <= wp.float64(0.0):
-        least = wp.float64(1.0e30)
-        for k in range(quadrature.shape[0]):
-            p = _at(p0, p1, p2, quadrature[k])
-            gap = indenter_gap_and_normal(kind[b], dims[b], rotation[b], translation[b], offset[b], p)[0]
-            least = wp.min(least, gap)
-    face_gap[b, f] = least
-
-
-@wp.kernel
-def indenter_face_sweep_kernel(
-    x: wp.array2d(dtype=wp.vec3d),
-    triangles: wp.array(dtype=wp.vec3i),
-    quadrature: wp.array(dtype=wp.vec4d),
-    kind: wp.array(dtype=wp.int32),
-    dims: wp.array(dtype=wp.vec4d),
-    rotation: wp.array(dtype=wp.mat33d),
-    translation: wp.array(dtype=wp.vec3d),
     rotation_start: wp.array(dtype=wp.mat33d),
     translation_start: wp.array(dtype=wp.vec3d),
     offset: wp.array(dtype=wp.float64),
+    face_gap: wp.array2d(dtype=wp.float64),
     face_moved: wp.array2d(dtype=wp.float64),
 ):
-    """face_moved[b, f] (m): the largest change of a quadrature point's gap (`indenter_gap_and_normal`) on
-    skin triangle f, fixed at x[b], as the indenter of batch b moves from pose (rotation_start,
-    translation_start) to (rotation, translation), among the points in contact at either pose (0 where the
-    triangle clears the layer at both, `_triangle_bound`)."""
+    """face_gap[b, f] (m): the smallest gap over the quadrature points of skin triangle f to the indenter of
+    batch b at its pose (rotation, translation), as `indenter_surface_kernel` reports it: `_triangle_bound`
+    where that is positive. face_moved[b, f] (m): the largest change of a quadrature point's gap
+    (`indenter_gap_and_normal`) on the triangle, fixed at x[b], as the indenter moves from pose
+    (rotation_start, translation_start) to (rotation, translation), among the points in contact at either
+    pose (0 where the triangle clears the layer at both, `_triangle_bound`)."""
     b, f = wp.tid()
     tri = triangles[f]
     p0 = x[b, tri[0]]
@@ -416,17 +382,21 @@ def indenter_face_sweep_kernel(
     R0 = rotation_start[b]
     t0 = translation_start[b]
     zero = wp.float64(0.0)
-    face_moved[b, f] = zero
-    if _triangle_bound(shape, size, R, t, h, p0, p1, p2) > zero:
-        if _triangle_bound(shape, size, R0, t0, h, p0, p1, p2) > zero:
-            return
+    bound = _triangle_bound(shape, size, R, t, h, p0, p1, p2)
+    least = bound
     largest = zero
-    for k in range(quadrature.shape[0]):
-        p = _at(p0, p1, p2, quadrature[k])
-        now = indenter_gap_and_normal(shape, size, R, t, h, p)[0]
-        before = indenter_gap_and_normal(shape, size, R0, t0, h, p)[0]
-        if now < zero or before < zero:
-            largest = wp.max(largest, wp.abs(now - before))
+    if bound <= zero or _triangle_bound(shape, size, R0, t0, h, p0, p1, p2) <= zero:
+        nearest = wp.float64(1.0e30)
+        for k in range(quadrature.shape[0]):
+            p = _at(p0, p1, p2, quadrature[k])
+            now = indenter_gap_and_normal(shape, size, R, t, h, p)[0]
+            before = indenter_gap_and_normal(shape, size, R0, t0, h, p)[0]
+            nearest = wp.min(nearest, now)
+            if now < zero or before < zero:
+                largest = wp.max(largest, wp.abs(now - before))
+        if bound <= zero:
+            least = nearest
+    face_gap[b, f] = least
     face_moved[b, f] = largest
 
 

@@ -103,22 +103,6 @@ def _invert_diagonal(
         inverse[b, v] = wp.identity(n=3, dtype=wp.float64)
 
 
-@wp.func
-def _row_product(
-    values: wp.array2d(dtype=wp.mat33d),
-    offsets: wp.array(dtype=wp.int32),
-    columns: wp.array(dtype=wp.int32),
-    s: int,
-    c: int,
-    row: int,
-    x: wp.array2d(dtype=wp.vec3d),
-) -> wp.vec3d:
-    y = wp.vec3d()
-    for k in range(offsets[row], offsets[row + 1]):
-        y += values[s, k] @ x[c, columns[k]]
-    return y
-
-
 @wp.kernel
 def _multiply(
     values: wp.array2d(dtype=wp.mat33d),
@@ -130,7 +114,11 @@ def _multiply(
 ):
     """y[c] = A[system_of[c]] x[c]."""
     c, row = wp.tid()
-    y[c, row] = _row_product(values, offsets, columns, system_of[c], c, row, x)
+    s = system_of[c]
+    out = wp.vec3d()
+    for k in range(offsets[row], offsets[row + 1]):
+        out += values[s, k] @ x[c, columns[k]]
+    y[c, row] = out
 
 
 @wp.kernel
@@ -164,18 +152,7 @@ def _to_single(values: wp.array2d(dtype=wp.mat33d), active: wp.array(dtype=wp.in
     b, k = wp.tid()
     if active[b] == 0:
         return
-    m = values[b, k]
-    out[b, k] = wp.mat33f(
-        wp.float32(m[0, 0]),
-        wp.float32(m[0, 1]),
-        wp.float32(m[0, 2]),
-        wp.float32(m[1, 0]),
-        wp.float32(m[1, 1]),
-        wp.float32(m[1, 2]),
-        wp.float32(m[2, 0]),
-        wp.float32(m[2, 1]),
-        wp.float32(m[2, 2]),
-    )
+    out[b, k] = wp.mat33f(values[b, k])
 
 
 @wp.func

@@ -72,11 +72,6 @@ class IndentationStepper:
         return self.engine.failure[0]
 
     @property
-    def in_contact(self) -> bool:
-        """Whether the indenter touched the skin at the last accepted state."""
-        return bool(self.engine.in_contact[0])
-
-    @property
     def relaxes(self) -> bool:
         """Whether the skin is viscoelastic (its steps need times)."""
         return self.engine.relaxation is not None

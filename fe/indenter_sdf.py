@@ -1,12 +1,13 @@
 """Analytic indenter signed-distance functions for warp kernels (twins of ``assets.indenters``).
 
-``indenter_sdf(kind, dims, p)`` and ``indenter_sdf_grad(kind, dims, p)`` take the integer kind code and
-the four dims of ``assets.indenters.Indenter`` (metres, meaning per kind in its docstring) and a point p
-in the indenter frame (tip at the origin, body in z >= 0, shank along +z, pressing along -z), metres.
-They return the signed distance (negative inside), m, and its unit outward gradient.
+``indenter_sdf_and_grad(kind, dims, p)`` (the head) and ``body_sdf_and_grad(kind, dims, p)`` (head and
+shank) take the integer kind code and the four dims of ``assets.indenters.Indenter`` (metres, meaning per
+kind in its docstring) and a point p in the indenter frame (tip at the origin, body in z >= 0, shank along
++z, pressing along -z), metres. They return the signed distance (negative inside), m, and its unit outward
+gradient, as (distance, gradient x, y, z).
 
-Both are overloaded: (int, wp.vec4, wp.vec3) -> float32 / wp.vec3, and (int, wp.vec4d, wp.vec3d) ->
-float64 / wp.vec3d. The float64 overload agrees with the numpy twin to rounding (~1e-16 m); the float32
+Both are overloaded: (int, wp.vec4, wp.vec3) -> wp.vec4 (float32), and (int, wp.vec4d, wp.vec3d) ->
+wp.vec4d (float64). The float64 overload agrees with the numpy twin to rounding (~1e-16 m); the float32
 one to float32 rounding (~1e-9 m at centimetre coordinates). An unknown kind returns +1 m (no contact)
 and gradient (0, 0, -1).
 
@@ -239,32 +240,6 @@ indenter_sdf_and_grad, body_sdf_and_grad = _build(wp.float32, wp.vec2, wp.vec3, 
 indenter_sdf_and_grad, body_sdf_and_grad = _build(
     wp.float64, wp.vec2d, wp.vec3d, wp.vec4d, indenter_sdf_and_grad, body_sdf_and_grad
 )
-
-
-@wp.func
-def indenter_sdf(kind: int, dims: wp.vec4, p: wp.vec3) -> float:
-    """Signed distance of p (indenter frame, m) to indenter ``kind`` with ``dims``, m; negative inside."""
-    return indenter_sdf_and_grad(kind, dims, p)[0]
-
-
-@wp.func
-def indenter_sdf(kind: int, dims: wp.vec4d, p: wp.vec3d) -> wp.float64:  # noqa: F811
-    """Signed distance of p (indenter frame, m) to indenter ``kind`` with ``dims``, m (float64)."""
-    return indenter_sdf_and_grad(kind, dims, p)[0]
-
-
-@wp.func
-def indenter_sdf_grad(kind: int, dims: wp.vec4, p: wp.vec3) -> wp.vec3:
-    """Unit outward gradient of ``indenter_sdf`` at p (indenter frame)."""
-    r = indenter_sdf_and_grad(kind, dims, p)
-    return wp.vec3(r[1], r[2], r[3])
-
-
-@wp.func
-def indenter_sdf_grad(kind: int, dims: wp.vec4d, p: wp.vec3d) -> wp.vec3d:  # noqa: F811
-    """Unit outward gradient of ``indenter_sdf`` at p (indenter frame), float64."""
-    r = indenter_sdf_and_grad(kind, dims, p)
-    return wp.vec3d(r[1], r[2], r[3])
 
 
 def head_radius(kind: int, dims: tuple[float, float, float, float]) -> float:

@@ -68,6 +68,7 @@ def membrane_kernel(
     rest_area: wp.array(dtype=wp.float64),
     mu_t: wp.array(dtype=wp.float64),
     gent_beta: wp.array(dtype=wp.float64),
+    frozen_stress: wp.array2d(dtype=wp.mat22d),
     want_hessian: int,
     energy: wp.array2d(dtype=wp.float64),
     gradient: wp.array2d(dtype=wp.vec3d),
@@ -77,6 +78,8 @@ def membrane_kernel(
     """Energy, gradient (atomically scattered to nodes) and 9x9 Hessian per (batch, triangle).
 
     `gent_beta` (per batch) is 1/J_m; 0 gives Neo-Hookean. Beyond the Gent limit the energy is +inf or nan.
+    `frozen_stress` a (N/m, symmetric, per batch and triangle; zero for an elastic skin) adds the
+    viscoelastic term (1/2) A0 a : (C - I) of `fe.viscoelastic`: P += A0 F a, dP += A0 dF a.
     """
     b, t = wp.tid()
     if active[b] == 0:  # a system left out of this evaluation: nothing is written for it
@@ -93,11 +96,13 @@ def membrane_kernel(
     beta = gent_beta[b]
     i1_excess = wp.trace(C) + one / det_c - wp.float64(3.0)
     z = beta * i1_excess
-    energy[b, t] = area * half * mu_t[b] * i1_excess * _gent_log_ratio(z)
+    held = frozen_stress[b, t]
+    frozen = half * area * wp.trace(held @ (C - wp.identity(n=2, dtype=wp.float64)))
+    energy[b, t] = area * half * mu_t[b] * i1_excess * _gent_log_ratio(z) + frozen
     stiffening = one / (one - z)  # d(energy density)/d(I1) over its Neo-Hookean value mu t / 2
     coeff = area * mu_t[b] * stiffening
     P_unit = F - F @ c_inv / det_c  # half of dI1/dF
-    P = coeff * P_unit
+    P = coeff * P_unit + area * (F @ held)
     for a in range(3):
         ga = edge_gradient(a, Dinv)
         wp.atomic_add(gradient, b, tri[a], P @ ga)
@@ -109,7 +114,7 @@ def membrane_kernel(
                 dF = mat32d()
                 dF[j, 0] = gb[0]
                 dF[j, 1] = gb[1]
-                dP = _stress_variation(F, c_inv, det_c, dF, coeff)
+                dP = _stress_variation(F, c_inv, det_c, dF, coeff) + area * (dF @ held)
                 for na in range(3):
                     col = dP @ edge_gradient(na, Dinv)
                     for i in range(3):

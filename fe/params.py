@@ -1,4 +1,4 @@
-"""Parameters of the skin model and of its numerics, with physical-bounds checks.
+"""Parameters of the skin model and of its numerics (contact, Newton), with physical-bounds checks.
 
 Defaults are the paper's calibrated optimum (Narang et al., Table I): t_s = 1.57e-3 m,
 mu_NH = 2.80e5 Pa, mu_fr = 0.186, T_fl = 29.19 C with beta_T = 0.01 /C.
@@ -6,6 +6,8 @@ mu_NH = 2.80e5 Pa, mu_fr = 0.186, T_fl = 29.19 C with beta_T = 0.01 /C.
 
 from dataclasses import dataclass, field, fields
 from typing import Any
+
+_SKIN_CHANNELS = ("force", "pdc", "electrodes")
 
 
 @dataclass(frozen=True)
@@ -25,9 +27,10 @@ class Knob:
     scale: float
     """Typical magnitude: finite-difference step and optimiser scaling."""
     description: str
-    channels: tuple[str, ...]
     hidden: tuple[float, float]
     """Range of a hidden size (twin.hidden): drawn U(low, high), or off +- U(low, high) with `hidden_both_ways`."""
+    channels: tuple[str, ...] = _SKIN_CHANNELS
+    """Readings the effect shows in: all of the skin's unless it reaches fewer."""
     hidden_both_ways: bool = False
     probe: float | None = None
     """Value to linearise at while the effect is off, for a parameter that does nothing at its off value."""
@@ -62,7 +65,6 @@ def _parameter(
     return field(default=default, metadata={"parameter": Parameter(units, physical, paper, effect)})
 
 
-_SKIN_CHANNELS = ("force", "pdc", "electrodes")
 _RELAXATION = "The skin is viscoelastic: one Prony branch relaxes a fraction of its moduli with a time constant."
 
 
@@ -83,7 +85,6 @@ class SkinParameters:
             search=(0.6, 1.5),
             scale=0.05,
             description="Skin shell thickness differs from the model's (scale factor on t_s).",
-            channels=_SKIN_CHANNELS,
             hidden=(0.12, 0.25),
             hidden_both_ways=True,
         ),
@@ -101,7 +102,6 @@ class SkinParameters:
             search=(0.5, 2.0),
             scale=0.05,
             description="Skin shear modulus differs from the model's (scale factor on mu_NH).",
-            channels=_SKIN_CHANNELS,
             hidden=(0.15, 0.3),
             hidden_both_ways=True,
         ),
@@ -144,7 +144,6 @@ class SkinParameters:
             scale=0.03,
             description="The sensor holds more or less fluid than the model (skin pretension; scale on the inflation "
             "volume).",
-            channels=_SKIN_CHANNELS,
             hidden=(0.08, 0.15),
             hidden_both_ways=True,
         ),
@@ -162,7 +161,6 @@ class SkinParameters:
             search=(0.0, 0.6),
             scale=0.05,
             description=_RELAXATION,
-            channels=_SKIN_CHANNELS,
             hidden=(0.2, 0.4),
             probe=0.15,
         ),
@@ -180,7 +178,6 @@ class SkinParameters:
             search=(0.05, 10.0),
             scale=0.2,
             description=_RELAXATION,
-            channels=_SKIN_CHANNELS,
             hidden=(0.3, 1.0),
         ),
     )
@@ -196,7 +193,6 @@ class SkinParameters:
             search=(0.0, 2.0),
             scale=0.1,
             description="The skin stiffens with strain beyond Neo-Hookean (Gent, parameter 1/J_m).",
-            channels=_SKIN_CHANNELS,
             hidden=(0.3, 0.8),
         ),
     )
@@ -214,7 +210,6 @@ class SkinParameters:
             scale=0.02,
             description="A gas bubble in the fluid (volume fraction of the cavity) makes the fluid compressible "
             "(Boyle).",
-            channels=_SKIN_CHANNELS,
             hidden=(0.2, 0.35),
         ),
     )
@@ -284,3 +279,26 @@ class ContactSettings:
             raise ValueError(f"max_penetration={self.max_penetration} must be positive")
         if not 0.0 < self.min_stretch < 1.0:
             raise ValueError(f"min_stretch={self.min_stretch} must be within (0, 1)")
+
+
+@dataclass(frozen=True)
+class NewtonSettings:
+    """Newton's stopping rules and step controls (`fe.batched.BatchedShell`, which solves grad E(x) - p grad V(x)
+    = 0 and V(x) = V_target for the free positions x (m) and the fluid pressure p (Pa), the Lagrange multiplier
+    of the volume constraint, through the bordered KKT system's Schur complement, backtracking on an
+    augmented-Lagrangian merit function): residual force (infinity norm), relative volume error, iteration cap.
+
+    The residual must fall below max(force_tolerance (N), relative_force_tolerance x the largest nodal
+    load |grad E| or |p grad V|), i.e. a part-per-million balance of every node's forces by default.
+    """
+
+    force_tolerance: float = 1e-10
+    relative_force_tolerance: float = 1e-6
+    volume_tolerance: float = 1e-10
+    max_iterations: int = 60
+    max_backtracks: int = 30
+    refresh_factor: float = 1e5
+    """Lagged quantities are refreshed, and chord steps tried, once the residual is below refresh_factor x
+    its tolerance."""
+    chord_contraction: float = 0.2
+    """A chord step (last factorisation reused) is kept when it cuts the residual by at least this factor."""

@@ -16,8 +16,7 @@ from assets.indenters import Indenter, get_indenter
 from fe.batched import InflatedSkin
 from fe.batched_stepper import BatchedStepper
 from fe.indentation import IncrementResult, IndentationStepper, Trajectory, drive
-from fe.newton import NewtonSettings
-from fe.params import ContactSettings, SkinParameters
+from fe.params import ContactSettings, NewtonSettings, SkinParameters
 from fe.surface_quadrature import rule
 from fe.trapped_air import TrappedAir
 from fe.wptypes import host_device
@@ -57,6 +56,8 @@ class BioTacModel:
         self.geometry = geometry
         self.params = params
         self.newton = newton
+        self._thermal_volume = params.thermal_expansion * geometry.cavity_volume_reference
+        """beta_T V_cavity (m^3/C): the fluid volume the thermal parametrisation adds per degree."""
         skin, core = geometry.skin, geometry.core
         self.rest_skin = InflatedSkin.at_rest(
             skin.vertices,
@@ -79,10 +80,13 @@ class BioTacModel:
         self._outer: tuple[np.ndarray, trimesh.Trimesh] | None = None
 
     # -- inflation ---------------------------------------------------------------------------
+    def _outer_vertices(self, x: np.ndarray) -> np.ndarray:
+        """The outer skin surface's vertices (V,3) m: mid-surface x offset by t/2 along the vertex normals."""
+        return x + 0.5 * self.params.thickness * vertex_normals(x, self.geometry.skin.triangles)
+
     def thickness(self, x: np.ndarray) -> float:
         """Sensor thickness (m): fixed dorsal top minus the lowest point of the outer skin surface."""
-        outer = x + 0.5 * self.params.thickness * vertex_normals(x, self.geometry.skin.triangles)
-        return float(self.geometry.dorsal_top_z - outer[:, 2].min())
+        return float(self.geometry.dorsal_top_z - self._outer_vertices(x)[:, 2].min())
 
     def _solve_volume(self, volume: float, start_volume: float, splits: int = 4) -> tuple[bool, str]:
         """Equilibrium at `volume` (m^3) from the state held at `start_volume`; a jump that does not converge
@@ -103,17 +107,16 @@ class BioTacModel:
         Volume steps are `volume_step` of the initial enclosed volume until the thickness is bracketed,
         then secant refinement to 1 um. The skin has its long-term (fully relaxed) moduli.
         """
-        beta_v = self.params.thermal_expansion * self.geometry.cavity_volume_reference
         self._inflation.reset()
         v = self._volume0
         if target_thickness is None:
-            if beta_v <= 0:
+            if self._thermal_volume <= 0:
                 raise ValueError("thermal inflation needs a geometry with a positive cavity_volume_reference")
-            dv_total = beta_v * (self.params.fluid_temperature - self.params.reference_temperature)
+            dv_total = self._thermal_volume * (self.params.fluid_temperature - self.params.reference_temperature)
             return self._fill(v, v + self.params.inflation_volume_scale * dv_total, volume_step)
-        if target_thickness <= self.thickness(self._inflation.x[0]):
-            raise ValueError(f"target thickness {target_thickness * 1e3:.2f} mm is below the unpressurised one")
         lo_v, lo_t = v, self.thickness(self._inflation.x[0])
+        if target_thickness <= lo_t:
+            raise ValueError(f"target thickness {target_thickness * 1e3:.2f} mm is below the unpressurised one")
         for _ in range(200):
             hi_v = lo_v + volume_step * abs(self._volume0)
             converged, message = self._solve_volume(hi_v, lo_v)
@@ -162,8 +165,8 @@ class BioTacModel:
         self.target_volume = volume
         self._inflated = None
         dv = volume - self._volume0
-        beta_v = self.params.thermal_expansion * self.geometry.cavity_volume_reference
-        t_eq = self.params.reference_temperature + dv / beta_v if beta_v > 0 else float("nan")
+        rise = dv / self._thermal_volume if self._thermal_volume > 0 else float("nan")
+        t_eq = self.params.reference_temperature + rise  # C
         return InflationResult(dv, self.pressure, self.thickness(self.reference), t_eq, converged, message)
 
     def inflated_skin(self) -> InflatedSkin:
@@ -185,9 +188,7 @@ class BioTacModel:
         inflated state, so its spatial index is built once)."""
         x = self._require_reference()
         if self._outer is None or self._outer[0] is not x:
-            tri = self.geometry.skin.triangles
-            outer = x + 0.5 * self.params.thickness * vertex_normals(x, tri)
-            self._outer = (x, trimesh.Trimesh(outer, tri, process=False))
+            self._outer = (x, trimesh.Trimesh(self._outer_vertices(x), self.geometry.skin.triangles, process=False))
         return self._outer[1]
 
     def _require_reference(self) -> np.ndarray:

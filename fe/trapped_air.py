@@ -38,11 +38,6 @@ class TrappedAir:
             raise ValueError(f"gauge pressure {pressure} Pa is below vacuum")
         return volume_fraction * fluid_volume * (ATMOSPHERIC_PRESSURE + pressure)
 
-    @classmethod
-    def none(cls, batch: int) -> "TrappedAir":
-        """No air in any of `batch` systems."""
-        return cls(np.zeros(batch))
-
     def volume(self, pressure: np.ndarray) -> np.ndarray:
         """Bubble volumes (m^3) at gauge pressures (Pa)."""
         return self.boyle_constant / self._absolute(pressure)

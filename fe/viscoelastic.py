@@ -12,7 +12,7 @@ Within a step sigma = c sigma_e(x) + a with the constants c = g_inf + sum_i g_i 
 a = sum_i (exp(-dt / tau_i) h_i - g_i gamma_i sigma_e,old): the gradient of c W_e + a : (strain), so each
 increment stays an energy minimisation (symmetric Hessian, Newton unchanged).
 - Membrane: sigma_e is the second Piola-Kirchhoff stress resultant N_e = 2 dW_e/dC (N/m, per triangle in
-  its reference frame); the frozen part adds (1/2) a : (C - I) per reference area (`frozen_stress_kernel`).
+  its reference frame); the frozen part adds (1/2) a : (C - I) per reference area (`fe.membrane.membrane_kernel`).
 - Bending: the energy is quadratic in the dihedral-angle changes dtheta, sigma_e = K dtheta with a constant
   K, so the branches live in angle space and the increment is the elastic bending energy scaled by c about
   rest angles shifted by -a / c: no extra kernel.
@@ -23,60 +23,9 @@ has sat inflated for long), and `SkinRelaxation.reset` starts the branches relax
 from typing import TYPE_CHECKING
 
 import numpy as np
-import warp as wp
-
-from fe.membrane import deformation_gradient, edge_gradient
-from fe.wptypes import mat32d, mat99d
-
-wp.set_module_options({"enable_backward": False})  # no adjoint kernels: nothing differentiates them
 
 if TYPE_CHECKING:
     from fe.batched import BatchedShell
-
-
-@wp.kernel
-def frozen_stress_kernel(
-    x: wp.array2d(dtype=wp.vec3d),
-    triangles: wp.array(dtype=wp.vec3i),
-    dm_inv: wp.array(dtype=wp.mat22d),
-    rest_area: wp.array(dtype=wp.float64),
-    frozen_stress: wp.array2d(dtype=wp.mat22d),
-    want_hessian: int,
-    energy: wp.array2d(dtype=wp.float64),
-    gradient: wp.array2d(dtype=wp.vec3d),
-    hessian: wp.array2d(dtype=mat99d),
-    active: wp.array(dtype=wp.int32),
-):
-    """Adds (1/2) A0 a : (C - I) per (batch, triangle), a = `frozen_stress` (N/m, symmetric), to the
-    membrane's energy, node gradients (P = A0 F a) and 9x9 Hessian (dP = A0 dF a) of the active systems;
-    run after `membrane_kernel`."""
-    b, t = wp.tid()
-    if active[b] == 0:
-        return
-    tri = triangles[t]
-    Dinv = dm_inv[t]
-    F = deformation_gradient(x, b, tri, Dinv)
-    a = frozen_stress[b, t]
-    area = rest_area[t]
-    strain = wp.transpose(F) @ F - wp.identity(n=2, dtype=wp.float64)
-    energy[b, t] = energy[b, t] + wp.float64(0.5) * area * wp.trace(a @ strain)
-    P = area * (F @ a)
-    for n in range(3):
-        wp.atomic_add(gradient, b, tri[n], P @ edge_gradient(n, Dinv))
-    if want_hessian != 0:
-        H = hessian[b, t]
-        for nb in range(3):
-            gb = edge_gradient(nb, Dinv)
-            for j in range(3):
-                dF = mat32d()
-                dF[j, 0] = gb[0]
-                dF[j, 1] = gb[1]
-                dP = area * (dF @ a)
-                for na in range(3):
-                    col = dP @ edge_gradient(na, Dinv)
-                    for i in range(3):
-                        H[3 * na + i, 3 * nb + j] = H[3 * na + i, 3 * nb + j] + col[i]
-        hessian[b, t] = H
 
 
 def step_factors(fractions: np.ndarray, times: np.ndarray, dt: float | np.ndarray) -> tuple[np.ndarray, np.ndarray]:

@@ -13,8 +13,7 @@ import pytest
 import warp as wp
 from typer.testing import CliRunner
 
-from fe.newton import NewtonSettings
-from fe.params import SkinParameters
+from fe.params import NewtonSettings, SkinParameters
 from fe.sensor import BioTacModel
 from twin.analysis.data import CampaignData, load_campaign
 from twin.analysis.predict import Prediction, Predictor, TwinModel

@@ -105,7 +105,7 @@ def _pose_trajectory(name: str, path: Trajectory) -> PoseTrajectory:
 
 def _batched(model: BioTacModel, paths: list, tmp_path: Path) -> list[list]:
     """The batched stepper, the third trajectory starting one step late (inactive systems wait)."""
-    skin = InflatedSkin.from_model(model)
+    skin = model.inflated_skin()
     skin.save(tmp_path / "skin.npz")
     stepper = BatchedStepper(InflatedSkin.load(tmp_path / "skin.npz"), [name for name, *_ in PATHS], "cpu")
     out: list[list] = [[] for _ in PATHS]
@@ -174,7 +174,7 @@ def test_continuous_batching_matches_the_cpu_stepper(
     trajectories = [_pose_trajectory(name, p) for (name, *_), p in zip(PATHS, paths, strict=True)]
     ended: list[int] = []
     run = run_trajectories(
-        InflatedSkin.from_model(model),
+        model.inflated_skin(),
         trajectories,
         "cpu",
         slots=slots,
@@ -241,7 +241,7 @@ def test_failed_steps_are_cut_back(frictionless_biotac: BioTacModel) -> None:
     model = frictionless_biotac
     paths = _paths(model)
     cpu = _cpu(model, paths)[1]
-    skin = InflatedSkin.from_model(model)
+    skin = model.inflated_skin()
     capped = dataclasses.replace(skin, newton=dataclasses.replace(skin.newton, max_iterations=CAPPED_NEWTON))
     name, path = PATHS[1][0], paths[1]  # the tilted sphere: its last step needs more than the cap
     trajectory = _pose_trajectory(name, path)
@@ -257,7 +257,7 @@ def test_strict_forcing_reaches_the_same_equilibria(frictionless_biotac: BioTacM
     on the CPU device) reaches the equilibria of the direct factorisation."""
     model = frictionless_biotac
     paths = _paths(model)
-    skin = InflatedSkin.from_model(model)
+    skin = model.inflated_skin()
     trajectories = [_pose_trajectory(name, p) for (name, *_), p in zip(PATHS, paths, strict=True)]
     direct = run_trajectories(skin, trajectories, "cpu", slots=3)
     adaptive = run_trajectories(skin, trajectories, "cpu", slots=3, linear="cg")
@@ -274,7 +274,7 @@ def test_strict_forcing_reaches_the_same_equilibria(frictionless_biotac: BioTacM
 
 
 def test_runner_checks_its_input_and_stops_at_its_time_limit(frictionless_biotac: BioTacModel) -> None:
-    skin = InflatedSkin.from_model(frictionless_biotac)
+    skin = frictionless_biotac.inflated_skin()
     with pytest.raises(ValueError, match="rotations"):
         PoseTrajectory("sphere_medium", np.eye(3), np.zeros(3))
     with pytest.raises(ValueError, match="at least one pose"):
@@ -313,7 +313,7 @@ def test_a_non_finite_system_is_flagged_not_solved() -> None:
 
 def test_a_failed_first_increment_is_not_cut_back_onto_itself(frictionless_biotac: BioTacModel) -> None:
     """A trajectory's first pose has no earlier pose to step back to: it fails once, not max_cuts times."""
-    skin = InflatedSkin.from_model(frictionless_biotac)
+    skin = frictionless_biotac.inflated_skin()
     capped = dataclasses.replace(skin, newton=dataclasses.replace(skin.newton, max_iterations=3))
     path = _paths(frictionless_biotac)[0]
     trajectory = PoseTrajectory(PATHS[0][0], path.rotation[None], (path.touch_point + 0.6e-3 * path.direction)[None])
@@ -343,7 +343,7 @@ def test_an_indenter_on_the_clamped_rim_moves_no_fixed_vertex(
         if not cpu[-1].converged:
             break
     trajectory = PoseTrajectory(name, np.repeat(path.rotation[None], len(tips), 0), tips)
-    skin = InflatedSkin.from_model(model)
+    skin = model.inflated_skin()
     batched = run_trajectories(skin, [trajectory], "cpu", slots=1, max_cuts=0).results[0]
     for run in (cpu, batched):
         assert not run[-1].converged and "clamped vertex" in run[-1].message, run[-1].message

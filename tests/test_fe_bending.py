@@ -8,8 +8,7 @@ from fe.batched import BatchedShell, InflatedSkin
 from fe.batched_stepper import BatchedStepper
 from fe.bending import build_stencils
 from fe.dome import disk_mesh
-from fe.newton import NewtonSettings
-from fe.params import SkinParameters
+from fe.params import NewtonSettings, SkinParameters
 
 T, MU = 1e-3, 1e6  # m, Pa
 D = MU * T**3 / 3.0  # J

@@ -18,7 +18,7 @@ import warp as wp
 
 from assets.biotac import make_biotac
 from assets.indenters import get_indenter
-from fe import bending, contact, membrane, viscoelastic, volume
+from fe import bending, contact, membrane, volume
 from fe.indentation import IndentationStepper, drive
 from fe.linsolve import BatchedDirectSolver
 from fe.params import SkinParameters
@@ -82,7 +82,7 @@ def test_engine_allocates_and_launches_only_on_the_cpu(monkeypatch: pytest.Monke
 
     assert len(increments) == 4 and all(inc.converged for inc in increments)
     assert increments[-1].force[2] > 0.0
-    kernels = [membrane.membrane_kernel, viscoelastic.frozen_stress_kernel, bending.bending_kernel]
+    kernels = [membrane.membrane_kernel, bending.bending_kernel]
     kernels += [volume.volume_kernel, contact.core_contact_kernel, contact.indenter_friction_kernel]
     kernels += [contact.indenter_surface_kernel, contact.indenter_gap_kernel, contact.indenter_face_gap_kernel]
     kernels += [contact.indenter_skin_clearance_kernel]

@@ -14,8 +14,7 @@ from fe.balloon import analytic_balloon_pressure, inflate_balloon, sphere_mesh
 from fe.batched import BatchedShell, InflatedSkin
 from fe.batched_stepper import BatchedStepper
 from fe.bending import build_stencils
-from fe.newton import NewtonSettings
-from fe.params import SkinParameters
+from fe.params import NewtonSettings, SkinParameters
 from fe.trapped_air import TrappedAir
 from fe.viscoelastic import SkinRelaxation, step_factors
 

@@ -20,7 +20,7 @@ from assets.indenters import (
     get_indenter,
     texture_bump_centres,
 )
-from fe.indenter_sdf import indenter_sdf, indenter_sdf_grad
+from fe.indenter_sdf import indenter_sdf_and_grad
 
 REFERENCE = Path(__file__).resolve().parents[1] / ".." / "shared" / "reference" / "biotac_sim"
 PUBLIC = {
@@ -80,8 +80,9 @@ def _eval64(
     g: wp.array(dtype=wp.vec3d),
 ):
     i = wp.tid()
-    d[i] = indenter_sdf(kind, dims, pts[i])
-    g[i] = indenter_sdf_grad(kind, dims, pts[i])
+    r = indenter_sdf_and_grad(kind, dims, pts[i])
+    d[i] = r[0]
+    g[i] = wp.vec3d(r[1], r[2], r[3])
 
 
 @wp.kernel
@@ -93,8 +94,9 @@ def _eval32(
     g: wp.array(dtype=wp.vec3),
 ):
     i = wp.tid()
-    d[i] = indenter_sdf(kind, dims, pts[i])
-    g[i] = indenter_sdf_grad(kind, dims, pts[i])
+    r = indenter_sdf_and_grad(kind, dims, pts[i])
+    d[i] = r[0]
+    g[i] = wp.vec3(r[1], r[2], r[3])
 
 
 def warp_eval(ind: Indenter, p: np.ndarray, double: bool) -> tuple[np.ndarray, np.ndarray]:

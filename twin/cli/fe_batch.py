@@ -66,7 +66,6 @@ def batch(
 ) -> None:
     """Run many indentation trajectories batched on a warp device and write their forces and contact."""
     from assets.indenters import INDENTERS, indenter_name
-    from fe.batched import InflatedSkin
     from fe.batched_runner import PoseTrajectory, run_trajectories
     from fe.trajectory_sets import press_travels, random_paths, round_robin, to_trajectories
     from twin.fe_batch_results import POSES_FILE_KEYS, BatchResults, read_poses
@@ -101,7 +100,7 @@ def batch(
         if len(indices):
             run = _guarded(
                 lambda: run_trajectories(
-                    InflatedSkin.from_model(model),
+                    model.inflated_skin(),
                     [runs[i].at_speed(speed_mm_s * 1e-3) for i in indices],
                     device,
                     slots,
