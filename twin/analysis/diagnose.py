@@ -378,9 +378,8 @@ def _refit(
 
     start = effect.values(model.effects.get(candidate.name))
     best = (_rms(misfit(start)), start)
-    physics = effect.kind == "physics"
     hooks = GaussNewtonHooks(
-        jacobian=relinearised if physics else None,
+        jacobian=relinearised if effect.kind == "physics" else None,
         at_noise=lambda r: base.noise_test(r).is_noise,
         cost=lambda r, _: _rms(r),
     )
