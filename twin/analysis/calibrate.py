@@ -41,7 +41,7 @@ from scipy.optimize import minimize
 from fe.params import PAPER_CALIBRATION_BOUNDS, SkinParameters
 from fe.sensor import SENSOR_THICKNESS
 from twin.analysis.data import CampaignData, TrajectoryRecord
-from twin.analysis.fit import uncertainty
+from twin.analysis.fit import Z95, uncertainty
 from twin.analysis.predict import Predictor, TwinModel
 from twin.effects import apply_skin
 
@@ -227,7 +227,7 @@ def calibrate(
     residual = force_residual(predictor, best, trajectories).ravel()
     std, corr, condition = _uncertainty(jac, residual, high - low)
     parameters = _calibrated_values(best.skin)
-    intervals = {n: (parameters[n] - 1.96 * std[n], parameters[n] + 1.96 * std[n]) for n in CALIBRATED}
+    intervals = {n: (parameters[n] - Z95 * std[n], parameters[n] + Z95 * std[n]) for n in CALIBRATED}
     return Calibration(
         parameters=parameters,
         start=dict(zip(CALIBRATED, (float(v) for v in start), strict=True)),
@@ -305,7 +305,7 @@ def _warnings(std: dict, corr: np.ndarray, condition: float, low: np.ndarray, hi
     if condition > 1e6:
         out.append(f"J^T J is ill-conditioned ({condition:.1e}): some parameter combination is not identified")
     for i, a in enumerate(CALIBRATED):
-        if 3.92 * std[a] > high[i] - low[i]:
+        if 2 * Z95 * std[a] > high[i] - low[i]:
             out.append(f"{a} is not identifiable: its 95 % interval is wider than its bounds")
         for j in range(i + 1, len(CALIBRATED)):
             if abs(corr[i, j]) > 0.95:
