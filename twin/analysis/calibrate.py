@@ -21,11 +21,13 @@ an effective beta_T, set once so that the starting T_fl inflates the starting sk
 T_fl keeps its role (the inflation knob) and its bounds. Parameters are scaled to [0, 1] inside the
 paper's bounds.
 
+The optimiser stays SLSQP on this scalar cost (the paper's method; J_force is a sum of RMS errors, not a
+sum of squares, so the least-squares core of `twin.analysis.fit` does not fit it).
 Uncertainty: the force residual r (3 x rows, N) is linearised at the optimum by central differences;
-cov = s^2 (J^T J)^-1 with s^2 = |r|^2 / (n - p). Rows are low-pass filtered, hence correlated, so these
-intervals are optimistic; they serve to flag parameters the trajectory cannot identify (a warning when
-the scaled J^T J is ill-conditioned, two parameters correlate beyond 0.95, or an interval spans more
-than the bounds).
+cov = s^2 (J^T J)^-1 with s^2 = |r|^2 / (n - p) (`twin.analysis.fit.uncertainty`). Rows are low-pass
+filtered, hence correlated, so these intervals are optimistic; they serve to flag parameters the
+trajectory cannot identify (a warning when the scaled J^T J is ill-conditioned, two parameters correlate
+beyond 0.95, or an interval spans more than the bounds).
 """
 
 from __future__ import annotations
@@ -39,6 +41,7 @@ from scipy.optimize import minimize
 from fe.params import PAPER_CALIBRATION_BOUNDS, SkinParameters
 from fe.sensor import SENSOR_THICKNESS
 from twin.analysis.data import CampaignData, TrajectoryRecord
+from twin.analysis.fit import Z95, uncertainty
 from twin.analysis.predict import Predictor, TwinModel
 from twin.effects import apply_skin
 
@@ -224,7 +227,7 @@ def calibrate(
     residual = force_residual(predictor, best, trajectories).ravel()
     std, corr, condition = _uncertainty(jac, residual, high - low)
     parameters = _calibrated_values(best.skin)
-    intervals = {n: (parameters[n] - 1.96 * std[n], parameters[n] + 1.96 * std[n]) for n in CALIBRATED}
+    intervals = {n: (parameters[n] - Z95 * std[n], parameters[n] + Z95 * std[n]) for n in CALIBRATED}
     return Calibration(
         parameters=parameters,
         start=dict(zip(CALIBRATED, (float(v) for v in start), strict=True)),
@@ -290,17 +293,11 @@ def _residual_jacobian(
 
 
 def _uncertainty(jac: np.ndarray, residual: np.ndarray, ranges: np.ndarray) -> tuple[dict, np.ndarray, float]:
-    """Per-parameter standard deviation (SI), correlation matrix and condition of the scaled J^T J."""
-    info = jac.T @ jac
-    eig = np.linalg.eigvalsh(info)
-    condition = float(eig[-1] / max(eig[0], 1e-300))
-    dof = max(len(residual) - jac.shape[1], 1)
-    cov_scaled = float(residual @ residual) / dof * np.linalg.pinv(info)
-    sd_scaled = np.sqrt(np.clip(np.diag(cov_scaled), 0.0, None))
-    denominator = np.outer(sd_scaled, sd_scaled)
-    corr = np.divide(cov_scaled, denominator, out=np.zeros_like(cov_scaled), where=denominator > 0)
-    std = {n: float(s * r) for n, s, r in zip(CALIBRATED, sd_scaled, ranges, strict=True)}
-    return std, corr, condition
+    """Per-parameter standard deviation (SI), correlation matrix and condition of the scaled J^T J, from the
+    (rows, p) Jacobian in scaled units (`twin.analysis.fit.uncertainty`, s^2 the residual variance)."""
+    spread = uncertainty(jac / ranges, ranges, residual)
+    std = {n: float(s) for n, s in zip(CALIBRATED, spread.std, strict=True)}
+    return std, spread.correlation, spread.condition
 
 
 def _warnings(std: dict, corr: np.ndarray, condition: float, low: np.ndarray, high: np.ndarray) -> list[str]:
@@ -308,7 +305,7 @@ def _warnings(std: dict, corr: np.ndarray, condition: float, low: np.ndarray, hi
     if condition > 1e6:
         out.append(f"J^T J is ill-conditioned ({condition:.1e}): some parameter combination is not identified")
     for i, a in enumerate(CALIBRATED):
-        if 3.92 * std[a] > high[i] - low[i]:
+        if 2 * Z95 * std[a] > high[i] - low[i]:
             out.append(f"{a} is not identifiable: its 95 % interval is wider than its bounds")
         for j in range(i + 1, len(CALIBRATED)):
             if abs(corr[i, j]) > 0.95:

@@ -37,9 +37,10 @@ from collections.abc import Callable
 from dataclasses import dataclass, field, replace
 
 import numpy as np
-from scipy.optimize import lsq_linear, minimize, minimize_scalar
 
 from twin.analysis.data import CampaignData
+from twin.analysis.fit import GaussNewtonHooks, GaussNewtonSettings, Parameters, gauss_newton, linear_step, polish
+from twin.analysis.fit import uncertainty as fit_uncertainty
 from twin.analysis.nuisances import NUISANCE_EFFECTS, fit_nuisances
 from twin.analysis.predict import Predictor, TwinModel
 from twin.analysis.residual import CHANNELS, Base, Residual, base_residual
@@ -193,7 +194,8 @@ def sensitivities(effects: list[Effect], model: TwinModel, predictor: Predictor,
         if not (effect.is_off(effect.values(model.effects.get(effect.name))) and effect.starts):
             trials.append([])
             continue
-        fitted = _clipped(effect, lin.point, _linear_fit(effect, lin.point, lin.jac, r - lin.offset))
+        at = _parameters(effect, lin.point)
+        fitted = at.moved(linear_step(lin.jac, r - lin.offset, at)).as_dict()
         trials.append([fitted, *(effect.values({**lin.point, **start}) for start in effect.starts)])
     tried = [model.with_effects({e.name: t}) for e, ts in zip(effects, trials, strict=True) for t in ts]
     base.prefetch(predictor, tried)
@@ -211,22 +213,21 @@ def sensitivities(effects: list[Effect], model: TwinModel, predictor: Predictor,
     return lins
 
 
-def _clipped(effect: Effect, point: dict[str, float], delta: np.ndarray) -> dict[str, float]:
-    """`point` moved by `delta` (one entry per parameter), clipped to each parameter's bounds."""
-    return {
-        p.name: float(np.clip(point[p.name] + d, p.lower, p.upper))
-        for p, d in zip(effect.parameters, delta, strict=True)
-    }
+def _parameters(effect: Effect, point: dict[str, float]) -> Parameters:
+    """The effect's parameters at `point`, with their bounds and scales, for `twin.analysis.fit`."""
+    ps = effect.parameters
+    return Parameters(
+        tuple(p.name for p in ps),
+        np.array([point[p.name] for p in ps]),
+        np.array([p.lower for p in ps]),
+        np.array([p.upper for p in ps]),
+        np.array([p.scale for p in ps]),
+    )
 
 
 def _linear_fit(effect: Effect, current: dict[str, float], jac: np.ndarray, r: np.ndarray) -> np.ndarray:
-    finite = np.isfinite(jac).all(axis=1) & np.isfinite(r)
-    jac, r = jac[finite], r[finite]
-    lower = np.array([p.lower - current[p.name] for p in effect.parameters])
-    upper = np.array([p.upper - current[p.name] for p in effect.parameters])
-    scale = np.array([p.scale for p in effect.parameters])
-    fit = lsq_linear(jac * scale, r, bounds=(lower / scale, upper / scale))
-    return fit.x * scale
+    """The bounded linear least-squares step (parameter units) of `r` on `jac` from `current`."""
+    return linear_step(jac, r, _parameters(effect, current))
 
 
 def diagnose(
@@ -347,94 +348,65 @@ def _judge_heldout(candidate: Candidate, model: TwinModel, predictor: Predictor,
 
 
 def _identifiability(candidate: Candidate, jac: np.ndarray) -> None:
-    """Parameter correlations and the condition of J^T J (scaled); flag non-identifiable fits."""
-    scale = np.array([p.scale for p in EFFECTS[candidate.name].parameters])
-    scaled = (jac * scale)[np.isfinite(jac).all(axis=1)]
-    info = scaled.T @ scaled
-    eig = np.linalg.eigvalsh(info)
-    candidate.condition = float(eig[-1] / max(eig[0], 1e-300))
-    cov = np.linalg.pinv(info)
-    d = np.sqrt(np.clip(np.diag(cov), 1e-300, None))
-    corr = cov / np.outer(d, d)
-    candidate.correlation = corr.round(4).tolist()
-    off_diagonal = np.abs(corr - np.diag(np.diag(corr)))
+    """Parameter correlations and the condition of J^T J (scaled, `twin.analysis.fit.uncertainty`); flag
+    non-identifiable fits."""
+    spread = fit_uncertainty(jac, np.array([p.scale for p in EFFECTS[candidate.name].parameters]))
+    candidate.condition = spread.condition
+    candidate.correlation = spread.correlation.round(4).tolist()
+    off_diagonal = np.abs(spread.correlation - np.diag(np.diag(spread.correlation)))
     candidate.identifiable = bool(candidate.condition < 1e8 and (off_diagonal.max(initial=0.0) < 0.98))
 
 
 def _refit(
     candidate: Candidate, model: TwinModel, predictor: Predictor, base: Base, lin: Linearisation, iterations: int = 3
 ) -> None:
-    """Damped Gauss-Newton: linear steps re-predicted nonlinearly each time, the first with the given J; a
-    step that does not lower the misfit is halved (up to `BACKTRACKS` times, one prediction each) and
-    the iterations stop when none does or when a step is below `STEP_TOLERANCE`; a physics effect stops
-    once its residual passes the noise test, and otherwise is linearised again where it stands (one fe
-    replay per parameter); a measurement effect keeps J (its
+    """Damped Gauss-Newton (`twin.analysis.fit.gauss_newton`): linear steps re-predicted nonlinearly each
+    time, the first with the given J; a step that does not lower the misfit is halved (up to `BACKTRACKS`
+    times, one prediction each) and the iterations stop when none does or when a step is below
+    `STEP_TOLERANCE`; a physics effect stops once its residual passes the noise test, and otherwise is
+    linearised again where it stands (one fe replay per parameter); a measurement effect keeps J (its
     predictions reuse cached fe replays) and, unless linear in its parameters, ends with a nonlinear
-    least-squares polish. When the result fits worse than the model's own values of the effect (the
-    starting point), those are kept."""
+    least-squares polish (`twin.analysis.fit.polish`). When the result fits worse than the model's own
+    values of the effect (the starting point), those are kept."""
     effect = EFFECTS[candidate.name]
-    values = lin.point
 
-    def misfit(trial_values: dict[str, float]) -> np.ndarray:
-        return base.residual.values - base.shifted(predictor, model.with_effects({candidate.name: trial_values}))
+    def misfit(trial: dict[str, float]) -> np.ndarray:
+        return base.residual.values - base.shifted(predictor, model.with_effects({candidate.name: trial}))
+
+    def relinearised(at: Parameters) -> np.ndarray:
+        return linearise(effect, model, at.as_dict(), predictor, base).jac
 
     start = effect.values(model.effects.get(candidate.name))
     best = (_rms(misfit(start)), start)
-    residual = base.residual.values - lin.offset
-    for iteration in range(iterations):
-        delta = _linear_fit(effect, values, lin.jac, residual)
-        trial = _clipped(effect, values, delta)
-        trial_residual = misfit(trial)
-        for _ in range(BACKTRACKS):
-            if _rms(trial_residual) < _rms(residual):
-                break
-            delta = delta / 2.0
-            trial = _clipped(effect, values, delta)
-            trial_residual = misfit(trial)
-        if not _rms(trial_residual) < _rms(residual):
-            break
-        values, residual = trial, trial_residual
-        small = all(abs(d) < STEP_TOLERANCE * p.scale for d, p in zip(delta, effect.parameters, strict=True))
-        if small or iteration + 1 == iterations:
-            break
-        if effect.kind == "physics":
-            if base.noise_test(residual).is_noise:
-                break  # at the noise floor: a further step would fit noise, at an fe replay set a step
-            lin = linearise(effect, model, values, predictor, base)
+    hooks = GaussNewtonHooks(
+        jacobian=relinearised if effect.kind == "physics" else None,
+        at_noise=lambda r: base.noise_test(r).is_noise,
+        cost=lambda r, _: _rms(r),
+    )
+    fitted = gauss_newton(
+        lambda at: misfit(at.as_dict()),
+        _parameters(effect, lin.point),
+        hooks,
+        GaussNewtonSettings(iterations, BACKTRACKS, STEP_TOLERANCE),
+        start_residual=base.residual.values - lin.offset,
+        start_jacobian=lin.jac,
+    )
+    values, rms = fitted.parameters, fitted.cost
     if effect.kind == "measurement" and not effect.linear:
-        values, residual = _polish(effect, values, misfit)
+        names = values.names
+
+        def mean_square(x: np.ndarray) -> float:
+            return float(np.nanmean(misfit(dict(zip(names, map(float, x), strict=True))) ** 2))
+
+        values = polish(mean_square, values).parameters
+        rms = _rms(misfit(values.as_dict()))
     # Never end above the starting point (the model as given): a step the linearisation misjudged is undone.
-    candidate.refit_rms, candidate.refit_parameters = min(best, (_rms(residual), values), key=lambda b: b[0])
+    candidate.refit_rms, candidate.refit_parameters = min(best, (rms, values.as_dict()), key=lambda b: b[0])
 
 
 def _rms(residual: np.ndarray) -> float:
     """Whitened RMS of a residual, skipping samples without a prediction (NaN)."""
     return float(np.sqrt(np.nanmean(residual**2)))
-
-
-def _polish(effect: Effect, start: dict[str, float], misfit) -> tuple[dict[str, float], np.ndarray]:
-    """Bounded nonlinear least squares on the effect's parameters from `start` (derivative-free steps of
-    each parameter's scale, robust to signals that move in whole samples, like a delay)."""
-    names = [p.name for p in effect.parameters]
-
-    def as_values(x: np.ndarray) -> dict[str, float]:
-        return dict(zip(names, (float(v) for v in x), strict=True))
-
-    def cost(x: np.ndarray) -> float:
-        return float(np.nanmean(misfit(as_values(x)) ** 2))
-
-    x0 = np.array([start[n] for n in names])
-    bounds = [(p.lower, p.upper) for p in effect.parameters]
-    if len(names) == 1:
-        p = effect.parameters[0]
-        lo, hi = max(p.lower, x0[0] - 5 * p.scale), min(p.upper, x0[0] + 5 * p.scale)
-        best = minimize_scalar(lambda v: cost(np.array([v])), bounds=(lo, hi), method="bounded")
-        x = np.array([best.x]) if best.fun < cost(x0) else x0
-    else:
-        best = minimize(cost, x0, method="Powell", bounds=bounds, options={"maxfev": 60 * len(names), "xtol": 1e-3})
-        x = best.x if best.fun < cost(x0) else x0
-    values = as_values(x)
-    return values, misfit(values)
 
 
 @dataclass(frozen=True)

@@ -27,12 +27,13 @@ lies in the span of the nuisances' signatures (`confounded`).
 from __future__ import annotations
 
 from collections.abc import Callable
-from dataclasses import dataclass, field, replace
+from dataclasses import dataclass, field
 
 import numpy as np
-from scipy.optimize import lsq_linear
 
 from twin.analysis.data import CampaignData, TrajectoryRecord
+from twin.analysis.fit import Fit, GaussNewtonHooks, GaussNewtonSettings, Parameters, Prior, gauss_newton, linear_step
+from twin.analysis.fit import uncertainty as fit_uncertainty
 from twin.analysis.predict import Predictor, TwinModel
 from twin.analysis.residual import Base, base_residual, model_requests
 from twin.effects import EFFECTS
@@ -96,11 +97,25 @@ class NuisanceValues:
                 effects.setdefault(slot.effect, {})[slot.parameter] = value
         return model.with_effects(effects)
 
+    @property
+    def parameters(self) -> Parameters:
+        """The values as `twin.analysis.fit` parameters (named by slot label, with their bounds and scales)."""
+        ps = [_parameter(s) for s in self.slots]
+        return Parameters(
+            tuple(s.label for s in self.slots),
+            np.array(self.values),
+            np.array([p.lower for p in ps]),
+            np.array([p.upper for p in ps]),
+            np.array([p.scale for p in ps]),
+        )
+
+    def at(self, parameters: Parameters) -> NuisanceValues:
+        """These slots at `parameters`' values."""
+        return NuisanceValues(self.slots, tuple(float(v) for v in parameters.values))
+
     def moved(self, delta: np.ndarray) -> NuisanceValues:
         """Values moved by `delta` and clipped to each parameter's bounds."""
-        bounds = np.array([_bounds(s) for s in self.slots])
-        moved = np.clip(np.array(self.values) + delta, bounds[:, 0], bounds[:, 1])
-        return NuisanceValues(self.slots, tuple(float(v) for v in moved))
+        return self.at(self.parameters.moved(delta))
 
     def as_dict(self) -> dict[str, float]:
         """{slot label: value} (SI units, scale factors dimensionless)."""
@@ -111,15 +126,11 @@ def _parameter(slot: Slot):
     return next(p for p in EFFECTS[slot.effect].parameters if p.name == slot.parameter)
 
 
-def _bounds(slot: Slot) -> tuple[float, float]:
-    p = _parameter(slot)
-    return p.lower, p.upper
-
-
-def _prior_sigma(slot: Slot) -> float:
-    """1-sigma prior in the parameter's units (a relative prior times the off value for scale factors)."""
-    p = _parameter(slot)
-    return PRIORS[slot.effect] * (p.off if p.off else 1.0)
+def _prior(values: NuisanceValues) -> Prior:
+    """The Gaussian prior about `values`: 1 sigma in each parameter's units (a relative prior times the off
+    value for scale factors)."""
+    sigma = [PRIORS[s.effect] * (_parameter(s).off or 1.0) for s in values.slots]
+    return Prior(np.array(values.values), np.array(sigma))
 
 
 def model_values(slots: tuple[Slot, ...], model: TwinModel) -> NuisanceValues:
@@ -211,15 +222,17 @@ def fit_nuisances(
     fitted = _gauss_newton(nominal, model, predictor, prior, prior, report)
     if not (np.isfinite(fitted.cost) and nominal.noise_test(fitted.residual, len(slots)).is_noise):
         report("registration starts")
-        starts = _best_starts(nominal, model, predictor, fitted)
+        starts = _best_starts(nominal, model, predictor, prior.at(fitted.parameters), fitted.residual)
         fitted = min(fitted, _gauss_newton(nominal, model, predictor, starts, prior, report), key=lambda f: f.cost)
-    base = base_residual(datasets, model, predictor, fitted.values.model_for, len(slots), nominal.sigma)
+    values = prior.at(fitted.parameters)
+    base = base_residual(datasets, model, predictor, values.model_for, len(slots), nominal.sigma)
     same_samples = all(np.array_equal(a, b) for a, b in zip(base.masks, nominal.masks, strict=True))
-    jac = fitted.jac if fitted.jac is not None and same_samples else _jacobian(base, model, predictor, fitted.values)
-    heldout = _leave_one_trajectory_out(base, jac, fitted.values, prior)
-    at_bound = [s.label for s, v in zip(slots, fitted.values.values, strict=True) if v in _bounds(s)]
+    jac = fitted.jacobian
+    if jac is None or not same_samples:
+        jac = _jacobian(base, model, predictor, values)
+    heldout = _leave_one_trajectory_out(base, jac, values, prior)
     return NuisanceFit(
-        fitted.values,
+        values,
         base,
         jac,
         _profiled_rms(nominal, nominal.residual.values),
@@ -227,29 +240,9 @@ def fit_nuisances(
         _rms(heldout),
         base.noise_test(heldout, 0).is_noise,
         base.noise_test(base.residual.values).is_noise,
-        _correlation(jac, slots),
-        at_bound,
+        _correlation(jac, values),
+        list(fitted.at_bound),
     )
-
-
-@dataclass(frozen=True)
-class _State:
-    values: NuisanceValues
-    residual: np.ndarray  # profiled whitened residual of the nominal base's samples
-    cost: float  # chi-square plus the priors' cost
-    jac: np.ndarray | None = None  # the last sensitivity the fit used (at the point before its last step)
-
-
-def _state(
-    nominal: Base, model: TwinModel, predictor: Predictor, values: NuisanceValues, start: NuisanceValues
-) -> _State:
-    """The residual at `values` and its cost; infinite where the replay fails on samples the nominal model
-    reaches (a fit must not buy a lower chi-square by losing samples)."""
-    shifted = _shifted(nominal, model, predictor, values)
-    residual = nominal.residual.values - shifted
-    if np.isnan(residual).any():
-        return _State(values, residual, float("inf"))
-    return _State(values, residual, nominal.nuisance.chi2(residual) + _prior_cost(values, start))
 
 
 def _shifted(base: Base, model: TwinModel, predictor: Predictor, values: NuisanceValues) -> np.ndarray:
@@ -259,15 +252,6 @@ def _shifted(base: Base, model: TwinModel, predictor: Predictor, values: Nuisanc
         base.trajectories, base.sigma, base.residual, base.masks, base.prediction, base.nuisance, values.model_for
     )
     return moved.shifted(predictor, model)
-
-
-def _prior_cost(values: NuisanceValues, start: NuisanceValues) -> float:
-    return float(
-        sum(
-            ((v - s) / _prior_sigma(slot)) ** 2
-            for slot, v, s in zip(values.slots, values.values, start.values, strict=True)
-        )
-    )
 
 
 def _jacobian(base: Base, model: TwinModel, predictor: Predictor, values: NuisanceValues) -> np.ndarray:
@@ -324,19 +308,6 @@ def _usable(jac: np.ndarray) -> np.ndarray:
     return out
 
 
-def _step(jac: np.ndarray, residual: np.ndarray, state: NuisanceValues, start: NuisanceValues) -> np.ndarray:
-    """The bounded Gauss-Newton step with the priors as extra rows, in each parameter's units."""
-    rows = np.isfinite(jac).all(axis=1) & np.isfinite(residual)
-    scale = np.array([_parameter(s).scale for s in state.slots])
-    sigma = np.array([_prior_sigma(s) for s in state.slots])
-    current, prior_mean = np.array(state.values), np.array(start.values)
-    matrix = np.vstack([jac[rows] * scale, np.diag(scale / sigma)])
-    target = np.concatenate([residual[rows], (prior_mean - current) / sigma])
-    bounds = np.array([_bounds(s) for s in state.slots])
-    fit = lsq_linear(matrix, target, bounds=((bounds[:, 0] - current) / scale, (bounds[:, 1] - current) / scale))
-    return fit.x * scale
-
-
 def _gauss_newton(
     nominal: Base,
     model: TwinModel,
@@ -344,36 +315,39 @@ def _gauss_newton(
     start: NuisanceValues,
     prior: NuisanceValues,
     report: Callable[[str], None],
-) -> _State:
-    """Damped Gauss-Newton from `start`, the priors centred on `prior` (the model's values); stops at the
-    noise, after `ITERATIONS` or when a step (halved up to `BACKTRACKS` times) does not lower the cost."""
-    state = _state(nominal, model, predictor, start, prior)
-    for iteration in range(ITERATIONS):
-        report(f"iteration {iteration + 1}: RMS {_rms(state.residual):.2f}x the noise")
-        if np.isfinite(state.cost) and nominal.noise_test(state.residual, len(start.slots)).is_noise:
-            break
-        jac = _jacobian(nominal, model, predictor, state.values)
-        delta = _step(jac, state.residual, state.values, prior)
-        trial = _state(nominal, model, predictor, state.values.moved(delta), prior)
-        for _ in range(BACKTRACKS):
-            if trial.cost < state.cost:
-                break
-            delta = delta / 2.0
-            trial = _state(nominal, model, predictor, state.values.moved(delta), prior)
-        if not trial.cost < state.cost:
-            break
-        state = replace(trial, jac=jac)
-    return state
+) -> Fit:
+    """Damped Gauss-Newton (`twin.analysis.fit.gauss_newton`) from `start`, the priors centred on `prior`
+    (the model's values); stops at the noise, after `ITERATIONS` or when a step (halved up to `BACKTRACKS`
+    times) does not lower the cost: the chi-square plus the priors', infinite where the replay fails on
+    samples the nominal model reaches (a fit must not buy a lower chi-square by losing samples). Its
+    Jacobian is the last sensitivity a step used (at the point before the last step)."""
+    gaussian = _prior(prior)
+
+    def residual(at: Parameters) -> np.ndarray:
+        return nominal.residual.values - _shifted(nominal, model, predictor, start.at(at))
+
+    def cost(r: np.ndarray, values: np.ndarray) -> float:
+        return float("inf") if np.isnan(r).any() else nominal.nuisance.chi2(r) + gaussian.cost(values)
+
+    hooks = GaussNewtonHooks(
+        jacobian=lambda at: _jacobian(nominal, model, predictor, start.at(at)),
+        at_noise=lambda r: not np.isnan(r).any() and nominal.noise_test(r, len(start.slots)).is_noise,
+        cost=cost,
+        on_iteration=lambda i, r: report(f"iteration {i + 1}: RMS {_rms(r):.2f}x the noise"),
+    )
+    return gauss_newton(residual, start.parameters, hooks, GaussNewtonSettings(ITERATIONS, BACKTRACKS), gaussian)
 
 
-def _best_starts(nominal: Base, model: TwinModel, predictor: Predictor, fitted: _State) -> NuisanceValues:
+def _best_starts(
+    nominal: Base, model: TwinModel, predictor: Predictor, fitted: NuisanceValues, residual: np.ndarray
+) -> NuisanceValues:
     """The fitted values with each arm's registration replaced by whichever of its fit and
     `REGISTRATION_STARTS` leaves that arm's trajectories the least squared residual (one replay set per
     start: every arm is moved to the same start at once; the starts' replays solved as one batch)."""
-    slots, values = fitted.values.slots, np.array(fitted.values.values)
+    slots, values = fitted.slots, np.array(fitted.values)
     arms = sorted({(s.sensor, s.arm) for s in slots if s.effect == REGISTRATION})
     index = nominal.residual.trajectory_index
-    best = {arm: (_arm_cost(fitted.residual, index, nominal, arm), None) for arm in arms}
+    best = {arm: (_arm_cost(residual, index, nominal, arm), None) for arm in arms}
     trials = []
     for offset in REGISTRATION_STARTS:
         trial = values.copy()
@@ -411,21 +385,15 @@ def _leave_one_trajectory_out(base: Base, jac: np.ndarray, fitted: NuisanceValue
     for i in range(len(base.trajectories)):
         test = index == i
         train_jac = np.where(test[:, None], np.nan, jac)
-        delta = _step(train_jac, np.where(test, np.nan, residual), fitted, prior)
+        delta = linear_step(train_jac, np.where(test, np.nan, residual), fitted.parameters, _prior(prior))
         out[test] = residual[test] - jac[test] @ delta
     return out
 
 
-def _correlation(jac: np.ndarray, slots: tuple[Slot, ...]) -> list[list[float]]:
+def _correlation(jac: np.ndarray, values: NuisanceValues) -> list[list[float]]:
     """Correlations of the fitted nuisances (from the scaled J^T J with the priors)."""
-    rows = np.isfinite(jac).all(axis=1)
-    scale = np.array([_parameter(s).scale for s in slots])
-    sigma = np.array([_prior_sigma(s) for s in slots])
-    scaled = jac[rows] * scale
-    info = scaled.T @ scaled + np.diag((scale / sigma) ** 2)
-    cov = np.linalg.inv(info)
-    d = np.sqrt(np.diag(cov))
-    return (cov / np.outer(d, d)).round(4).tolist()
+    spread = fit_uncertainty(jac, values.parameters.scale, prior_sigma=_prior(values).sigma)
+    return spread.correlation.round(4).tolist()
 
 
 def _rms(values: np.ndarray) -> float:

@@ -12,6 +12,9 @@ from __future__ import annotations
 
 from dataclasses import dataclass, field
 
+import numpy as np
+
+from twin.analysis.fit import AT_BOUND, near_bound
 from twin.effects import EFFECTS
 
 EVIDENCE_MARGIN = 10.0
@@ -49,14 +52,13 @@ class Candidate:
         return self.refit_rms is not None
 
 
-def parameters_at_bound(name: str, values: dict[str, float], tolerance: float = 1e-6) -> list[str]:
-    """The parameters of effect `name` whose `values` sit at a bound (within `tolerance` of its range)."""
-    out = []
-    for p in EFFECTS[name].parameters:
-        span = p.upper - p.lower
-        if p.name in values and min(values[p.name] - p.lower, p.upper - values[p.name]) <= tolerance * span:
-            out.append(p.name)
-    return out
+def parameters_at_bound(name: str, values: dict[str, float], tolerance: float = AT_BOUND) -> list[str]:
+    """The parameters of effect `name` whose `values` sit at a bound (within `tolerance` of its range,
+    `twin.analysis.fit.near_bound`)."""
+    given = [p for p in EFFECTS[name].parameters if p.name in values]
+    lower, upper = np.array([p.lower for p in given]), np.array([p.upper for p in given])
+    near = near_bound(np.array([values[p.name] for p in given]), lower, upper, tolerance)
+    return [p.name for p, flag in zip(given, near, strict=True) if flag]
 
 
 def _figures(c: Candidate) -> str:

@@ -1,0 +1,161 @@
+"""The fit + intervals core (twin/analysis/fit.py) against independent truth: the normal equations of a
+linear model (its solution and covariance, with and without a Gaussian prior), Rosenbrock's known minimum,
+the constrained optimum of orthogonal columns with one bound active, and refused input."""
+
+import numpy as np
+import pytest
+
+from twin.analysis.fit import (
+    GaussNewtonHooks,
+    GaussNewtonSettings,
+    Parameters,
+    Prior,
+    gauss_newton,
+    linear_step,
+    polish,
+    uncertainty,
+)
+
+WIDE = 1e9
+
+
+def _parameters(values, lower=None, upper=None, scale=None) -> Parameters:
+    values = np.asarray(values, dtype=float)
+    return Parameters(
+        tuple(f"p{i}" for i in range(len(values))),
+        values,
+        np.full(len(values), -WIDE) if lower is None else np.asarray(lower, dtype=float),
+        np.full(len(values), WIDE) if upper is None else np.asarray(upper, dtype=float),
+        np.ones(len(values)) if scale is None else np.asarray(scale, dtype=float),
+    )
+
+
+def _linear_problem(seed: int = 0, n: int = 300):
+    """y = A x_true + noise with columns of very different units (the scales make them alike)."""
+    rng = np.random.default_rng(seed)
+    units = np.array([1e-3, 1e5, 1.0])
+    a = rng.normal(size=(n, 3)) / units
+    x_true = np.array([2e-3, -3e5, 0.7])
+    y = a @ x_true + rng.normal(scale=0.05, size=n)
+    return a, y, units
+
+
+def test_a_linear_fit_reaches_the_normal_equations_and_their_covariance() -> None:
+    a, y, units = _linear_problem()
+    start = _parameters(np.zeros(3), scale=units)
+    fit = gauss_newton(
+        lambda p: y - a @ p.values,
+        start,
+        GaussNewtonHooks(),
+        GaussNewtonSettings(iterations=3, whitened=False),
+        start_jacobian=a,
+    )
+    solution = np.linalg.solve(a.T @ a, a.T @ y)
+    r = y - a @ solution
+    covariance = r @ r / (len(y) - 3) * np.linalg.inv(a.T @ a)
+    assert fit.values == pytest.approx(solution, rel=1e-8)
+    assert fit.uncertainty.variance == "residual"
+    assert fit.uncertainty.covariance == pytest.approx(covariance, rel=1e-6)
+    assert fit.uncertainty.std == pytest.approx(np.sqrt(np.diag(covariance)), rel=1e-8)
+    d = np.sqrt(np.diag(covariance))
+    assert fit.uncertainty.correlation == pytest.approx(covariance / np.outer(d, d), abs=1e-9)
+    intervals = fit.uncertainty.intervals(fit.values)
+    assert intervals[:, 1] - intervals[:, 0] == pytest.approx(2 * 1.96 * d, rel=1e-8)
+    assert fit.at_bound == () and fit.evaluations >= 1
+
+
+def test_a_whitened_fit_with_a_prior_matches_the_gaussian_posterior() -> None:
+    a, y, units = _linear_problem(seed=1, n=40)
+    sigma = 0.05
+    prior = Prior(np.array([1e-3, -1e5, 0.0]), np.array([2e-3, 1e5, 0.5]))
+    aw, yw = a / sigma, y / sigma
+    fit = gauss_newton(
+        lambda p: yw - aw @ p.values,
+        _parameters(prior.mean, scale=units),
+        GaussNewtonHooks(),
+        GaussNewtonSettings(iterations=3),
+        prior=prior,
+        start_jacobian=aw,
+    )
+    precision = aw.T @ aw + np.diag(1.0 / prior.sigma**2)
+    posterior_mean = np.linalg.solve(precision, aw.T @ yw + prior.mean / prior.sigma**2)
+    assert fit.values == pytest.approx(posterior_mean, rel=1e-7)
+    assert fit.uncertainty.variance == "unit"
+    assert fit.uncertainty.covariance == pytest.approx(np.linalg.inv(precision), rel=1e-6)
+    expected_cost = np.sum((yw - aw @ posterior_mean) ** 2) + prior.cost(posterior_mean)
+    assert fit.cost == pytest.approx(expected_cost, rel=1e-9)
+
+
+def test_the_uncertainty_condition_is_that_of_the_scaled_normal_matrix() -> None:
+    jac = np.diag([1.0, 1e-3]) @ np.eye(2)
+    jac = np.vstack([jac, [np.nan, 1.0]])  # a row the model did not reach is left out
+    spread = uncertainty(jac, np.array([1.0, 10.0]))
+    assert spread.condition == pytest.approx(1e4)  # scaled columns 1 and 1e-2
+    assert spread.std == pytest.approx([1.0, 1000.0])  # 1 / |column|, whatever the scale
+
+
+def test_gauss_newton_finds_rosenbrocks_minimum() -> None:
+    def prediction(p: Parameters) -> np.ndarray:
+        x0, x1 = p.values
+        return np.array([10.0 * (x1 - x0**2), 1.0 - x0])
+
+    def jacobian(p: Parameters) -> np.ndarray:
+        return np.array([[-20.0 * p.values[0], 10.0], [-1.0, 0.0]])
+
+    start = _parameters([-1.2, 1.0], lower=[-2.0, -2.0], upper=[2.0, 2.0])
+    # From the classic start the full step overshoots the curved valley: it takes four halvings to descend.
+    settings = GaussNewtonSettings(iterations=100, backtracks=10)
+    fit = gauss_newton(lambda p: -prediction(p), start, GaussNewtonHooks(jacobian=jacobian), settings)
+    assert fit.values == pytest.approx([1.0, 1.0], abs=1e-8)
+    assert fit.cost == pytest.approx(0.0, abs=1e-14)
+
+
+def test_a_parameter_pinned_at_its_bound_is_flagged_and_the_other_is_free() -> None:
+    # Orthogonal columns: the bounded optimum is the unbounded one with the first value clipped.
+    a = np.zeros((4, 2))
+    a[:2, 0] = 1.0
+    a[2:, 1] = 1.0
+    y = np.array([5.0, 5.0, -0.3, -0.1])
+    start = _parameters([0.0, 0.0], lower=[-1.0, -1.0], upper=[1.0, 1.0])
+    step = linear_step(a, y, start)
+    assert step == pytest.approx([1.0, -0.2])
+    fit = gauss_newton(lambda p: y - a @ p.values, start, GaussNewtonHooks(), start_jacobian=a)
+    assert fit.values == pytest.approx([1.0, -0.2])
+    assert fit.at_bound == ("p0",)
+
+
+def test_a_step_that_does_not_lower_the_cost_is_not_taken() -> None:
+    # The given Jacobian points the wrong way: every halved step raises the cost, so the start is kept.
+    y = np.array([1.0, 2.0])
+    fit = gauss_newton(
+        lambda p: y - p.values[0] * np.ones(2), _parameters([0.0]), GaussNewtonHooks(), start_jacobian=-np.ones((2, 1))
+    )
+    assert fit.values == pytest.approx([0.0]) and fit.jacobian is None and fit.uncertainty is None
+    assert fit.evaluations == 1 + 1 + GaussNewtonSettings().backtracks
+
+
+def test_polish_finds_a_bounded_minimum_and_keeps_a_better_start() -> None:
+    one = polish(lambda x: float((x[0] - 0.3) ** 2), _parameters([0.0], [-1.0], [1.0], [0.1]))
+    assert one.values == pytest.approx([0.3], abs=1e-4)
+    two = polish(lambda x: float(np.sum((x - [0.2, -0.4]) ** 2)), _parameters([0.0, 0.0], [-1, -0.3], [1, 1]))
+    assert two.values == pytest.approx([0.2, -0.3], abs=1e-3) and two.at_bound == ("p1",)
+    flat = polish(lambda x: 0.0 if x[0] == 0.5 else 1.0, _parameters([0.5], [0.0], [1.0], [0.1]))
+    assert flat.values == pytest.approx([0.5]) and flat.cost == 0.0
+
+
+@pytest.mark.parametrize(
+    "make",
+    [
+        lambda: Parameters(("a", "b"), np.zeros(1), np.zeros(2), np.ones(2), np.ones(2)),
+        lambda: Parameters(("a",), np.zeros(1), np.ones(1), np.zeros(1), np.ones(1)),
+        lambda: Parameters(("a",), np.zeros(1), -np.ones(1), np.ones(1), np.zeros(1)),
+        lambda: Parameters(("a",), np.full(1, 2.0), -np.ones(1), np.ones(1), np.ones(1)),
+        lambda: Parameters(("a",), np.full(1, np.nan), -np.ones(1), np.ones(1), np.ones(1)),
+        lambda: uncertainty(np.ones((3, 2)), np.ones(3)),
+        lambda: gauss_newton(lambda p: np.zeros(2), _parameters([0.0]), GaussNewtonHooks()),
+    ],
+)
+def test_bad_input_is_refused_with_one_line(make) -> None:
+    with pytest.raises(ValueError) as error:
+        make()
+    assert "\n" not in str(error.value) and str(error.value)

@@ -1,0 +1,302 @@
+"""One fit + intervals core: bounded, scaled least squares of named parameters against a residual.
+
+Every fit of model parameters against measured residuals goes through here: calibrate's intervals,
+diagnose's candidate fits, refits and polish, and the nuisance fit (issue 23, step 4). Plain data in,
+arrays out; the caller's residual function holds whatever model it predicts with.
+
+- `Parameters`: named values (SI units of each parameter) with bounds and a scale (the parameter table's
+  `scale`, or a bound range): steps are solved in units of the scale, so parameters of different units
+  weigh alike.
+- `linear_step`: the bounded linear least-squares step of a residual on its Jacobian (optionally with a
+  Gaussian prior on each parameter as extra rows).
+- `gauss_newton`: damped Gauss-Newton (each linear step re-predicted nonlinearly, halved while it does not
+  lower the cost), returning a frozen `Fit`.
+- `polish`: bounded derivative-free minimisation of a scalar cost (a signal that moves in whole samples,
+  like a delay, has no useful derivative).
+- `uncertainty`: the Gauss-Newton (linearised) covariance cov = s^2 (J_s^T J_s + P)^+ in scaled units, mapped
+  to the parameters' units, where J_s is the Jacobian times the scales, P the prior's information
+  (diag(scale / sigma)^2, none without a prior) and s^2 either 1 (a whitened residual: its variance is
+  known) or the residual variance |r|^2 / (n - p); standard errors, correlations, the condition of J_s^T J_s
+  and 95 % intervals (+- 1.96 sigma) follow from it.
+
+Sign convention: a residual is data minus prediction and a Jacobian is the prediction's sensitivity to the
+parameters (N, p; residual units per parameter unit), so a step solves residual ~ jac delta.
+Rows of a Jacobian or residual with a non-finite entry (samples the model did not reach) are left out of
+every solve.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+from dataclasses import dataclass
+
+import numpy as np
+from scipy.optimize import lsq_linear, minimize, minimize_scalar
+
+Z95 = 1.96
+"""Half-width of a two-sided 95 % normal interval, in standard deviations."""
+AT_BOUND = 1e-6
+"""A value within this fraction of its bound range of a bound is at the bound (the bounded solver's steps stay
+strictly inside, so exact equality is rarely met)."""
+
+
+def near_bound(values: np.ndarray, lower: np.ndarray, upper: np.ndarray, tolerance: float = AT_BOUND) -> np.ndarray:
+    """(p,) bool: whether each value lies within `tolerance` times its bound range of a bound."""
+    return np.minimum(values - lower, upper - values) <= tolerance * (upper - lower)
+
+
+@dataclass(frozen=True)
+class Parameters:
+    """Named parameter values with their bounds and scales (1-D float arrays of one length, the
+    parameters' own units). ValueError on mismatched lengths, non-finite entries, lower > upper, a
+    non-positive scale or a value outside its bounds."""
+
+    names: tuple[str, ...]
+    values: np.ndarray
+    lower: np.ndarray
+    upper: np.ndarray
+    scale: np.ndarray
+
+    def __post_init__(self) -> None:
+        arrays = {k: np.asarray(getattr(self, k), dtype=float) for k in ("values", "lower", "upper", "scale")}
+        for key, array in arrays.items():
+            if array.shape != (len(self.names),):
+                raise ValueError(f"{key} has shape {array.shape}; expected ({len(self.names)},), one per name")
+            if not np.isfinite(array).all():
+                raise ValueError(f"{key} must be finite, got {array.tolist()}")
+            object.__setattr__(self, key, array)
+        if np.any(self.lower > self.upper) or np.any(self.scale <= 0):
+            raise ValueError(f"need lower <= upper and scale > 0 for {list(self.names)}")
+        if np.any(self.values < self.lower) or np.any(self.values > self.upper):
+            raise ValueError(f"values {self.values.tolist()} of {list(self.names)} lie outside their bounds")
+
+    def moved(self, delta: np.ndarray) -> Parameters:
+        """The values moved by `delta` (parameter units) and clipped to the bounds."""
+        moved = np.clip(self.values + delta, self.lower, self.upper)
+        return Parameters(self.names, moved, self.lower, self.upper, self.scale)
+
+    def with_values(self, values: np.ndarray) -> Parameters:
+        """The same parameters at `values` (which must lie within the bounds)."""
+        return Parameters(self.names, np.asarray(values, dtype=float), self.lower, self.upper, self.scale)
+
+    def at_bound(self, tolerance: float = AT_BOUND) -> tuple[str, ...]:
+        """Names whose value lies within `tolerance` times its bound range of a bound (`near_bound`)."""
+        near = near_bound(self.values, self.lower, self.upper, tolerance)
+        return tuple(n for n, flag in zip(self.names, near, strict=True) if flag)
+
+    def as_dict(self) -> dict[str, float]:
+        """{name: value}."""
+        return {n: float(v) for n, v in zip(self.names, self.values, strict=True)}
+
+
+@dataclass(frozen=True)
+class Prior:
+    """An independent Gaussian prior on each parameter: `mean` and 1-sigma `sigma` (parameter units)."""
+
+    mean: np.ndarray
+    sigma: np.ndarray
+
+    def cost(self, values: np.ndarray) -> float:
+        """sum(((values - mean) / sigma)^2): the prior's chi-square."""
+        return float(np.sum(((np.asarray(values) - self.mean) / self.sigma) ** 2))
+
+
+@dataclass(frozen=True)
+class Uncertainty:
+    """Linearised uncertainty of fitted parameters (see the module docstring).
+
+    covariance: (p, p) in the parameters' units; std: (p,) 1-sigma; correlation: (p, p) (0 where a
+    parameter has no variance); condition: largest over smallest eigenvalue of the scaled J^T J (prior left
+    out); variance: "unit" (whitened residual) or "residual" (s^2 = |r|^2 / (n - p))."""
+
+    covariance: np.ndarray
+    std: np.ndarray
+    correlation: np.ndarray
+    condition: float
+    variance: str
+
+    def intervals(self, values: np.ndarray) -> np.ndarray:
+        """(p, 2) 95 % intervals about `values`: values -+ 1.96 std."""
+        return np.column_stack([values - Z95 * self.std, values + Z95 * self.std])
+
+
+def uncertainty(
+    jac: np.ndarray, scale: np.ndarray, residual: np.ndarray | None = None, prior_sigma: np.ndarray | None = None
+) -> Uncertainty:
+    """The Gauss-Newton covariance of parameters with Jacobian `jac` (N, p; residual units per parameter
+    unit) and scales `scale` (p,): with `residual` (N,) given, scaled by its variance |r|^2 / (n - p) (n - p at
+    least 1); without, by 1 (a whitened residual). `prior_sigma` (p,) adds a Gaussian prior's information."""
+    jac = np.asarray(jac, dtype=float)
+    if jac.ndim != 2 or jac.shape[1] != len(scale):
+        raise ValueError(f"the Jacobian has shape {jac.shape}; expected (N, {len(scale)})")
+    rows = np.isfinite(jac).all(axis=1) & (np.isfinite(residual) if residual is not None else True)
+    scaled = jac[rows] * scale
+    information = scaled.T @ scaled
+    eig = np.linalg.eigvalsh(information)
+    condition = float(eig[-1] / max(eig[0], 1e-300)) if len(eig) else float("nan")
+    if prior_sigma is not None:
+        information = information + np.diag((scale / prior_sigma) ** 2)
+    variance = 1.0
+    if residual is not None:
+        r = np.asarray(residual, dtype=float)[rows]
+        variance = float(r @ r) / max(len(r) - jac.shape[1], 1)
+    cov_scaled = variance * np.linalg.pinv(information)
+    sd_scaled = np.sqrt(np.clip(np.diag(cov_scaled), 0.0, None))
+    denominator = np.outer(sd_scaled, sd_scaled)
+    correlation = np.divide(cov_scaled, denominator, out=np.zeros_like(cov_scaled), where=denominator > 0)
+    return Uncertainty(
+        cov_scaled * np.outer(scale, scale),
+        sd_scaled * scale,
+        correlation,
+        condition,
+        "residual" if residual is not None else "unit",
+    )
+
+
+def linear_step(jac: np.ndarray, residual: np.ndarray, at: Parameters, prior: Prior | None = None) -> np.ndarray:
+    """The step delta (p,; parameter units) minimising |residual - jac delta|^2 (plus the prior's chi-square
+    at `at.values + delta`) with `at.values + delta` within the bounds, solved in scaled units; rows with a
+    non-finite entry are left out."""
+    rows = np.isfinite(jac).all(axis=1) & np.isfinite(residual)
+    matrix, target = jac[rows] * at.scale, residual[rows]
+    if prior is not None:
+        matrix = np.vstack([matrix, np.diag(at.scale / prior.sigma)])
+        target = np.concatenate([target, (prior.mean - at.values) / prior.sigma])
+    bounds = ((at.lower - at.values) / at.scale, (at.upper - at.values) / at.scale)
+    return lsq_linear(matrix, target, bounds=bounds).x * at.scale
+
+
+@dataclass(frozen=True)
+class Fit:
+    """A fit's outcome: `parameters` at the optimum, its `residual` and `cost`, the last Jacobian a step
+    used (None when no step was taken), the `uncertainty` from it (None likewise), the names at a bound and
+    the number of residual evaluations."""
+
+    parameters: Parameters
+    residual: np.ndarray
+    cost: float
+    jacobian: np.ndarray | None
+    uncertainty: Uncertainty | None
+    at_bound: tuple[str, ...]
+    evaluations: int
+
+    @property
+    def values(self) -> np.ndarray:
+        """The fitted values (parameter units)."""
+        return self.parameters.values
+
+
+@dataclass(frozen=True)
+class GaussNewtonSettings:
+    """Damped Gauss-Newton controls: `iterations` linear steps at most; a step that does not lower the cost
+    is halved up to `backtracks` times, then the fit stops; it also stops after a step that moves every
+    parameter by less than `step_tolerance` of its scale; `whitened` says whether the residual's variance
+    is 1 (the intervals' s^2)."""
+
+    iterations: int = 4
+    backtracks: int = 2
+    step_tolerance: float = 0.0
+    whitened: bool = True
+
+
+@dataclass(frozen=True)
+class GaussNewtonHooks:
+    """What a fit may be told besides its residual. `jacobian(parameters)` linearises again before each
+    step (None: keep `start_jacobian` throughout); `at_noise(residual)` stops the fit before a new
+    linearisation; `cost(residual, values)` defaults to the sum of squares of the finite residual (plus the
+    prior's chi-square); `on_iteration(i, residual)` is told each iteration before its step."""
+
+    jacobian: Callable[[Parameters], np.ndarray] | None = None
+    at_noise: Callable[[np.ndarray], bool] | None = None
+    cost: Callable[[np.ndarray, np.ndarray], float] | None = None
+    on_iteration: Callable[[int, np.ndarray], None] | None = None
+
+
+def gauss_newton(
+    residual: Callable[[Parameters], np.ndarray],
+    start: Parameters,
+    hooks: GaussNewtonHooks,
+    settings: GaussNewtonSettings = GaussNewtonSettings(),
+    prior: Prior | None = None,
+    start_residual: np.ndarray | None = None,
+    start_jacobian: np.ndarray | None = None,
+) -> Fit:
+    """Damped Gauss-Newton of `residual(parameters)` (N,) from `start` (see `GaussNewtonSettings` and
+    `GaussNewtonHooks`). `start_residual` saves the first evaluation when known; `start_jacobian` is the
+    first step's Jacobian (else `hooks.jacobian` gives it). ValueError with neither Jacobian."""
+    if hooks.jacobian is None and start_jacobian is None:
+        raise ValueError("gauss_newton needs a start_jacobian or a jacobian hook")
+    evaluations = 0
+
+    def cost(r: np.ndarray, values: np.ndarray) -> float:
+        if hooks.cost is not None:
+            return hooks.cost(r, values)
+        return float(np.nansum(r**2)) + (prior.cost(values) if prior is not None else 0.0)
+
+    def evaluated(parameters: Parameters) -> tuple[Parameters, np.ndarray, float]:
+        nonlocal evaluations
+        evaluations += 1
+        r = residual(parameters)
+        return parameters, r, cost(r, parameters.values)
+
+    if start_residual is None:
+        state = evaluated(start)
+    else:
+        state = (start, start_residual, cost(start_residual, start.values))
+    jac, used = start_jacobian, None
+    for iteration in range(settings.iterations):
+        if hooks.on_iteration is not None:
+            hooks.on_iteration(iteration, state[1])
+        if jac is None:
+            if hooks.at_noise is not None and hooks.at_noise(state[1]):
+                break
+            jac = hooks.jacobian(state[0])
+        delta = linear_step(jac, state[1], state[0], prior)
+        trial = evaluated(state[0].moved(delta))
+        for _ in range(settings.backtracks):
+            if trial[2] < state[2]:
+                break
+            delta = delta / 2.0
+            trial = evaluated(state[0].moved(delta))
+        if not trial[2] < state[2]:
+            break
+        state, used = trial, jac
+        if np.all(np.abs(delta) < settings.step_tolerance * start.scale):
+            break
+        if hooks.jacobian is not None:
+            jac = None
+    parameters, r, c = state
+    interval = None
+    if used is not None:
+        interval = uncertainty(
+            used, start.scale, None if settings.whitened else r, prior.sigma if prior is not None else None
+        )
+    return Fit(parameters, r, c, used, interval, parameters.at_bound(), evaluations)
+
+
+def polish(cost: Callable[[np.ndarray], float], start: Parameters, reach: float = 5.0, evaluations: int = 60) -> Fit:
+    """Bounded derivative-free minimisation of the scalar `cost(values)` from `start`: one parameter by
+    Brent's bounded search within `reach` scales of its start (and its bounds), several by Powell's method
+    over the bounds with at most `evaluations` per parameter. The start is kept unless the result costs
+    less. The Fit has no residual, Jacobian or uncertainty (a scalar cost gives none)."""
+    calls = 0
+
+    def counted(x: np.ndarray) -> float:
+        nonlocal calls
+        calls += 1
+        return cost(x)
+
+    x0 = start.values
+    if len(x0) == 1:
+        lo = max(start.lower[0], x0[0] - reach * start.scale[0])
+        hi = min(start.upper[0], x0[0] + reach * start.scale[0])
+        best = minimize_scalar(lambda v: counted(np.array([v])), bounds=(lo, hi), method="bounded")
+        x = np.array([best.x])
+    else:
+        bounds = list(zip(start.lower, start.upper, strict=True))
+        options = {"maxfev": evaluations * len(x0), "xtol": 1e-3}
+        best = minimize(counted, x0, method="Powell", bounds=bounds, options=options)
+        x = best.x
+    at_start = counted(x0)
+    fitted = start.with_values(np.clip(x, start.lower, start.upper)) if best.fun < at_start else start
+    return Fit(fitted, np.empty(0), min(float(best.fun), at_start), None, None, fitted.at_bound(), calls)
