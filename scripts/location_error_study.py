@@ -14,6 +14,10 @@ error (mm) broken down by:
 then the same models trained and scored only on rows with |F| >= ``--min-force`` (0.5 N, the paper's
 F/T-noise threshold), and the label spread (distance of the test labels to their mean).
 
+``--true-labels`` (simulated files only: re-runs the plant, twin.label_truth) also prints how far each
+label (the tip through the *estimated* registration, as on the real testbed) is from the true tip, per
+sensor and arm, and reruns the contact-rows models with the true tip as the label.
+
     PYTHONPATH=. python3 scripts/location_error_study.py r1.h5 r2.h5 r3.h5 --models mean,classical,mlp \
         --trajectories 120 --time-limit 300 --json location_study.json
 
@@ -26,6 +30,7 @@ import argparse
 import json
 import sys
 import time
+from dataclasses import replace
 from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
@@ -52,6 +57,7 @@ def row_properties(path: Path, data: TactileData) -> dict[str, np.ndarray]:
         depth = f["depth/data"][:]
         phase = f["phase/data"][:] if "phase" in f else np.zeros(len(depth), dtype=np.int64)
         ids, angle, point = (f[f"trajectories/{k}"][:] for k in ("trajectory_id", "angle", "point"))
+        arm = f["trajectories/arm"][:] if "trajectories/arm" in f else np.full(len(ids), -1)
     by_id = {int(i): k for k, i in enumerate(ids)}
     k = np.array([by_id[int(t)] for t in data.trajectory])
     state = np.where(depth < 0.0, "retracted (1 mm off)", np.where(phase == 1, "unloading", "loading"))
@@ -63,6 +69,7 @@ def row_properties(path: Path, data: TactileData) -> dict[str, np.ndarray]:
         "region": region,
         "indenter": np.array([data.indenter_names[i] for i in data.indenter]),
         "sensor": np.full(len(data), data.sensor),
+        "arm": np.array(["unknown", "left", "right"])[arm[k] + 1],
     }
     if fe_force is not None:
         out["FE contact force"] = np.where(fe_force > 0.0, "> 0 (contact)", "0 (no contact)")
@@ -105,6 +112,37 @@ def print_table(title: str, table: dict[str, dict[str, float]]) -> None:
         )
 
 
+def contact_rerun(model: str, train: TactileData, test: TactileData, groups: dict, args: argparse.Namespace) -> dict:
+    """``model`` trained and scored on the rows with |F| >= args.min_force only, with its breakdown."""
+    keep = np.linalg.norm(test.force, axis=1) >= args.min_force
+    train_contact, test_contact = with_min_force(train, args.min_force), test.subset(keep)
+    errors, wall = fit_predict(model, train_contact, test_contact, args)
+    return {
+        "mean_mm": float(errors.mean()),
+        "median_mm": float(np.median(errors)),
+        "train_rows": len(train_contact),
+        "test_rows": len(test_contact),
+        "wall_s": round(wall, 1),
+        "by": {name: by_group(errors, labels[keep]) for name, labels in groups.items()},
+    }
+
+
+def print_entry(title: str, entry: dict) -> None:
+    print(f"\n{title}: mean {entry['mean_mm']:.2f} / median {entry['median_mm']:.2f} mm ({entry['wall_s']:.0f} s)")
+    for name, table in entry["by"].items():
+        print_table(name, table)
+    sys.stdout.flush()
+
+
+def split_sets(parts: list[TactileData], props: list[dict]) -> tuple[TactileData, TactileData, dict]:
+    """Combined contiguous split: (train, test, {property: (N_test,) labels})."""
+    rows = split_rows(parts, SplitSpec("contiguous"))
+    train = concatenate([p.subset(tr) for p, (tr, _) in zip(parts, rows, strict=True)])
+    test = concatenate([p.subset(te) for p, (_, te) in zip(parts, rows, strict=True)])
+    groups = {k: np.concatenate([p[k][te] for p, (_, te) in zip(props, rows, strict=True)]) for k in props[0]}
+    return train, test, {"|F|": force_bins(test.force), **groups}
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("files", type=Path, nargs="+", help="campaign row files (one per sensor)")
@@ -114,6 +152,7 @@ def main() -> None:
     ap.add_argument("--patience", type=int, default=15)
     ap.add_argument("--time-limit", type=float, default=600.0, help="s per network")
     ap.add_argument("--threads", type=int, default=2)
+    ap.add_argument("--true-labels", action="store_true", help="also with the plant's true tips as labels")
     ap.add_argument("--json", type=Path, default=None)
     args = ap.parse_args()
 
@@ -123,12 +162,7 @@ def main() -> None:
         kept = [keep_trajectories(p, args.trajectories, seed=0) for p in parts]
         parts = [p.subset(k) for p, k in zip(parts, kept, strict=True)]
         props = [{name: v[k] for name, v in p.items()} for p, k in zip(props, kept, strict=True)]
-    rows = split_rows(parts, SplitSpec("contiguous"))
-    train = concatenate([p.subset(tr) for p, (tr, _) in zip(parts, rows, strict=True)])
-    test = concatenate([p.subset(te) for p, (_, te) in zip(parts, rows, strict=True)])
-    props = [{name: v[te] for name, v in p.items()} for p, (_, te) in zip(props, rows, strict=True)]
-    groups = {k: np.concatenate([p[k] for p in props]) for k in props[0]}
-    groups = {"|F|": force_bins(test.force), **groups}
+    train, test, groups = split_sets(parts, props)
     spread = np.linalg.norm(test.contact_loc - test.contact_loc.mean(axis=0), axis=1) * 1e3
     report: dict = {
         "files": [str(p) for p in args.files],
@@ -143,46 +177,49 @@ def main() -> None:
         f"train rows {len(train)}, test rows {len(test)}; test labels' distance to their mean: "
         f"mean {spread.mean():.2f} mm, median {np.median(spread):.2f} mm"
     )
-    train_contact = with_min_force(train, args.min_force)
-    test_contact_mask = np.linalg.norm(test.force, axis=1) >= args.min_force
-    test_contact = test.subset(test_contact_mask)
+    true_parts = None
+    if args.true_labels:
+        from twin.label_truth import true_tip_locations
+
+        tips = [true_tip_locations(path) for path in args.files]
+        if args.trajectories:
+            tips = [t[k] for t, k in zip(tips, kept, strict=True)]
+        true_parts = [replace(p, contact_loc=t) for p, t in zip(parts, tips, strict=True)]
+        _, true_test, _ = split_sets(true_parts, props)
+        offset = location_errors(test.contact_loc, true_test.contact_loc) * 1e3
+        report["label_minus_true_tip_mm"] = {name: by_group(offset, groups[name]) for name in ("sensor", "arm")}
+        print(f"label - true tip (mm): mean {offset.mean():.2f}, median {np.median(offset):.2f}")
+        for name in ("sensor", "arm"):
+            print_table(name, report["label_minus_true_tip_mm"][name])
     for model in args.models.split(","):
         errors, wall = fit_predict(model, train, test, args)
+        contact = np.linalg.norm(test.force, axis=1) >= args.min_force
         entry = {
             "mean_mm": float(errors.mean()),
             "median_mm": float(np.median(errors)),
             "wall_s": round(wall, 1),
             "scored_on_contact_rows": {
-                "mean_mm": float(errors[test_contact_mask].mean()),
-                "median_mm": float(np.median(errors[test_contact_mask])),
+                "mean_mm": float(errors[contact].mean()),
+                "median_mm": float(np.median(errors[contact])),
             },
             "by": {name: by_group(errors, labels) for name, labels in groups.items()},
         }
         report["models"][model] = entry
+        print_entry(f"{model}, all test rows", entry)
         print(
-            f"\n{model}: all test rows mean {entry['mean_mm']:.2f} / median {entry['median_mm']:.2f} mm "
-            f"({wall:.0f} s); scored on |F| >= {args.min_force:g} N rows: "
+            f"{model} scored on |F| >= {args.min_force:g} N rows only: "
             f"{entry['scored_on_contact_rows']['mean_mm']:.2f} / {entry['scored_on_contact_rows']['median_mm']:.2f} mm"
         )
-        for name, table in entry["by"].items():
-            print_table(name, table)
-        contact_errors, wall = fit_predict(model, train_contact, test_contact, args)
-        contact_groups = {name: labels[test_contact_mask] for name, labels in groups.items()}
-        report["contact_rows_only"][model] = {
-            "mean_mm": float(contact_errors.mean()),
-            "median_mm": float(np.median(contact_errors)),
-            "train_rows": len(train_contact),
-            "test_rows": len(test_contact),
-            "wall_s": round(wall, 1),
-            "by": {name: by_group(contact_errors, labels) for name, labels in contact_groups.items()},
-        }
-        print(
-            f"\n{model} trained and scored on |F| >= {args.min_force:g} N rows ({len(train_contact)} / "
-            f"{len(test_contact)}): mean {contact_errors.mean():.2f} / median {np.median(contact_errors):.2f} mm"
+        report["contact_rows_only"][model] = contact_rerun(model, train, test, groups, args)
+        print_entry(
+            f"{model}, trained and scored on |F| >= {args.min_force:g} N rows", report["contact_rows_only"][model]
         )
-        for name, table in report["contact_rows_only"][model]["by"].items():
-            print_table(name, table)
-        sys.stdout.flush()
+        if true_parts is not None:
+            true_train, true_test, _ = split_sets(true_parts, props)
+            report.setdefault("contact_rows_only_true_labels", {})[model] = entry_true = contact_rerun(
+                model, true_train, true_test, groups, args
+            )
+            print_entry(f"{model}, |F| >= {args.min_force:g} N rows, true tips as labels", entry_true)
     if args.json is not None:
         args.json.write_text(json.dumps(report, indent=1))
 
