@@ -93,3 +93,22 @@ def test_study_tables_add_up_and_no_contact_rows_are_the_hardest(tmp_path) -> No
     in_contact = [s["mean"] for k, s in classical.items() if not k.startswith("0-")]
     assert classical["0-0.1 N"]["mean"] > 1.5 * max(in_contact)
     assert report["contact_rows_only"]["classical"]["mean_mm"] < report["models"]["classical"]["mean_mm"]
+
+
+def test_min_force_drops_low_force_rows_after_an_unchanged_split(tmp_path) -> None:
+    from learn.experiment import SplitSpec, evaluate_checkpoint, load_files, split_rows, train
+    from learn.synthetic import write_synthetic_campaign
+
+    path = write_synthetic_campaign(tmp_path / "biotac1.hdf5", 30, seed=4)
+    parts = load_files([path])
+    ((train_all, test_all),) = split_rows(parts, SplitSpec("contiguous"))
+    ((train_rows, test_rows),) = split_rows(parts, SplitSpec("contiguous", min_force=0.5))
+    strong = np.linalg.norm(parts[0].force, axis=1) >= 0.5
+    assert 0 < strong.sum() < len(strong)  # the file has rows on both sides of the threshold
+    assert np.array_equal(train_rows, train_all[strong[train_all]])
+    assert np.array_equal(test_rows, test_all[strong[test_all]])
+    checkpoint = train([path], "classical", SplitSpec("contiguous", min_force=0.5))
+    assert checkpoint.metrics["combined"]["n_samples"] == len(test_rows)
+    again = evaluate_checkpoint(checkpoint, [path], on="test")
+    assert again["combined"] == checkpoint.metrics["combined"]
+    assert evaluate_checkpoint(checkpoint, [path], on="all")["combined"]["n_samples"] == strong.sum()

@@ -57,11 +57,18 @@ def file_plant(path: str | Path, scene: SceneParameters | None = None) -> tuple[
     return plant, sensor_id, testbed
 
 
-def true_tip_locations(path: str | Path, scene: SceneParameters | None = None) -> np.ndarray:
+def true_tip_locations(
+    path: str | Path, scene: SceneParameters | None = None, plant: Plant | None = None
+) -> np.ndarray:
     """(N, 3) m: each row's true indenter tip in the true BioTac frame (the label `contact_loc` is the
     estimate through the registration). Rows in file order; uses `joint_angles` and the trajectories'
-    arm and tool tip."""
-    plant, sensor_id, testbed = file_plant(path, scene)
+    arm and tool tip. plant: the plant that made the file when known (else `file_plant` rebuilds it)."""
+    if plant is None:
+        plant, sensor_id, testbed = file_plant(path, scene)
+    else:
+        with h5py.File(path, "r") as f:
+            sensor_id = int(f.attrs["sensor_id"])
+        testbed = TestbedScene(scene if scene is not None else CampaignConfig().scene)
     to_biotac = np.linalg.inv(true_biotac_pose(plant, sensor_id, testbed))
     with h5py.File(path, "r") as f:
         joints, row_trajectory = f["joint_angles/data"][:], f["trajectory_id/data"][:]
