@@ -144,6 +144,14 @@ def concatenate(parts: list[TactileData], sensor: str = "combined") -> TactileDa
     )
 
 
+def with_min_force(data: TactileData, min_force: float) -> TactileData:
+    """The rows whose force magnitude is at least ``min_force`` (N): rows in contact. Below ~0.1 N the F/T
+    reading is noise and the skin may not be touched at all, so the contact location is unobservable."""
+    if data.force is None:
+        raise ValueError("with_min_force needs force targets")
+    return data.subset(np.linalg.norm(data.force, axis=1) >= min_force)
+
+
 # ----------------------------------------------------------------------------------------------- layouts
 
 

@@ -107,6 +107,9 @@ def train(
     ] = "contiguous",
     test_fraction: Annotated[float, typer.Option(help="Share of trajectories (samples) held out.")] = 0.2,
     seed: Annotated[int, typer.Option(help="Seed of split, initialisation and batches.")] = 0,
+    min_force: Annotated[
+        float, typer.Option(help="N: train and score only rows with |force| >= this (0: all rows).")
+    ] = 0.0,
     targets: Annotated[
         str, typer.Option(help="Comma-separated: contact_loc, force, nodal.")
     ] = "contact_loc,force,nodal",
@@ -148,7 +151,9 @@ def train(
             bar.update(task, completed=record.epoch + 1, description=f"{model} val {record.val_loss:.4g}")
 
         checkpoint = guarded(
-            lambda: run_training(paths, model, SplitSpec(split, test_fraction, seed), config, pretrained, 0, show)
+            lambda: run_training(
+                paths, model, SplitSpec(split, test_fraction, seed, min_force), config, pretrained, 0, show
+            )
         )
     checkpoint.save(out)
     err_console.print(f"wrote {out}")
