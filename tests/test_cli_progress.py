@@ -46,3 +46,24 @@ def test_a_terminal_gets_rich_bars_and_no_plain_lines(monkeypatch):
     clock.now = 5.0
     progress.update(task, completed=2)
     assert "fe batch 2/2 (5 s)" not in log.getvalue()
+
+
+def test_the_loops_progress_follows_the_predictors_replays(monkeypatch):
+    from twin.analysis.predict import Predictor
+    from twin.cli.common import replay_progress
+
+    clock = Clock()
+    monkeypatch.setattr("twin.cli.common.time.monotonic", clock)
+    log = io.StringIO()
+    monkeypatch.setattr(
+        "twin.cli.common.progress_bar", lambda: LoggedProgress(console=Console(file=log), interval_s=10.0)
+    )
+    predictor = Predictor()
+    with replay_progress(predictor):
+        predictor.on_replays(1, 8)  # 0 s: silent
+        clock.now = 11.0
+        predictor.on_replays(3, 8)
+        clock.now = 12.0
+        predictor.on_replays(8, 8)
+    assert predictor.on_replays is None  # unwired after the command
+    assert log.getvalue().splitlines()[:2] == ["fe replays 3/8 (11 s)", "fe replays 8/8 (12 s)"]  # then rich's last bar

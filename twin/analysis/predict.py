@@ -152,8 +152,10 @@ class Predictor:
     how a GPU is kept busy and the per-round overhead of a run is paid once for them all.
     """
 
-    def __init__(self, device: str = "cpu") -> None:
+    def __init__(self, device: str = "cpu", on_replays: Callable[[int, int], None] | None = None) -> None:
         self.device = device
+        self.on_replays = on_replays
+        """Told (done, total) as each replay of a `prefetch_many` without its own `progress` is solved."""
         self._models: dict[tuple, tuple[BioTacModel, InflationResult]] = {}
         self._readouts: dict[int, SensorReadout] = {}
         self._replays: dict[tuple, Replay] = {}
@@ -221,7 +223,8 @@ class Predictor:
         none relax; a run of one skin queues its trajectories through at most `PREFETCH_SLOTS` systems, a
         run of several holds at most `PREFETCH_SLOTS` systems, one per replay. Each replay is what `predict`
         would solve one at a time: the same events, stopped at the first increment that does not converge.
-        progress(done, total) after each replay solved; returns how many were solved."""
+        progress(done, total) (default: the predictor's `on_replays`) after each replay solved; returns how many
+        were solved."""
         pending: dict[tuple, _PendingReplay] = {}
         for model, trajectories in requests:
             for trajectory in trajectories:
@@ -231,6 +234,7 @@ class Predictor:
                     pending[plan.key] = _PendingReplay(trajectory, plan, fe, self.readout(fe))
         work = list(pending.values())
         solved = 0
+        progress = progress or self.on_replays
 
         def done() -> None:
             nonlocal solved

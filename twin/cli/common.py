@@ -235,6 +235,19 @@ def analysis_predictor(device: str) -> Predictor:
     return Predictor(device)
 
 
+@contextmanager
+def replay_progress(predictor: Predictor) -> Iterator[Progress]:
+    """A progress bar (`progress_bar`) with an "fe replays" line that `predictor` advances as it solves the
+    replays of a batch; more lines may be added to it."""
+    with progress_bar() as progress:
+        task = progress.add_task("fe replays", total=None)
+        predictor.on_replays = lambda done, total: progress.update(task, completed=done, total=total)
+        try:
+            yield progress
+        finally:
+            predictor.on_replays = None
+
+
 def model_or_nominal(path: Path | None, mesh_max_edge: float) -> TwinModel:
     """The TwinModel of a `TwinModel.to_dict()` JSON file, or the nominal model at `mesh_max_edge` (m)."""
     from twin.analysis.predict import TwinModel

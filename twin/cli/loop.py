@@ -13,7 +13,7 @@ from twin.cli.common import (
     err_console,
     guarded,
     out_console,
-    progress_bar,
+    replay_progress,
     warn_nonfinite_forces,
 )
 
@@ -67,16 +67,14 @@ def diagnose(
     data, twin_model = _inputs(datasets, model)
     err_console.print("diagnosing (replaying every trajectory per candidate parameter) ...")
     steps = sum(1 for k in EFFECTS if k not in twin_model.effects)
-    with progress_bar() as progress:
+    with replay_progress(predictor) as progress:
         task = progress.add_task("diagnosing", total=steps + min(refit_top, steps))
 
         def report(stage: str, name: str) -> None:
             progress.update(task, description=f"{stage} {name}", advance=0 if stage == "nuisances" else 1)
 
         result = guarded(
-            lambda: run_diagnosis(
-                data, twin_model, predictor, top=refit_top, on_progress=report, nuisances=nuisances
-            )
+            lambda: run_diagnosis(data, twin_model, predictor, top=refit_top, on_progress=report, nuisances=nuisances)
         )
     if as_json:
         print(result.to_json())
@@ -131,7 +129,8 @@ def improve(
     predictor = analysis_predictor(device)
     data, twin_model = _inputs(datasets, model)
     history = history if history is not None else history_beside(datasets, model)
-    fit = guarded(lambda: fit_effect(data, twin_model, add, predictor))
+    with replay_progress(predictor):
+        fit = guarded(lambda: fit_effect(data, twin_model, add, predictor))
     table = Table("", "RMS / noise")
     table.add_row("before", f"{fit.rms_before:.2f}")
     table.add_row(f"after adding {add}", f"{fit.rms_after:.2f}")
