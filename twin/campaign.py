@@ -41,7 +41,7 @@ from twin.plant import Plant, make_plant, rigid_transform
 from twin.processing import process
 from twin.protocol import QUICK_SETTINGS, PathDraw, ProtocolSettings, TrajectorySpec, draw_paths, plan_spec
 from twin.readout import electrode_model
-from twin.registration import simulate_registration
+from twin.registration import RegistrationResult, simulate_registration
 from twin.scene import SceneParameters, TestbedScene
 from twin.sim_backend import SimBackend, SkinSolver
 
@@ -115,6 +115,21 @@ def true_biotac_pose(plant: Plant, sensor_id: int, scene: TestbedScene) -> np.nd
     return true_mount_pose(plant, sensor_id, scene) @ seat
 
 
+def campaign_registration(plant: Plant, sensor_id: int, arm: str, scene: TestbedScene, seed: int) -> RegistrationResult:
+    """The registration a campaign of `seed` simulates for sensor `sensor_id` with `arm`: the plant's clearance,
+    encoder noise and joint offsets against the sensor's true mount, from the campaign's own random stream."""
+    rng = np.random.default_rng(np.random.SeedSequence([seed, sensor_id, ARMS.index(arm), 0x9E6]))
+    return simulate_registration(
+        scene,
+        rng,
+        arm=arm,
+        clearance=plant.registration_clearance,
+        encoder_noise_rad=plant.registration_encoder_noise,
+        joint_offset_rad=plant.joint_offset(arm),
+        true_biotac_pose=true_mount_pose(plant, sensor_id, scene),
+    )
+
+
 def plan_campaign(
     config: CampaignConfig,
     plant: Plant | None = None,
@@ -133,18 +148,8 @@ def plan_campaign(
     scene = TestbedScene(config.scene)
     jobs, registration, errors = [], {}, {}
     for sid in config.sensors:
-        mount = true_mount_pose(plant, sid, scene)
-        for k, arm in enumerate(ARMS):
-            rng = np.random.default_rng(np.random.SeedSequence([config.seed, sid, k, 0x9E6]))
-            result = simulate_registration(
-                scene,
-                rng,
-                arm=arm,
-                clearance=plant.registration_clearance,
-                encoder_noise_rad=plant.registration_encoder_noise,
-                joint_offset_rad=plant.joint_offset(arm),
-                true_biotac_pose=mount,
-            )
+        for arm in ARMS:
+            result = campaign_registration(plant, sid, arm, scene, config.seed)
             registration[(sid, arm)] = result.transform  # the estimate, never the plant's truth
             errors[(sid, arm)] = result.error_rms
         wanted = set(config.indenters_for(sid))

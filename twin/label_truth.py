@@ -17,10 +17,9 @@ import h5py
 import numpy as np
 
 from twin.backend import ARMS
-from twin.campaign import CampaignConfig, true_biotac_pose, true_mount_pose
+from twin.campaign import CampaignConfig, campaign_registration, true_biotac_pose
 from twin.kinematics import forward
 from twin.plant import Plant, make_plant
-from twin.registration import simulate_registration
 from twin.scene import SceneParameters, TestbedScene
 
 REPRODUCED = 1e-9
@@ -38,18 +37,8 @@ def file_plant(path: str | Path, scene: SceneParameters | None = None) -> tuple[
     config = provenance["config"]
     plant = make_plant(list(config["sensors"]), int(config["seed"]))
     testbed = TestbedScene(scene if scene is not None else CampaignConfig().scene)
-    mount = true_mount_pose(plant, sensor_id, testbed)
-    for k, arm in enumerate(ARMS):  # the same seeds as twin.campaign.plan_campaign
-        rng = np.random.default_rng(np.random.SeedSequence([int(config["seed"]), sensor_id, k, 0x9E6]))
-        result = simulate_registration(
-            testbed,
-            rng,
-            arm=arm,
-            clearance=plant.registration_clearance,
-            encoder_noise_rad=plant.registration_encoder_noise,
-            joint_offset_rad=plant.joint_offset(arm),
-            true_biotac_pose=mount,
-        )
+    for arm in ARMS:  # as twin.campaign.plan_campaign registered it
+        result = campaign_registration(plant, sensor_id, arm, testbed, int(config["seed"]))
         stored = np.asarray(provenance["registration"][arm])
         if np.abs(result.transform - stored).max() > REPRODUCED:
             raise ValueError(f"{path}: the plant make_plant({config['sensors']}, {config['seed']}) does not "
