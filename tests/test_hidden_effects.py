@@ -21,8 +21,10 @@ from effect_generator import apply_ft_map
 from measurement import strip_plant_view
 
 from twin.analysis.data import load_campaign
-from twin.analysis.diagnose import NOISE_TOLERANCE, diagnose, fit_effect
+from twin.analysis.diagnose import diagnose
+from twin.analysis.heldout import NOISE_TOLERANCE
 from twin.analysis.predict import Predictor, TwinModel
+from twin.analysis.refit import fit_effect
 from twin.campaign import QUICK_CONFIG
 from twin.demo import LoopResult, run_loop
 from twin.effects import EFFECTS, UNLISTED_EFFECTS

@@ -12,11 +12,16 @@ import pytest
 from typer.testing import CliRunner
 
 import twin.analysis.diagnose as diagnose_module
+import twin.analysis.refit as refit_module
 import twin.cli.loop as cli_loop
-from twin.analysis.diagnose import Candidate, Diagnosis, EffectFit, Linearisation, _refit
+from twin.analysis.diagnose import Diagnosis
 from twin.analysis.history import read_history
 from twin.analysis.predict import TwinModel
+from twin.analysis.refit import EffectFit, refit
+from twin.analysis.sensitivity import Linearisation, sensitivity
+from twin.analysis.verdict import Candidate
 from twin.cli import app
+from twin.effects import EFFECTS
 
 runner = CliRunner()
 
@@ -44,7 +49,7 @@ def test_a_refit_never_ends_above_its_starting_point() -> None:
     # The linearisation points along the noise itself, so its step goes to a delay of 0.1 s that fits worse.
     lin = Linearisation({"seconds": 0.0}, np.zeros_like(noise), 10.0 * noise[:, None])
     candidate = Candidate("time_delay", "measurement", {}, 0.0, 0.0, 0.0)
-    _refit(candidate, TwinModel(), None, base, lin)
+    refit(candidate, TwinModel(), None, base, lin)
     start_rms = float(np.sqrt(np.mean(noise**2)))
     assert candidate.refit_rms <= start_rms + 1e-12
     assert candidate.refit_parameters == {"seconds": 0.0}
@@ -107,7 +112,7 @@ def test_improve_keeps_the_history_beside_the_dataset_or_the_model(
 ) -> None:
     fitted = TwinModel().with_effects({"time_delay": {"seconds": 0.05}})
     fit = EffectFit("time_delay", {"seconds": 0.05}, 2.0, 1.0, 1.0, fitted)
-    monkeypatch.setattr(diagnose_module, "fit_effect", lambda data, model, name, predictor=None: fit)
+    monkeypatch.setattr(refit_module, "fit_effect", lambda data, model, name, predictor=None: fit)
     elsewhere = tmp_path / "elsewhere"
     elsewhere.mkdir()
     monkeypatch.chdir(elsewhere)
@@ -151,10 +156,10 @@ def test_an_effect_far_from_its_off_value_is_found_from_its_starts() -> None:
     """Linearised at zero delay, the bump is flat and explains nothing; the start at 0.25 s finds it, and
     the refit from there reaches the noise."""
     base = _NarrowBasin()
-    effect = diagnose_module.EFFECTS["time_delay"]
-    lin = diagnose_module.sensitivity(effect, TwinModel(), None, base)
+    effect = EFFECTS["time_delay"]
+    lin = sensitivity(effect, TwinModel(), None, base)
     assert lin.point["seconds"] == pytest.approx(0.25)
     candidate = Candidate("time_delay", "measurement", {}, 0.0, 0.0, 0.0)
-    _refit(candidate, TwinModel(), None, base, lin)
+    refit(candidate, TwinModel(), None, base, lin)
     assert candidate.refit_parameters["seconds"] == pytest.approx(0.25, abs=0.01)
     assert candidate.refit_rms < 1.1

@@ -17,8 +17,9 @@ import numpy as np
 
 from twin.analysis.compare import compare
 from twin.analysis.data import load_campaign
-from twin.analysis.diagnose import Diagnosis, EffectFit, diagnose, fit_effect
+from twin.analysis.diagnose import Diagnosis, diagnose
 from twin.analysis.predict import Predictor, TwinModel
+from twin.analysis.refit import EffectFit, fit_effect
 from twin.analysis.report import write_report
 from twin.campaign import QUICK_CONFIG, CampaignConfig, run_campaign
 from twin.hidden import draw_hidden, write_sealed_manifest

@@ -123,8 +123,8 @@ def improve(
 ) -> None:
     """Fit an effect's parameters, show the error before and after, save the model in the history (beside
     the model or the dataset unless --history names one)."""
-    from twin.analysis.diagnose import fit_effect
     from twin.analysis.history import append_entry, history_beside
+    from twin.analysis.refit import fit_effect
 
     predictor = analysis_predictor(device)
     data, twin_model = _inputs(datasets, model)

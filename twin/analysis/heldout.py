@@ -1,0 +1,69 @@
+"""Whether a candidate's fit generalises: leave-one-indenter-out predictions about a fit, the noise test of what
+they leave (`twin.analysis.significance`), and whether the fit's parameters are identifiable."""
+
+from __future__ import annotations
+
+import numpy as np
+
+from twin.analysis.fit import uncertainty as fit_uncertainty
+from twin.analysis.predict import Predictor, TwinModel
+from twin.analysis.residual import Base
+from twin.analysis.sensitivity import Linearisation, linear_fit, linearise
+from twin.analysis.significance import out_of_fold_excess
+from twin.analysis.verdict import Candidate, parameters_at_bound
+from twin.effects import EFFECTS, Effect
+
+NOISE_TOLERANCE = 1.3
+"""Screen before refits: candidates whose linearised held-out RMS is within this multiple of the noise
+rank ahead of those that are not. Naming uses the noise test (`twin.analysis.significance`) instead."""
+
+
+def generalises(candidate: Candidate) -> bool:
+    """Whether the candidate's held-out RMS (when there is one) is within the screening tolerance."""
+    return candidate.heldout_rms is None or candidate.heldout_rms <= NOISE_TOLERANCE
+
+
+def heldout(effect: Effect, lin: Linearisation, r: np.ndarray, indenter: np.ndarray) -> tuple[float | None, np.ndarray]:
+    """Leave-one-indenter-out about `lin`: the effect fitted (linearised) on the other indenters predicts
+    each left-out one. (whitened RMS of the left-out residuals, those residuals (N,), NaN where no
+    prediction); (None, r - offset) with fewer than two indenters."""
+    target = r - lin.offset
+    groups = np.unique(indenter)
+    if len(groups) < 2:
+        return None, target
+    left_out = np.full_like(target, np.nan)
+    for g in groups:
+        train, test = indenter != g, indenter == g
+        delta = linear_fit(effect, lin.point, lin.jac[train], target[train])
+        left_out[test] = target[test] - lin.jac[test] @ delta
+    return whitened_rms(left_out), left_out
+
+
+def judge_heldout(candidate: Candidate, model: TwinModel, predictor: Predictor, base: Base) -> None:
+    """Held-out RMS about the refitted values (the effect linearised again there: one fe replay per
+    parameter for a physics effect) and whether that held-out residual passes the noise test, which
+    allows for the error the fits on the other indenters carry into it (`significance.out_of_fold_excess`;
+    the parameter bounds of the fits are not modelled); and which refitted parameters sit at a bound."""
+    effect = EFFECTS[candidate.name]
+    at_fit = linearise(effect, model, candidate.refit_parameters, predictor, base)
+    rms, left_out = heldout(effect, at_fit, base.residual.values, base.residual.indenter)
+    test = base.noise_test(left_out, out_of_fold=out_of_fold_excess(at_fit.jac, base.residual.indenter))
+    candidate.heldout_rms = rms
+    candidate.heldout_is_noise = test.is_noise
+    candidate.heldout_rms_threshold = test.rms_threshold
+    candidate.at_bound = parameters_at_bound(candidate.name, candidate.refit_parameters)
+
+
+def identifiability(candidate: Candidate, jac: np.ndarray) -> None:
+    """Parameter correlations and the condition of J^T J (scaled, `twin.analysis.fit.uncertainty`); flag
+    non-identifiable fits."""
+    spread = fit_uncertainty(jac, np.array([p.scale for p in EFFECTS[candidate.name].parameters]))
+    candidate.condition = spread.condition
+    candidate.correlation = spread.correlation.round(4).tolist()
+    off_diagonal = np.abs(spread.correlation - np.diag(np.diag(spread.correlation)))
+    candidate.identifiable = bool(candidate.condition < 1e8 and (off_diagonal.max(initial=0.0) < 0.98))
+
+
+def whitened_rms(residual: np.ndarray) -> float:
+    """Whitened RMS of a residual, skipping samples without a prediction (NaN)."""
+    return float(np.sqrt(np.nanmean(residual**2)))

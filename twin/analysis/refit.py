@@ -1,0 +1,112 @@
+"""Refitting one effect to the data (damped Gauss-Newton through `twin.analysis.fit`, re-predicted nonlinearly),
+and `fit_effect`, what `twin improve` runs: one effect fitted and judged held out."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from twin.analysis.data import CampaignData
+from twin.analysis.fit import GaussNewtonHooks, GaussNewtonSettings, Parameters, gauss_newton, polish
+from twin.analysis.heldout import judge_heldout, whitened_rms
+from twin.analysis.predict import Predictor, TwinModel
+from twin.analysis.residual import Base, base_residual
+from twin.analysis.sensitivity import Linearisation, effect_parameters, linearise, sensitivity
+from twin.analysis.verdict import Candidate
+from twin.effects import EFFECTS
+
+BACKTRACKS = 2
+"""Halvings of a refit step that does not lower the misfit before the refit stops there."""
+STEP_TOLERANCE = 0.05
+"""A refit stops once a step moves every parameter by less than this fraction of its scale (its
+finite-difference step): smaller steps change the fit by far less than the noise, at an fe replay set each."""
+
+
+def refit(
+    candidate: Candidate, model: TwinModel, predictor: Predictor, base: Base, lin: Linearisation, iterations: int = 3
+) -> None:
+    """Damped Gauss-Newton (`twin.analysis.fit.gauss_newton`): linear steps re-predicted nonlinearly each
+    time, the first with the given J; a step that does not lower the misfit is halved (up to `BACKTRACKS`
+    times, one prediction each) and the iterations stop when none does or when a step is below
+    `STEP_TOLERANCE`; a physics effect stops once its residual passes the noise test, and otherwise is
+    linearised again where it stands (one fe replay per parameter); a measurement effect keeps J (its
+    predictions reuse cached fe replays) and, unless linear in its parameters, ends with a nonlinear
+    least-squares polish (`twin.analysis.fit.polish`). When the result fits worse than the model's own
+    values of the effect (the starting point), those are kept."""
+    effect = EFFECTS[candidate.name]
+
+    def misfit(trial: dict[str, float]) -> np.ndarray:
+        return base.residual.values - base.shifted(predictor, model.with_effects({candidate.name: trial}))
+
+    def relinearised(at: Parameters) -> np.ndarray:
+        return linearise(effect, model, at.as_dict(), predictor, base).jac
+
+    start = effect.values(model.effects.get(candidate.name))
+    best = (whitened_rms(misfit(start)), start)
+    hooks = GaussNewtonHooks(
+        jacobian=relinearised if effect.kind == "physics" else None,
+        at_noise=lambda r: base.noise_test(r).is_noise,
+        cost=lambda r, _: whitened_rms(r),
+    )
+    fitted = gauss_newton(
+        lambda at: misfit(at.as_dict()),
+        effect_parameters(effect, lin.point),
+        hooks,
+        GaussNewtonSettings(iterations, BACKTRACKS, STEP_TOLERANCE),
+        start_residual=base.residual.values - lin.offset,
+        start_jacobian=lin.jac,
+    )
+    values, rms = fitted.parameters, fitted.cost
+    if effect.kind == "measurement" and not effect.linear:
+        names = values.names
+
+        def mean_square(x: np.ndarray) -> float:
+            return float(np.nanmean(misfit(dict(zip(names, map(float, x), strict=True))) ** 2))
+
+        values = polish(mean_square, values).parameters
+        rms = whitened_rms(misfit(values.as_dict()))
+    # Never end above the starting point (the model as given): a step the linearisation misjudged is undone.
+    candidate.refit_rms, candidate.refit_parameters = min(best, (rms, values.as_dict()), key=lambda b: b[0])
+
+
+@dataclass(frozen=True)
+class EffectFit:
+    """An effect fitted to data: its values, and whitened RMS (1 = noise) before, after and held out."""
+
+    name: str
+    values: dict[str, float]
+    rms_before: float
+    rms_after: float
+    heldout_rms: float | None
+    model: TwinModel
+    heldout_is_noise: bool | None = None  # the held-out residual passes the noise test
+    at_bound: list[str] = field(default_factory=list)  # fitted parameters at a bound of their range
+
+
+def fit_effect(
+    datasets: list[CampaignData], model: TwinModel, name: str, predictor: Predictor | None = None
+) -> EffectFit:
+    """Fit one library effect's parameters (chord iterations on the whitened full-rate residual)."""
+    predictor = predictor or Predictor()
+    effect = EFFECTS.get(name)
+    if effect is None:
+        raise ValueError(f"unknown effect {name!r}; the library has {sorted(EFFECTS)}")
+    base = base_residual(datasets, model, predictor)
+    residual = base.residual
+    lin = sensitivity(effect, model, predictor, base)
+    candidate = Candidate(name, effect.kind, {}, 0.0, 0.0, 0.0)
+    refit(candidate, model, predictor, base, lin, iterations=4)
+    rms_before = float(np.sqrt(np.mean(residual.values**2)))
+    improved = model.with_effects({name: candidate.refit_parameters})
+    judge_heldout(candidate, model, predictor, base)
+    return EffectFit(
+        name,
+        candidate.refit_parameters,
+        rms_before,
+        candidate.refit_rms,
+        candidate.heldout_rms,
+        improved,
+        candidate.heldout_is_noise,
+        candidate.at_bound,
+    )

@@ -1,0 +1,120 @@
+"""Effects linearised about where their fits are best begun: finite-difference sensitivities of the profiled,
+whitened prediction (`twin.analysis.residual`), their replays solved as batches, and the bounded linear fit
+of a residual on them (`twin.analysis.fit`)."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from twin.analysis.fit import Parameters, linear_step
+from twin.analysis.predict import Predictor, TwinModel
+from twin.analysis.residual import Base
+from twin.effects import Effect
+
+
+@dataclass(frozen=True)
+class Linearisation:
+    """An effect's prediction change to first order about `point` (its parameter values):
+    shifted(values) ~ offset + jac (values - point), in profiled whitened units."""
+
+    point: dict[str, float]
+    offset: np.ndarray  # (N,) profiled change of the prediction from the base model to `point`
+    jac: np.ndarray  # (N, k) finite-difference sensitivity at `point`
+
+
+def linearise(
+    effect: Effect, model: TwinModel, point: dict[str, float], predictor: Predictor, base: Base
+) -> Linearisation:
+    """Linearise the profiled whitened prediction change from the base to `model` with the effect at
+    `point`, by forward differences of each parameter's scale (backward at its upper bound; see
+    `_column_steps`). The replays of the point and of every column are solved as one batch."""
+    steps = _column_steps(effect, model, point)
+    at_point = model.with_effects({effect.name: point})
+    base.prefetch(predictor, [at_point, *(changed for _, changed in steps)])
+    offset = base.shifted(predictor, at_point)
+    columns = [(base.shifted(predictor, changed) - offset) / step for step, changed in steps]
+    return Linearisation(point, offset, np.column_stack(columns))
+
+
+def _column_steps(effect: Effect, model: TwinModel, point: dict[str, float]) -> list[tuple[float, TwinModel]]:
+    """Per parameter, the finite-difference step (its scale; backward at its upper bound) and the model
+    with the effect at `point` so stepped. A probed parameter at its probe value, where stepping it back
+    to its off value turns the effect off, differs back to that off point instead: the model as given,
+    whose replays the base already holds (a relaxing fraction's column costs no fe replay)."""
+    steps = []
+    for p in effect.parameters:
+        step = p.scale if point[p.name] + p.scale <= p.upper else -p.scale
+        probed = effect.probe.get(p.name) == point[p.name] != p.off
+        if probed and effect.is_off({**point, p.name: p.off}) and effect.is_off(model.effects.get(effect.name)):
+            step = p.off - point[p.name]
+        steps.append((step, model.with_effects({effect.name: {**point, p.name: point[p.name] + step}})))
+    return steps
+
+
+def linearisation_models(effect: Effect, model: TwinModel, point: dict[str, float]) -> list[TwinModel]:
+    """The models `linearise` predicts: the effect at `point`, then each column's step."""
+    return [model.with_effects({effect.name: point}), *(changed for _, changed in _column_steps(effect, model, point))]
+
+
+def sensitivity(effect: Effect, model: TwinModel, predictor: Predictor, base: Base) -> Linearisation:
+    """Linearise the effect where its fit is best begun (`sensitivities` of this one effect)."""
+    return sensitivities([effect], model, predictor, base)[0]
+
+
+def sensitivities(effects: list[Effect], model: TwinModel, predictor: Predictor, base: Base) -> list[Linearisation]:
+    """Linearise each effect where its fit is best begun: at the model's values, or, when the effect is
+    off there and declares a probe (parameters that act only once it is on), at the probe; and when it is
+    off and declares starts (values across its range), at the start or the first linearisation's fit,
+    whichever leaves the least profiled chi-square when predicted nonlinearly (one prediction each), so
+    an effect far from its off value is fitted about a point near it. Each stage's replays, over all the
+    effects (the first linearisations, the trials, the second linearisations), are solved as one batch."""
+    points = []
+    for effect in effects:
+        point = effect.values(model.effects.get(effect.name))
+        points.append({**point, **effect.probe} if effect.probe and effect.is_off(point) else point)
+    base.prefetch(
+        predictor, [m for e, p in zip(effects, points, strict=True) for m in linearisation_models(e, model, p)]
+    )
+    lins = [linearise(e, model, p, predictor, base) for e, p in zip(effects, points, strict=True)]
+    r = base.residual.values
+    trials: list[list[dict[str, float]]] = []
+    for effect, lin in zip(effects, lins, strict=True):
+        if not (effect.is_off(effect.values(model.effects.get(effect.name))) and effect.starts):
+            trials.append([])
+            continue
+        at = effect_parameters(effect, lin.point)
+        fitted = at.moved(linear_step(lin.jac, r - lin.offset, at)).as_dict()
+        trials.append([fitted, *(effect.values({**lin.point, **start}) for start in effect.starts)])
+    tried = [model.with_effects({e.name: t}) for e, ts in zip(effects, trials, strict=True) for t in ts]
+    base.prefetch(predictor, tried)
+    again: dict[int, dict[str, float]] = {}
+    for i, (effect, ts) in enumerate(zip(effects, trials, strict=True)):
+        if not ts:
+            continue
+        shifted = [base.shifted(predictor, model.with_effects({effect.name: t})) for t in ts]
+        best = int(np.nanargmin([base.nuisance.chi2(r - s) for s in shifted]))
+        if best > 0:
+            again[i] = ts[best]
+    base.prefetch(predictor, [m for i, p in again.items() for m in linearisation_models(effects[i], model, p)])
+    for i, point in again.items():
+        lins[i] = linearise(effects[i], model, point, predictor, base)
+    return lins
+
+
+def effect_parameters(effect: Effect, point: dict[str, float]) -> Parameters:
+    """The effect's parameters at `point`, with their bounds and scales, for `twin.analysis.fit`."""
+    ps = effect.parameters
+    return Parameters(
+        tuple(p.name for p in ps),
+        np.array([point[p.name] for p in ps]),
+        np.array([p.lower for p in ps]),
+        np.array([p.upper for p in ps]),
+        np.array([p.scale for p in ps]),
+    )
+
+
+def linear_fit(effect: Effect, current: dict[str, float], jac: np.ndarray, r: np.ndarray) -> np.ndarray:
+    """The bounded linear least-squares step (parameter units) of `r` on `jac` from `current`."""
+    return linear_step(jac, r, effect_parameters(effect, current))
