@@ -30,3 +30,22 @@ def test_the_env_model_path_needs_no_dataset_stack() -> None:
     blocked = "import sys; sys.modules['h5py'] = None; import twin.envs.fe_batch, twin.fe_models"
     run = subprocess.run([sys.executable, "-c", blocked], capture_output=True, text=True, timeout=120)
     assert run.returncode == 0, run.stderr[-2000:]
+
+
+def test_the_model_cache_builds_each_model_once_and_drops_the_oldest() -> None:
+    from dataclasses import replace
+
+    from twin.fe_models import ModelCache
+
+    dropped = []
+    cache = ModelCache(1, on_drop=dropped.append)
+    nominal, stiffer = SkinParameters(), replace(SkinParameters(), mu_nh=1.2 * SkinParameters().mu_nh)
+    first, result = cache.get(nominal, 2e-3)
+    assert result.converged and cache.get(nominal, 2e-3)[0] is first  # built once
+    assert cache.get(replace(nominal), 2e-3)[0] is first  # keyed by the values, not the object
+    other = cache.get(stiffer, 2e-3)[0]
+    assert dropped == [first] and other is not first  # one model held: the oldest went, and was told
+    assert other.pressure > first.pressure  # a stiffer skin needs more pressure for the same thickness
+    assert cache.get(nominal, 2e-3)[0] is not first and dropped == [first, other]
+    with pytest.raises(ValueError, match="at least one model"):
+        ModelCache(0)

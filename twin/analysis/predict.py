@@ -21,11 +21,11 @@ from fe.batched_runner import PoseTrajectory, can_share_batch, run_trajectories
 from fe.indentation import step_through
 from fe.params import SkinParameters
 from fe.results import IncrementResult
-from fe.sensor import BioTacModel, InflationResult
+from fe.sensor import BioTacModel
 from twin.analysis.data import TrajectoryRecord
 from twin.controller import Recording
 from twin.effects import EffectValues, apply_path, apply_skin, check_values, measure_wrench
-from twin.fe_models import INFLATION_RULES, inflated_fe_model
+from twin.fe_models import INFLATION_RULES, ModelCache
 from twin.processing import ProcessedRows, lowpass, process
 from twin.readout import SensorReadout, ft_load
 from twin.sim_backend import RELAXATION_SOLVE_INTERVAL_S
@@ -156,22 +156,16 @@ class Predictor:
         self.device = device
         self.on_replays = on_replays
         """Told (done, total) as each replay of a `prefetch_many` without its own `progress` is solved."""
-        self._models: dict[tuple, tuple[BioTacModel, InflationResult]] = {}
         self._readouts: dict[int, SensorReadout] = {}
+        self._models = ModelCache(MODEL_CACHE_SIZE, on_drop=lambda model: self._readouts.pop(id(model), None))
         self._replays: dict[tuple, Replay] = {}
 
     def inflated(self, skin: SkinParameters, mesh_max_edge: float, inflation: str = "thickness") -> tuple:
         """(fe model, its InflationResult) for these parameters, inflated by `inflation` (built once)."""
-        key = (tuple(sorted(asdict(skin).items())), mesh_max_edge, inflation)
-        if key not in self._models:
-            model, result = inflated_fe_model(skin, mesh_max_edge, inflation)
-            if not result.converged:
-                raise RuntimeError(f"the model did not inflate for {skin}: {result.message}")
-            if len(self._models) >= MODEL_CACHE_SIZE:
-                dropped = next(iter(self._models))
-                self._readouts.pop(id(self._models.pop(dropped)[0]), None)
-            self._models[key] = (model, result)
-        return self._models[key]
+        model, result = self._models.get(skin, mesh_max_edge, inflation)
+        if not result.converged:
+            raise RuntimeError(f"the model did not inflate for {skin}: {result.message}")
+        return model, result
 
     def fe_model(self, skin: SkinParameters, mesh_max_edge: float, inflation: str = "thickness") -> BioTacModel:
         """An inflated fe model for these parameters (built once)."""
