@@ -149,9 +149,9 @@ def test_egm_stopping_cuts_the_trajectory(testbed: SimulatedTestbed, backend: Ha
 def test_recovers_when_sensors_disconnect_mid_stream(testbed: SimulatedTestbed, backend: HardwareBackend) -> None:
     testbed.kms40.disconnect_all()
     testbed.biotac_bridge.disconnect_all()
-    assert wait_for(lambda: backend.status()["kms40"].get("reconnects") == 1, 2.0)
-    assert wait_for(lambda: backend.status()["biotac"].get("reconnects") == 1, 2.0)
-    assert wait_for(_reads_ok(backend), 1.0)
+    assert wait_for(lambda: backend.status()["kms40"].get("reconnects") == 1, 10.0)
+    assert wait_for(lambda: backend.status()["biotac"].get("reconnects") == 1, 10.0)
+    assert wait_for(_reads_ok(backend), 10.0)
     np.testing.assert_allclose(backend.read().wrench, REST_WRENCH)
 
 

@@ -114,7 +114,7 @@ def test_reader_identifies_and_samples_several_sensors() -> None:
         np.testing.assert_array_equal(three.electrodes, ELECTRODES[::-1])
         assert (one.pdc, three.pdc, one.pac.shape, one.tdc) == (PDC, 5, (22,), 2300)
         n = reader.stats["frames"]
-        assert wait_for(lambda: reader.stats["frames"] >= n + 20, 0.5)  # 2 sensors x 100 Hz
+        assert wait_for(lambda: reader.stats["frames"] >= n + 20, 2.0)  # 2 x 100 Hz; slack for load
         assert set(reader.stats) == {"frames"}  # the driver's timing never upsets the sensor
     finally:
         reader.close()
@@ -147,7 +147,7 @@ def test_parity_errors_drop_frames_never_corrupt_them() -> None:
     reader = BioTacReader(lambda: flaky, 0x01)
     seen: list[np.ndarray] = []
     try:
-        assert wait_for(lambda: reader.stats["parity_errors"] >= 3, 2.0)
+        assert wait_for(lambda: reader.stats["parity_errors"] >= 3, 10.0)
         for _ in range(10):
             seen.append(reader.frames[1].wait(1.0, after=reader.frames[1].count).electrodes)
     finally:
@@ -163,15 +163,15 @@ def test_tcp_bridge_carries_batches_and_survives_disconnects_and_garbage() -> No
     try:
         assert reader.frames[1].wait(1.0).pdc == PDC
         bridge.disconnect_all()
-        assert wait_for(lambda: reader.stats["reconnects"] == 1, 2.0)
+        assert wait_for(lambda: reader.stats["reconnects"] == 1, 10.0)
         n = reader.frames[1].count
-        assert wait_for(lambda: reader.frames[1].count > n + 3, 1.0)
+        assert wait_for(lambda: reader.frames[1].count > n + 3, 10.0)
         with socket.create_connection(("127.0.0.1", bridge.port), timeout=1.0) as rogue:
             rogue.sendall(MAGIC + (3).to_bytes(4, "big") + b"Zzz")
             reply = rogue.recv(1024)
             assert reply[:4] == MAGIC and reply[8] == 1 and b"unknown op" in reply
         n = reader.frames[1].count
-        assert wait_for(lambda: reader.frames[1].count > n + 3, 1.0)
+        assert wait_for(lambda: reader.frames[1].count > n + 3, 10.0)
     finally:
         reader.close()
         bridge.close()

@@ -88,7 +88,7 @@ def test_link_drops_and_counts_strangers_and_never_answers_them() -> None:
     to_link = ("127.0.0.1", link.port)
     try:
         stranger.sendto(_robot_msg(100, np.full(7, 0.3)), to_link)  # forged joints, far-ahead seqno
-        assert wait_for(lambda: link.stats["foreign"] == 1, 1.0)
+        assert wait_for(lambda: link.stats["foreign"] == 1, 10.0)
         assert _silent(stranger)
         assert link.state.count == 0  # nothing forged reached the state the safety logic reads
         robot.sendto(_robot_msg(1, np.full(7, 0.1)), to_link)  # seqno 1 is still new: no takeover
@@ -108,7 +108,7 @@ def test_link_with_any_robot_port_still_checks_the_robot_address() -> None:
     link = EgmArmLink("right", "127.0.0.1", 0, np.ones(7), robot=("127.0.0.1", 0))
     try:
         stranger.sendto(_robot_msg(1, np.zeros(7)), ("127.0.0.1", link.port))
-        assert wait_for(lambda: link.stats["foreign"] == 1, 1.0)
+        assert wait_for(lambda: link.stats["foreign"] == 1, 10.0)
         assert _silent(stranger)
         robot.sendto(_robot_msg(1, np.zeros(7)), ("127.0.0.1", link.port))
         robot.settimeout(1.0)
@@ -127,12 +127,12 @@ def test_sim_arm_follows_only_its_registered_link() -> None:
         sensor.settimeout(1.0)
         _, arm_addr = sensor.recvfrom(4096)
         sensor.sendto(_sensor_msg(5, np.full(7, 0.01)), arm_addr)
-        assert wait_for(lambda: arm.stats["accepted"] == 1, 1.0)
+        assert wait_for(lambda: arm.stats["accepted"] == 1, 10.0)
         stranger.sendto(_sensor_msg(1000, np.full(7, 0.1)), arm_addr)  # another port, newer seqno
-        assert wait_for(lambda: arm.stats["foreign"] == 1, 1.0)
+        assert wait_for(lambda: arm.stats["foreign"] == 1, 10.0)
         sensor.sendto(_sensor_msg(6, np.full(7, -0.01)), arm_addr)  # the link keeps control
-        assert wait_for(lambda: arm.stats["accepted"] == 2, 1.0)
-        assert wait_for(lambda: np.allclose(arm.joints, -0.01), 1.0)
+        assert wait_for(lambda: arm.stats["accepted"] == 2, 10.0)
+        assert wait_for(lambda: np.allclose(arm.joints, -0.01), 10.0)
         assert arm.stats["out_of_order"] == 0
     finally:
         arm.close()
@@ -283,7 +283,7 @@ def test_idle_connections_hold_bounded_threads_for_bounded_time(rws: SimRwsServe
     finally:
         for sock in idle:
             sock.close()
-    assert wait_for(lambda: _handler_threads() == before, 2.0)
+    assert wait_for(lambda: _handler_threads() == before, 10.0)
     assert RwsClient("127.0.0.1", rws.port, timeout_s=2.0).ctrlstate() == "motoron"
 
 
