@@ -15,10 +15,12 @@ def location_errors(predicted: np.ndarray, true: np.ndarray) -> np.ndarray:
 
 
 def force_angle_errors(predicted: np.ndarray, true: np.ndarray) -> np.ndarray:
-    """(M,) angle (rad) between predicted and true forces (N, 3), over rows with |true| >= ANGLE_MIN_FORCE."""
+    """(M,) angle (rad) between predicted and true forces (N, 3), over rows with |true| >= ANGLE_MIN_FORCE; NaN
+    where a force is not finite (the readers count and report such rows)."""
     keep = np.linalg.norm(true, axis=1) >= ANGLE_MIN_FORCE
     p, t = predicted[keep], true[keep]
-    cos = np.einsum("ij,ij->i", p, t) / np.maximum(np.linalg.norm(p, axis=1) * np.linalg.norm(t, axis=1), 1e-12)
+    with np.errstate(invalid="ignore"):
+        cos = np.einsum("ij,ij->i", p, t) / np.maximum(np.linalg.norm(p, axis=1) * np.linalg.norm(t, axis=1), 1e-12)
     return np.arccos(np.clip(cos, -1.0, 1.0))
 
 
