@@ -13,8 +13,11 @@ the batch's throughput on equal work, free of the episode mix. Before the timed 
 environment (one FE system) runs the same number of steps on that mesh and device: the baseline
 ("vs 1 env" = env steps/s over the baseline's). "env steps/s" counts sub-environment steps; "FE share"
 is the part of the wall time spent inside the FE batch call; "CPU (s)" is the process's CPU time (all
-threads), which, unlike the wall time, does not grow when other jobs share the cores. A short untimed
-run first builds the model and compiles the kernels.
+threads), which, unlike the wall time, does not grow when other jobs share the cores. "rounds/step" is the
+device-independent cost: Newton rounds per vector step (one evaluation of every slot still solving and one
+batched linear solve each: a vector step takes as many as its slowest sub-environment needs), and
+"evals/env step" the slot evaluations of those rounds per sub-environment step (what the sub-environments
+need on their own). A short untimed run first builds the model and compiles the kernels.
 
 Needs only numpy, scipy, warp, trimesh (with rtree, which trimesh imports for the meshes' bounds tree)
 and gymnasium beside the project (no mujoco, rerun, torch, rich or h5py): it runs on a bare GPU machine.
@@ -31,9 +34,21 @@ import gymnasium as gym
 import numpy as np
 
 import twin  # noqa: F401  (registers the environments)
-from twin.envs.fe_batch import check_device
+from twin.envs.fe_batch import IndentationBatch, check_device
 
-COLUMNS = ("mesh (mm)", "mode", "envs", "env steps", "wall (s)", "CPU (s)", "env steps/s", "vs 1 env", "FE share")
+COLUMNS = (
+    "mesh (mm)",
+    "mode",
+    "envs",
+    "env steps",
+    "wall (s)",
+    "CPU (s)",
+    "env steps/s",
+    "vs 1 env",
+    "FE share",
+    "rounds/step",
+    "evals/env step",
+)
 
 
 def _actions(rng: np.random.Generator, n: int) -> np.ndarray:
@@ -46,7 +61,7 @@ def single(env_id: str, steps: int, mesh_mm: float, seed: int, device: str) -> d
     fe = env.unwrapped.fe
     rng = np.random.default_rng(seed)
     env.reset(seed=seed)
-    fe.wall_s = 0.0
+    _zero_counts(fe)
     start, cpu = time.perf_counter(), time.process_time()
     for _ in range(steps):
         _, _, terminated, truncated, _ = env.step(_actions(rng, 1)[0])
@@ -54,7 +69,8 @@ def single(env_id: str, steps: int, mesh_mm: float, seed: int, device: str) -> d
             env.reset()
     wall, cpu = time.perf_counter() - start, time.process_time() - cpu
     env.close()
-    return {"mode": "single", "num_envs": 1, "env_steps": steps, "wall_s": wall, "cpu_s": cpu, "fe_s": fe.wall_s}
+    run = {"mode": "single", "num_envs": 1, "vector_steps": steps, "env_steps": steps, "wall_s": wall, "cpu_s": cpu}
+    return run | _counts(fe)
 
 
 def vectorised(
@@ -68,7 +84,7 @@ def vectorised(
     fe = env.fe
     rng = np.random.default_rng(seed)
     env.reset(seed=[seed] * num_envs if same else seed)
-    fe.wall_s = 0.0
+    _zero_counts(fe)
     start, cpu = time.perf_counter(), time.process_time()
     for _ in range(steps):
         env.step(np.tile(_actions(rng, 1), (num_envs, 1)) if same else _actions(rng, num_envs))
@@ -77,11 +93,21 @@ def vectorised(
     return {
         "mode": "vector, same" if same else "vector",
         "num_envs": num_envs,
+        "vector_steps": steps,
         "env_steps": steps * num_envs,
         "wall_s": wall,
         "cpu_s": cpu,
-        "fe_s": fe.wall_s,
-    }
+    } | _counts(fe)
+
+
+def _zero_counts(fe: IndentationBatch) -> None:
+    """Start the FE batch's time and work counters afresh (after the untimed reset)."""
+    fe.wall_s, fe.rounds, fe.system_evaluations = 0.0, 0, 0
+
+
+def _counts(fe: IndentationBatch) -> dict:
+    """The FE batch's time (s) and work (Newton rounds, slot evaluations) since `_zero_counts`."""
+    return {"fe_s": fe.wall_s, "rounds": fe.rounds, "evaluations": fe.system_evaluations}
 
 
 def table_row(mesh_mm: float, row: dict, baseline: dict) -> list[str]:
@@ -98,6 +124,8 @@ def table_row(mesh_mm: float, row: dict, baseline: dict) -> list[str]:
         f"{rate:.1f}",
         f"{ratio:.2f}",
         f"{row['fe_s'] / row['wall_s']:.0%}",
+        f"{row['rounds'] / row['vector_steps']:.1f}",
+        f"{row['evaluations'] / row['env_steps']:.1f}",
     ]
 
 

@@ -73,6 +73,11 @@ class IndentationBatch:
         self._engine = BatchedStepper(model.inflated_skin(), self.indenters, device)
         self.wall_s = 0.0
         """Total wall-clock time (s) spent in `step_batch` so far."""
+        self.rounds = 0
+        """Newton rounds (one evaluation of every slot still solving, one linear solve) in `step_batch` so far:
+        a call takes as many as its slowest slot needs, cut-backs included."""
+        self.system_evaluations = 0
+        """Slot evaluations in those rounds so far (a round evaluates only the slots still solving)."""
 
     @property
     def n(self) -> int:
@@ -114,16 +119,26 @@ class IndentationBatch:
         )
 
     def _solve(self, rotations: np.ndarray, translations: np.ndarray) -> list[IncrementResult]:
-        """Every slot's result at its target pose: slots whose increment failed step again (to the midpoint,
-        then the target) while the others wait, until each has its target's result."""
-        targets = [(r, t, None) for r, t in zip(rotations, translations, strict=True)]
+        """Every slot's result at its target pose, continuously batched: a slot whose increment failed is
+        admitted again at once (to the midpoint, then the target) while the others go on iterating, so a
+        cut-back costs the call only the rounds of that slot's own detours."""
+        engine, targets = self._engine, [(r, t, None) for r, t in zip(rotations, translations, strict=True)]
         plans = [CutBack() for _ in range(self.n)]
         results: list[IncrementResult | None] = [None] * self.n
-        pending = np.ones(self.n, dtype=bool)
-        while pending.any():
-            poses = [plan.pose(target) for plan, target in zip(plans, targets, strict=True)]
-            answers = self._engine.step(np.array([p[0] for p in poses]), np.array([p[1] for p in poses]), pending)
-            for k in np.flatnonzero(pending):
-                if plans[k].settle(self._engine, k, answers[k].converged, targets[k]):
-                    results[k], pending[k] = answers[k], False
+        evaluations = engine.shell.counters["system_evaluations"]
+        again = np.ones(self.n, dtype=bool)
+        while again.any() or engine.newton.running.any():
+            if again.any():
+                poses = [plan.pose(target) for plan, target in zip(plans, targets, strict=True)]
+                answers = engine.admit(again, np.array([p[0] for p in poses]), np.array([p[1] for p in poses]))
+            else:
+                answers = engine.advance()
+                self.rounds += 1
+            again[:] = False
+            for k, answer in answers.items():
+                if plans[k].settle(engine, k, answer.converged, targets[k]):
+                    results[k] = answer
+                else:
+                    again[k] = True
+        self.system_evaluations += int(engine.shell.counters["system_evaluations"] - evaluations)
         return results
