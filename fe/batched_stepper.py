@@ -449,20 +449,24 @@ class BatchedStepper:
 
     def _predict(self, rows: np.ndarray, travel: np.ndarray) -> np.ndarray:
         """Warm starts (k,V,3) m of systems `rows` moving their tips by `travel` (k,3) m: the last increment's
-        displacement extrapolated by the share of its tip travel that the new move repeats, except that
-        vertices in contact at the last equilibrium stick: carried by the indenter's rigid motion from its
-        start pose to its new one (zero slip, where friction holds most of them; far fewer Newton rounds
-        when the indenter slides, issue 19); then vertices deeper in the indenter than at the last
-        equilibrium pushed out; fixed DOFs stay where they are (the solve moves only the free ones, so a
-        moved fixed DOF would stay moved)."""
+        displacement extrapolated by the share of its tip travel that the new move repeats, except that,
+        when the move turns (its travel or the indenter's rotation leaves the last increment's line), vertices
+        in contact at the last equilibrium stick: carried by the indenter's rigid motion from its start pose to
+        its new one (zero slip, where friction holds most of them; far fewer Newton rounds when an env's
+        indenter turns, issue 19; a straight press keeps the extrapolation, half the Newton iterations of
+        sticking there); then vertices deeper in the indenter than at the last equilibrium pushed out; fixed
+        DOFs stay where they are (the solve moves only the free ones, so a moved fixed DOF would stay moved)."""
         last, start = self._travel[rows], self.x[rows] - self._start_translation[rows, None]
         moved = np.einsum("bi,bi->b", last, last)
         has_motion = self._has_motion[rows] & (moved > 0.0)
-        share = np.where(has_motion, np.clip(np.einsum("bi,bi->b", travel, last) / np.maximum(moved, 1e-300), 0, 1), 0)
+        along = np.einsum("bi,bi->b", travel, last) / np.maximum(moved, 1e-300)
+        share = np.where(has_motion, np.clip(along, 0, 1), 0)
         x = self.x[rows] + share[:, None, None] * np.where(has_motion[:, None, None], self._motion[rows], 0.0)
         turn = self.pose_rotation[rows] @ np.transpose(self._start_rotation[rows], (0, 2, 1))
         stuck = np.einsum("bij,bvj->bvi", turn, start) + self.pose_translation[rows, None]
-        x = np.where((self._gap[rows] < 0.0)[:, :, None], stuck, x)
+        off_line = np.linalg.norm(travel - along[:, None] * last, axis=1) > 1e-3 * np.linalg.norm(travel, axis=1)
+        turns = off_line | (np.abs(turn - np.eye(3)).max(axis=(1, 2)) > 1e-9)
+        x = np.where(((self._gap[rows] < 0.0) & turns[:, None])[:, :, None], stuck, x)
         put_rows(self.shell.x_trial, rows, x)
         gap, normal, _, _ = self.shell.proximity(self.shell.x_trial, rows)
         depth = np.minimum(self._gap[rows] + share[:, None] * self._gap_change[rows], 0.0)
