@@ -175,9 +175,9 @@ def offset_from_shifts(shifts: list[PathShift]) -> tuple[np.ndarray, np.ndarray,
     a = np.array([s.row / s.std for s in used])
     b = np.array([s.shift / s.std for s in used])
     u, singular, vt = np.linalg.svd(a, full_matrices=True)
-    singular = np.r_[singular, np.zeros(3 - len(singular))]
+    singular = np.r_[singular, np.zeros(3)][:3]
     seen = singular > 1.0 / UNSEEN_STD
-    u_b = np.r_[u.T @ b, np.zeros(3 - len(u))]
+    u_b = np.r_[u.T @ b, np.zeros(3)][:3]  # the data along each right singular vector (none past the rows)
     offset, covariance = np.zeros(3), np.zeros((3, 3))
     for i in np.flatnonzero(seen):
         offset += u_b[i] / singular[i] * vt[i]
