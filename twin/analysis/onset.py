@@ -3,9 +3,9 @@
 Per trajectory k, the measured loading curve (force along the press direction against commanded depth z)
 is the model's curve shifted along the path: g_meas(z) = g_model(z + s_k), s_k > 0 when the skin is nearer
 than the model thinks (the press reaches it earlier). The model's curve is its base replay (already
-computed); s_k is the least-squares shift of it onto the measurement (`contact_shift`: a grid, then a
-parabola through the best three; the model's curve linear in z between its increments, zero before its
-first, extended with its last slope past its deepest).
+computed); s_k is the horizontal distance between the two curves over the forces both reach
+(`contact_shift`: each measured increment in contact placed on the inverted model curve, weighted by the
+curve's slope over the force's standard error; nothing extrapolated).
 
 A rigid offset o (m, biotac frame) of the indenter path (the `registration_offset` effect: tips + o) moves
 the tip's signed depth below the skin's tangent plane at the contact, d.(-n) z - n.o with n the outward
