@@ -44,6 +44,10 @@ CONTACT_RADIUS = 1e-3
 """Gaussian radius (m) over which the skin's face normals are averaged about the contact point."""
 UNSEEN_STD = 0.5e-3
 """A direction of the offset whose standard error exceeds this (m) is reported unseen and not estimated."""
+LARGE_OFFSET = 0.5e-3
+"""An estimate at least this large (m; the paper's 0.5-1.5 mm band begins here) is beyond the reach of the
+linearisation at zero; a smaller one is left to that linearisation (as a start it would let the offset mimic a
+fluid-volume error, which lifts the skin at both points of the test campaign alike: measured, docs/analysis.md)."""
 
 
 @dataclass(frozen=True)
@@ -86,6 +90,11 @@ class OnsetEstimate:
                 {"trajectory_id": s.trajectory_id, "shift_m": s.shift, "shift_std_m": s.std} for s in self.shifts
             ],
         }
+
+    @property
+    def large(self) -> bool:
+        """Whether the estimate is at least `LARGE_OFFSET` (worth a start of its own)."""
+        return bool(np.linalg.norm(self.offset) >= LARGE_OFFSET)
 
     def values(self, current: dict[str, float]) -> dict[str, float]:
         """The `registration_offset` values: `current` (the model's) moved by the estimate, within bounds."""

@@ -71,9 +71,10 @@ def sensitivities(effects: list[Effect], model: TwinModel, predictor: Predictor,
     off and declares starts (values across its range), at the start or the first linearisation's fit,
     whichever leaves the least profiled chi-square when predicted nonlinearly (one prediction each), so
     an effect far from its off value is fitted about a point near it; a registration offset also tries,
-    first among its starts, the offset the contact onsets give (`twin.analysis.onset`, no fe replay), which
-    its Linearisation keeps. Each stage's replays, over all the
-    effects (the first linearisations, the trials, the second linearisations), are solved as one batch."""
+    first among its starts, the offset the contact onsets give (`twin.analysis.onset`, no fe replay) when it
+    is large (`OnsetEstimate.large`); its Linearisation keeps the estimate either way. Each stage's replays,
+    over all the effects (the first linearisations, the trials, the second linearisations), are solved as one
+    batch."""
     points = []
     for effect in effects:
         point = effect.values(model.effects.get(effect.name))
@@ -94,7 +95,7 @@ def sensitivities(effects: list[Effect], model: TwinModel, predictor: Predictor,
         if effect.name == REGISTRATION:
             models = [base.model_for(model, t) for t in base.trajectories]
             lins[i] = replace(lin, onset=onset_estimate(predictor, models, base.trajectories, base.sigma))
-            first = [lins[i].onset.values(lin.point)]
+            first = [lins[i].onset.values(lin.point)] if lins[i].onset.large else []
         trials.append([fitted, *first, *(effect.values({**lin.point, **start}) for start in effect.starts)])
     tried = [model.with_effects({e.name: t}) for e, ts in zip(effects, trials, strict=True) for t in ts]
     base.prefetch(predictor, tried)
