@@ -5,9 +5,12 @@ The plant is this repository's default realistic one (`make_plant` defaults: 5 %
 spread, 10 % friction, simulated registration with the arms' joint offsets, mount placement error, F/T
 bias), on the tiny campaign of `conftest.tiny_campaign_file` (sensor 2, sphere_medium, one normal and
 one angled path on one arm). The hidden effect, a stream delay of whole samples, is applied to the null
-campaign's raw F/T streams by `effect_generator`, code apart from the plant and the analysis.
+campaign's raw F/T streams by `effect_generator`, code apart from the plant and the analysis. The
+contact-onset estimate of a registration offset (`twin.analysis.onset`) is checked on the paths of a deeper
+variant (1.5 mm normal, 1.0 mm angled) measured by the model itself with a known 1.0 mm offset.
 """
 
+from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
@@ -15,12 +18,17 @@ import pytest
 from conftest import tiny_campaign_file
 from effect_generator import apply_ft_delay
 
-from twin.analysis.data import load_campaign
+from twin.analysis.data import CampaignData, load_campaign
 from twin.analysis.diagnose import diagnose
 from twin.analysis.nuisances import NUISANCE_EFFECTS
+from twin.analysis.onset import REGISTRATION, onset_estimate
 from twin.analysis.predict import Predictor, TwinModel
-from twin.analysis.verdict import NOTHING_BEYOND_NUISANCES
+from twin.analysis.refit import refit
+from twin.analysis.residual import base_residual
+from twin.analysis.sensitivity import linearise
+from twin.analysis.verdict import NOTHING_BEYOND_NUISANCES, Candidate
 from twin.cli.loop import _print_nuisances
+from twin.effects import EFFECTS
 from twin.plant import make_plant
 
 SEED = 11
@@ -36,9 +44,16 @@ SURFACE_CONTACT_NUISANCES = (
     "(normal) and 0.02 mm (angled) past the touch point, and both trajectories' forces are noise (0.99-1.17x); the "
     "vertex contact's 0.12 mm deeper depth zero gave the normal press a 0.05 N graze, which the old pass rested on. "
     "With no contact the skin nuisances are unconstrained (the fit ends at its bounds, 1.22x held out) and a delay "
-    "is unobservable; the campaign must press past the registration error (docs/analysis.md); open defect"
+    "is unobservable; the campaign must press past the registration error (docs/analysis.md). Pressed past it "
+    "(1.5 mm normal, 1.0 mm angled; 2026-11-27, with the contact-onset start) both paths touch but the per-arm "
+    "translation and skin scales stop at 1.38x in sample, 2.34x held out (offset (-1.82, +0.64, +1.30) mm, "
+    "friction x1.63), 385 s a test: a translation per arm does not take this plant's registration; open defect"
 )
 """Why the two realistic-plant cases are expected failures for now (measured; see docs/analysis.md)."""
+
+
+KNOWN_OFFSET = {"dx": 0.62e-3, "dy": -0.78e-3, "dz": 0.13e-3}
+"""A registration offset of 1.0 mm (m, biotac frame), inside the paper's 0.5-1.5 mm band."""
 
 
 @pytest.fixture(scope="module")
@@ -49,6 +64,59 @@ def predictor() -> Predictor:
 @pytest.fixture(scope="module")
 def realistic_null(tmp_path_factory: pytest.TempPathFactory) -> Path:
     return tiny_campaign_file(tmp_path_factory.mktemp("realistic"), make_plant([2], SEED))
+
+
+@pytest.fixture(scope="module")
+def deep_paths(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    """The realistic plant's tiny campaign pressed 1.5 mm (normal) and 1.0 mm (30 degrees): past a 1 mm offset."""
+    out = tmp_path_factory.mktemp("deep")
+    return tiny_campaign_file(out, make_plant([2], SEED), angled_depth=1.0e-3, normal_depth=1.5e-3)
+
+
+def measured_by(model: TwinModel, data: CampaignData, predictor: Predictor, seed: int = 0) -> CampaignData:
+    """`data`'s paths as `model` itself measures them: each trajectory's raw F/T force and PDC replaced by the
+    model's replay plus white noise (0.01 N per force axis in the sensor frame, 1 count of PDC, rounded)."""
+    rng = np.random.default_rng(seed)
+    records = []
+    for t in data.trajectories:
+        p = predictor.predict(model, t)
+        wrench = t.raw.wrench.copy()
+        noise = 0.01 * rng.standard_normal((len(wrench), 3))
+        wrench[:, :3] = wrench[0, :3] + p.force_fullrate @ t.sensor_in_biotac[:3, :3] + noise
+        pdc = np.round(t.raw.pdc[0] + p.pdc_fullrate + rng.standard_normal(len(wrench)))
+        records.append(replace(t, raw=replace(t.raw, wrench=wrench, pdc=pdc)))
+    return replace(data, trajectories=records)
+
+
+def test_the_contact_onset_finds_a_known_registration_offset_and_the_refit_reaches_it(
+    deep_paths: Path, predictor: Predictor
+) -> None:
+    """The model measures its own paths with a 1.0 mm offset: each press's contact shift is the first-order
+    geometric one, n.o / n.d, the estimate sees the skin normal's component of the offset and no more (one
+    point: the other two directions are reported unseen and left at zero), and the refit linearised there
+    reaches the noise within 0.1 mm of the offset on every axis (the 1 mm starts ended at 8.5x on a plant).
+    Naming needs two points (docs/analysis.md: with one, dy and dz correlate 0.984)."""
+    data = load_campaign(deep_paths)
+    model = TwinModel(mesh_max_edge=data.mesh_max_edge)
+    offset = np.array(list(KNOWN_OFFSET.values()))
+    measured = measured_by(model.with_effects({REGISTRATION: KNOWN_OFFSET}), data, predictor)
+    base = base_residual([measured], model, predictor)
+    estimate = onset_estimate(predictor, [model] * 2, measured.trajectories, base.sigma)
+    for shift in estimate.shifts:
+        assert shift.shift == pytest.approx(shift.row @ offset, abs=0.05e-3), estimate.to_dict()
+    assert len(estimate.unseen) == 2, estimate.to_dict()
+    assert np.abs(estimate.unseen @ estimate.offset).max() < 1e-12, "an unseen direction must not be invented"
+    normal = estimate.shifts[0].normal
+    assert normal @ estimate.offset == pytest.approx(normal @ offset, abs=0.05e-3)
+    effect = EFFECTS[REGISTRATION]
+    start = estimate.values(effect.values())
+    lin = linearise(effect, model, start, predictor, base)
+    candidate = Candidate(REGISTRATION, "physics", start, 0.0, 0.0, 0.0)
+    refit(candidate, model, predictor, base, lin)
+    threshold = base.noise_test(base.residual.values).rms_threshold
+    assert candidate.refit_rms <= threshold, (candidate.refit_rms, candidate.refit_parameters)
+    for axis, value in KNOWN_OFFSET.items():
+        assert candidate.refit_parameters[axis] == pytest.approx(value, abs=0.1e-3), candidate.refit_parameters
 
 
 @pytest.mark.xfail(reason=SURFACE_CONTACT_NUISANCES, strict=False)

@@ -34,14 +34,13 @@ import numpy as np
 from twin.analysis.data import CampaignData, TrajectoryRecord
 from twin.analysis.fit import Fit, GaussNewtonHooks, GaussNewtonSettings, Parameters, Prior, gauss_newton, linear_step
 from twin.analysis.fit import uncertainty as fit_uncertainty
+from twin.analysis.onset import REGISTRATION, onset_estimate
 from twin.analysis.predict import Predictor, TwinModel
 from twin.analysis.residual import Base, base_residual, model_requests
 from twin.effects import EFFECTS
 
 SKIN_NUISANCES = ("skin_thickness", "skin_modulus", "indenter_friction")
 """Per-sensor skin nuisances (each a scale factor on a skin parameter)."""
-REGISTRATION = "registration_offset"
-"""The per-arm registration nuisance."""
 NUISANCE_EFFECTS = (*SKIN_NUISANCES, REGISTRATION)
 """Library effects the nuisance stage fits; diagnosis does not offer them as missing effects."""
 PRIORS = {"skin_thickness": 0.1, "skin_modulus": 0.1, "indenter_friction": 0.3, REGISTRATION: 1.5e-3}
@@ -341,32 +340,49 @@ def _gauss_newton(
 def _best_starts(
     nominal: Base, model: TwinModel, predictor: Predictor, fitted: NuisanceValues, residual: np.ndarray
 ) -> NuisanceValues:
-    """The fitted values with each arm's registration replaced by whichever of its fit and
-    `REGISTRATION_STARTS` leaves that arm's trajectories the least squared residual (one replay set per
-    start: every arm is moved to the same start at once; the starts' replays solved as one batch)."""
-    slots, values = fitted.slots, np.array(fitted.values)
+    """The fitted values with each arm's registration replaced by whichever of its fit, its contact-onset
+    estimate about the fit (`twin.analysis.onset`, from the fit's replays) and `REGISTRATION_STARTS` leaves
+    that arm's trajectories the least squared residual (one replay set per start: every arm is moved to its
+    onset estimate, or to the same start, at once; the starts' replays solved as one batch)."""
+    slots = fitted.slots
     arms = sorted({(s.sensor, s.arm) for s in slots if s.effect == REGISTRATION})
     index = nominal.residual.trajectory_index
-    best = {arm: (_arm_cost(residual, index, nominal, arm), None) for arm in arms}
-    trials = []
-    for offset in REGISTRATION_STARTS:
-        trial = values.copy()
-        for i, s in enumerate(slots):
-            if s.effect == REGISTRATION:
-                trial[i] = offset["xyz".index(s.parameter[-1])]
-        trials.append(NuisanceValues(slots, tuple(float(v) for v in trial)))
+    onset = {}
+    for arm in arms:
+        mine = [t for t in nominal.trajectories if (t.sensor_id, t.arm) == arm]
+        models = [fitted.model_for(model, t) for t in mine]
+        onset[arm] = _arm_offset(fitted, arm) + onset_estimate(predictor, models, mine, nominal.sigma).offset
+    starts = [onset, *({arm: offset for arm in arms} for offset in REGISTRATION_STARTS)]
+    trials = [_with_registration(fitted, start) for start in starts]
     _prefetch(nominal, model, predictor, trials)  # every start's replays in one batch
-    for offset, moved in zip(REGISTRATION_STARTS, trials, strict=True):
+    best = {arm: (_arm_cost(residual, index, nominal, arm), _arm_offset(fitted, arm)) for arm in arms}
+    for start, moved in zip(starts, trials, strict=True):
         residual = nominal.residual.values - _shifted(nominal, model, predictor, moved)
         for arm in arms:
             cost = _arm_cost(residual, index, nominal, arm)
             if cost < best[arm][0]:
-                best[arm] = (cost, offset)
-    for i, s in enumerate(slots):
-        offset = best[(s.sensor, s.arm)][1] if s.effect == REGISTRATION else None
-        if offset is not None:
-            values[i] = offset["xyz".index(s.parameter[-1])]
-    return NuisanceValues(slots, tuple(float(v) for v in values))
+                best[arm] = (cost, start[arm])
+    return _with_registration(fitted, {arm: offset for arm, (_, offset) in best.items()})
+
+
+def _arm_offset(values: NuisanceValues, arm: tuple[int, str]) -> np.ndarray:
+    """(3,) m: the registration offset of one (sensor, arm) in `values`."""
+    mine = {s.parameter: v for s, v in zip(values.slots, values.values, strict=True) if _is_arm(s, arm)}
+    return np.array([mine[p.name] for p in EFFECTS[REGISTRATION].parameters])
+
+
+def _is_arm(slot: Slot, arm: tuple[int, str]) -> bool:
+    return slot.effect == REGISTRATION and (slot.sensor, slot.arm) == arm
+
+
+def _with_registration(values: NuisanceValues, offsets: dict[tuple[int, str], np.ndarray]) -> NuisanceValues:
+    """`values` with each (sensor, arm)'s registration set to its offset (m, (3,)) in `offsets`, clipped to
+    the effect's bounds."""
+    out = np.array(values.values)
+    for i, s in enumerate(values.slots):
+        if s.effect == REGISTRATION:
+            out[i] = offsets[(s.sensor, s.arm)]["xyz".index(s.parameter[-1])]
+    return values.at(values.parameters.with_values(np.clip(out, values.parameters.lower, values.parameters.upper)))
 
 
 def _arm_cost(residual: np.ndarray, index: np.ndarray, base: Base, arm: tuple[int, str]) -> float:

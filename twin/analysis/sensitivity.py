@@ -4,11 +4,12 @@ of a residual on them (`twin.analysis.fit`)."""
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import numpy as np
 
 from twin.analysis.fit import Parameters, linear_step
+from twin.analysis.onset import REGISTRATION, OnsetEstimate, onset_estimate
 from twin.analysis.predict import Predictor, TwinModel
 from twin.analysis.residual import Base
 from twin.effects import Effect
@@ -22,6 +23,7 @@ class Linearisation:
     point: dict[str, float]
     offset: np.ndarray  # (N,) profiled change of the prediction from the base model to `point`
     jac: np.ndarray  # (N, k) finite-difference sensitivity at `point`
+    onset: OnsetEstimate | None = None  # a registration offset's contact-onset estimate (`twin.analysis.onset`)
 
 
 def linearise(
@@ -68,8 +70,11 @@ def sensitivities(effects: list[Effect], model: TwinModel, predictor: Predictor,
     off there and declares a probe (parameters that act only once it is on), at the probe; and when it is
     off and declares starts (values across its range), at the start or the first linearisation's fit,
     whichever leaves the least profiled chi-square when predicted nonlinearly (one prediction each), so
-    an effect far from its off value is fitted about a point near it. Each stage's replays, over all the
-    effects (the first linearisations, the trials, the second linearisations), are solved as one batch."""
+    an effect far from its off value is fitted about a point near it; a registration offset also tries,
+    first among its starts, the offset the contact onsets give (`twin.analysis.onset`, no fe replay) when it
+    is large (`OnsetEstimate.large`); its Linearisation keeps the estimate either way. Each stage's replays,
+    over all the effects (the first linearisations, the trials, the second linearisations), are solved as one
+    batch."""
     points = []
     for effect in effects:
         point = effect.values(model.effects.get(effect.name))
@@ -80,13 +85,18 @@ def sensitivities(effects: list[Effect], model: TwinModel, predictor: Predictor,
     lins = [linearise(e, model, p, predictor, base) for e, p in zip(effects, points, strict=True)]
     r = base.residual.values
     trials: list[list[dict[str, float]]] = []
-    for effect, lin in zip(effects, lins, strict=True):
+    for i, (effect, lin) in enumerate(zip(effects, lins, strict=True)):
         if not (effect.is_off(effect.values(model.effects.get(effect.name))) and effect.starts):
             trials.append([])
             continue
         at = effect_parameters(effect, lin.point)
         fitted = at.moved(linear_step(lin.jac, r - lin.offset, at)).as_dict()
-        trials.append([fitted, *(effect.values({**lin.point, **start}) for start in effect.starts)])
+        first = []
+        if effect.name == REGISTRATION:
+            models = [base.model_for(model, t) for t in base.trajectories]
+            lins[i] = replace(lin, onset=onset_estimate(predictor, models, base.trajectories, base.sigma))
+            first = [lins[i].onset.values(lin.point)] if lins[i].onset.large else []
+        trials.append([fitted, *first, *(effect.values({**lin.point, **start}) for start in effect.starts)])
     tried = [model.with_effects({e.name: t}) for e, ts in zip(effects, trials, strict=True) for t in ts]
     base.prefetch(predictor, tried)
     again: dict[int, dict[str, float]] = {}
@@ -99,7 +109,7 @@ def sensitivities(effects: list[Effect], model: TwinModel, predictor: Predictor,
             again[i] = ts[best]
     base.prefetch(predictor, [m for i, p in again.items() for m in linearisation_models(effects[i], model, p)])
     for i, point in again.items():
-        lins[i] = linearise(effects[i], model, point, predictor, base)
+        lins[i] = replace(linearise(effects[i], model, point, predictor, base), onset=lins[i].onset)
     return lins
 
 

@@ -45,6 +45,7 @@ class Candidate:
     at_bound: list[str] = field(default_factory=list)  # refitted parameters at a bound of their range
     heldout_is_noise: bool | None = None  # the held-out residual passes the noise test (None: not judged)
     heldout_rms_threshold: float | None = None  # the RMS its held-out test allows (None: not judged)
+    onset: dict | None = None  # registration_offset: the contact-onset estimate (`OnsetEstimate.to_dict`)
 
     @property
     def refitted(self) -> bool:
