@@ -154,7 +154,7 @@ def run_batch_benchmark(args: argparse.Namespace) -> None:
         row["minutes_for_700_measured"] = row["wall_s"] / 60 if measured else float("nan")
         row |= {"device": str(wp.get_device(args.device)), "mesh_mm": args.mesh_mm, "nodes": len(skin.vertices)}
         row["compile_s"] = compile_s
-    forces = forces_of(run.results, paths["names"], args.force_limit)
+    forces = forces_of(run.results, paths["names"], len(travels), args.force_limit)
     if args.serial:
         count = min(args.serial, len(run.results))
         rows[-1].update(serial_agreement(args, paths, travels, forces, np.arange(count), model))
@@ -271,11 +271,12 @@ def _kernel_timing(skin: InflatedSkin, trajectories: list, args: argparse.Namesp
     console.print(table)
 
 
-def forces_of(results: list, names: np.ndarray, force_limit: float = np.inf) -> dict:
+def forces_of(results: list, names: np.ndarray, poses: int = 0, force_limit: float = np.inf) -> dict:
     """Forces (M, poses, 3) N and convergence (M, poses) of a run's trajectories, NaN and False after a
     trajectory stopped; the indenter names (M,); why each ended (M,): the failure text of its last increment,
-    "force limit", "all poses", "running" (cut by the time limit) or "" (not started)."""
-    poses = max(len(t) for t in results)
+    "force limit", "all poses", "running" (cut by the time limit) or "" (not started). `poses`: of every
+    trajectory (0: the longest result's)."""
+    poses = poses or max(len(t) for t in results)
     force = np.full((len(results), poses, 3), np.nan)
     converged = np.zeros((len(results), poses), dtype=bool)
     end = np.full(len(results), "", dtype=object)
