@@ -154,7 +154,7 @@ def run_batch_benchmark(args: argparse.Namespace) -> None:
         row["minutes_for_700_measured"] = row["wall_s"] / 60 if measured else float("nan")
         row |= {"device": str(wp.get_device(args.device)), "mesh_mm": args.mesh_mm, "nodes": len(skin.vertices)}
         row["compile_s"] = compile_s
-    forces = forces_of(run.results, paths["names"])
+    forces = forces_of(run.results, paths["names"], len(travels), args.force_limit)
     if args.serial:
         count = min(args.serial, len(run.results))
         rows[-1].update(serial_agreement(args, paths, travels, forces, np.arange(count), model))
@@ -271,16 +271,30 @@ def _kernel_timing(skin: InflatedSkin, trajectories: list, args: argparse.Namesp
     console.print(table)
 
 
-def forces_of(results: list, names: np.ndarray) -> dict:
+def forces_of(results: list, names: np.ndarray, poses: int = 0, force_limit: float = np.inf) -> dict:
     """Forces (M, poses, 3) N and convergence (M, poses) of a run's trajectories, NaN and False after a
-    trajectory stopped; the indenter names (M,)."""
-    poses = max(len(t) for t in results)
+    trajectory stopped; the indenter names (M,); why each ended (M,): the failure text of its last increment,
+    "force limit", "all poses", "running" (cut by the time limit) or "" (not started). `poses`: of every
+    trajectory (0: the longest result's)."""
+    poses = poses or max(len(t) for t in results)
     force = np.full((len(results), poses, 3), np.nan)
     converged = np.zeros((len(results), poses), dtype=bool)
+    end = np.full(len(results), "", dtype=object)
     for i, trajectory in enumerate(results):
         for k, r in enumerate(trajectory):
             force[i, k], converged[i, k] = r.force, r.converged
-    return {"force": force, "converged": converged, "names": names[: len(results)]}
+        if trajectory:
+            end[i] = _end_reason(trajectory[-1], len(trajectory) == poses, force_limit)
+    return {"force": force, "converged": converged, "names": names[: len(results)], "end": end.astype(str)}
+
+
+def _end_reason(last, at_last_pose: bool, force_limit: float) -> str:
+    """Why a trajectory whose last increment is `last` ended (see `forces_of`)."""
+    if not last.converged:
+        return last.message
+    if np.linalg.norm(last.force) > force_limit:
+        return "force limit"
+    return "all poses" if at_last_pose else "running"
 
 
 def serial_agreement(
