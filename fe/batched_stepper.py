@@ -233,10 +233,8 @@ class BatchedStepper:
         """Put the systems in `which` back to the inflated state, keeping their poses and depth origins."""
         self.x[which] = self.reference[which]
         self.pressure[which] = self.reference_pressure[which]
-        self.in_contact[which] = False
-        self._has_motion[which] = False
-        self._travel[which] = 0.0
-        self._gap[which] = self._gap_change[which] = 0.0
+        self.in_contact[which] = self._has_motion[which] = False
+        self._travel[which] = self._gap[which] = self._gap_change[which] = 0.0
 
     def set_indenter(self, system: int, name: str) -> None:
         """Change one system's indenter (reset it first: the new one starts from the inflated state)."""
