@@ -13,8 +13,8 @@ and gradient (0, 0, -1).
 
 Gradients are continuous within the skin's reach except where the distance itself has a kink, at points
 at least one edge radius (1 mm) inside the head, on a sphere's centre, a cylinder's axis, the ring's axis
-(3.6 mm from the ring) or, for the texture, on medial surfaces between neighbouring bumps (more than
-~0.6 mm from the texture); there a sensible one-sided choice is returned.
+(3.6 mm from the ring) or, for the texture, on the medial surfaces of the bumps' concave feet (from
+TEXTURE_FILLET, 1 mm, out: beyond the skin's contact layer); there a sensible one-sided choice is returned.
 """
 
 import numpy as np

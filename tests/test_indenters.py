@@ -21,6 +21,7 @@ from assets.indenters import (
     texture_bump_centres,
 )
 from fe.indenter_sdf import indenter_sdf_and_grad
+from fe.params import SKIN_PARAMETERS, SkinParameters
 
 REFERENCE = Path(__file__).resolve().parents[1] / ".." / "shared" / "reference" / "biotac_sim"
 PUBLIC = {
@@ -184,6 +185,30 @@ def test_texture_design() -> None:
     assert np.abs(c).max() + rho_f < half - TEXTURE_RIM - 0.5e-3  # bumps clear of the rim
     np.testing.assert_allclose(tex.sdf(np.c_[c, np.zeros(len(c))]), 0.0, atol=1e-15)  # every apex at z = 0
     assert tex.sdf(np.array([[0.5 * a, 0.5 * a, rb]]))[0] == pytest.approx(0.0, abs=1e-12)  # plate face
+
+
+def test_texture_distance_is_smooth_within_the_skin_layer() -> None:
+    """The FE contact squeezes a half-layer h of skin (half its thickness) against the indenter, so the texture's
+    distance must be smooth wherever it is below h: its kinks, the medial surfaces of each bump's concave foot,
+    start TEXTURE_FILLET from the texture (and neighbouring feet must not meet). Checked for the paper's
+    thickest skin (2 mm) and by scanning lines across the plate through every row's feet in 1 um steps: within
+    the default skin's layer (0.785 mm) the gradient turns by no more than its curvature bound allows (a kink
+    turns it by 0.1-1 at once; with the former 0.3 mm fillet the FE Newton stalled on one, issue 17)."""
+    tex = get_indenter("texture")
+    rb, a, jit, half = tex.dims
+    c = texture_bump_centres(tex.dims)
+    rho_f = np.sqrt(rb**2 + 2 * rb * TEXTURE_FILLET)
+    assert TEXTURE_FILLET >= 0.5 * SKIN_PARAMETERS["thickness"].paper[1]
+    assert (np.linalg.norm(c[:, None] - c[None], axis=2) + np.eye(len(c))).min() > 2 * rho_f  # feet apart
+    h, step = 0.5 * SkinParameters().thickness, 1e-6
+    x = np.arange(-half + 1e-3, half - 1e-3, step)
+    for y in (np.arange(-2, 3) + 0.3) * a:
+        for z in rb - np.array([0.2e-3, 0.45e-3, 0.7e-3]):
+            p = np.c_[x, np.full_like(x, y), np.full_like(x, z)]
+            d, g = tex.sdf(p), tex.sdf_gradient(p)
+            both = (d[:-1] > 0.0) & (d[1:] > 0.0) & (d[:-1] < h) & (d[1:] < h)
+            turn = np.linalg.norm(np.diff(g, axis=0), axis=1)[both]
+            assert both.sum() > 1000 and turn.max() < step / (TEXTURE_FILLET - h), (y, z, turn.max())
 
 
 def test_unknown_name_raises() -> None:

@@ -14,7 +14,9 @@ from twin.scene import BIOTAC_SKIN, SceneParameters, TestbedScene, build_spec
 
 XML_BEFORE_SPEC = Path(__file__).parent / "data" / "testbed_scene_mjcf.xml.gz"
 """The default scene's MJCF as the ElementTree builder wrote it (twin/scene.py of d735c53), before the
-scene was built as an MjSpec; generated once, never from the code under test."""
+scene was built as an MjSpec; generated from that commit's tree, never from the code under test (session 15:
+regenerated there with the texture's new fillet and jitter of assets/indenters.py, its only change; the tree
+unchanged reproduces the former file byte for byte)."""
 ELEMENTS = {
     "body": ("parentid", "pos", "quat", "mass", "inertia", "ipos", "iquat", "jntnum", "geomnum"),
     "jnt": ("type", "bodyid", "pos", "axis", "range", "limited", "qposadr"),
