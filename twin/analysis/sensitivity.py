@@ -67,14 +67,13 @@ def sensitivity(effect: Effect, model: TwinModel, predictor: Predictor, base: Ba
 def sensitivities(effects: list[Effect], model: TwinModel, predictor: Predictor, base: Base) -> list[Linearisation]:
     """Linearise each effect where its fit is best begun: at the model's values, or, when the effect is
     off there and declares a probe (parameters that act only once it is on), at the probe; and when it is
-    off and declares starts (values across its range), at the start or the first linearisation's fit,
-    whichever leaves the least profiled chi-square when predicted nonlinearly (one prediction each), so
-    an effect far from its off value is fitted about a point near it; an effect with a data-driven start
-    (`Effect.data_start`: a registration offset's contact onsets, `twin.analysis.onset`, no fe replay) also
-    tries, first among its starts, what that gives (when it gives one); its Linearisation keeps the estimate
-    either way. Each stage's replays,
-    over all the effects (the first linearisations, the trials, the second linearisations), are solved as one
-    batch."""
+    off and declares starts (values across its range, or one from the data), at the start or the first
+    linearisation's fit, whichever leaves the least profiled chi-square when predicted nonlinearly (one
+    prediction each), so an effect far from its off value is fitted about a point near it; an effect with a
+    data-driven start (`Effect.data_start`: a registration offset's contact onsets, `twin.analysis.onset`, no
+    fe replay) tries what that gives (when it gives one) before its declared starts; its Linearisation keeps
+    the estimate either way. Each stage's replays, over all the effects (the first linearisations, the
+    trials, the second linearisations), are solved as one batch."""
     points = []
     for effect in effects:
         point = effect.values(model.effects.get(effect.name))
@@ -86,7 +85,7 @@ def sensitivities(effects: list[Effect], model: TwinModel, predictor: Predictor,
     r = base.residual.values
     trials: list[list[dict[str, float]]] = []
     for i, (effect, lin) in enumerate(zip(effects, lins, strict=True)):
-        if not (effect.is_off(effect.values(model.effects.get(effect.name))) and effect.starts):
+        if not (effect.is_off(effect.values(model.effects.get(effect.name))) and (effect.starts or effect.data_start)):
             trials.append([])
             continue
         at = effect_parameters(effect, lin.point)
