@@ -103,9 +103,11 @@ def test_the_weighted_chi_square_quantile_matches_the_chi_square_and_the_normal(
     assert normal == pytest.approx(100 * norm.isf(0.001), rel=0.01)
 
 
-def test_the_out_of_fold_excess_is_the_spectrum_of_the_explicit_held_out_projection() -> None:
+@pytest.mark.parametrize("unit", [1.0, 5e6])
+def test_the_out_of_fold_excess_is_the_spectrum_of_the_explicit_held_out_projection(unit: float) -> None:
+    # unit 5e6: columns in parameter units such as a registration offset's per metre (whitened residual per m)
     rng = np.random.default_rng(23)
-    jac = rng.standard_normal((600, 4)) * [1.0, 0.1, 0.5, 2.0]
+    jac = rng.standard_normal((600, 4)) * np.array([1.0, 0.1, 0.5, 2.0]) * unit
     folds = rng.integers(0, 3, 600)
     explicit = np.zeros((600, 600))  # P: each fold's rows predicted by the fit on the others
     for g in range(3):

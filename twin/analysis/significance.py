@@ -177,11 +177,17 @@ def out_of_fold_excess(jac: np.ndarray, folds: np.ndarray) -> OutOfFold:
     (I - P)^T (I - P) = I + W K W^T with W = [U V] and K = [[0, -I], [-I, U^T U]], whose non-zero
     eigenvalues are those of the small (W^T W)^(1/2) K (W^T W)^(1/2). W^T W needs only each fold's
     A_g = X_g^T X_g: U_g^T U_g = M_g A_g M_g, U_g^T V_h = M_g A_g (g != h), V_g^T V_h = sum of the A_f
-    outside g and h (0 for U_g^T U_h, U_g^T V_g)."""
+    outside g and h (0 for U_g^T U_h, U_g^T V_g). X is first replaced by an orthonormal basis of its span
+    (`span_basis`): the fits' predictions, so P, are the same, and the blocks are of order one (in parameter
+    units, a registration offset's columns per metre, the A_g and M_g blocks differ by some 27 orders of
+    magnitude and the spectrum drowns in round-off: excess values of 4e5 where a direct fit shows 5)."""
     rows = np.isfinite(jac).all(axis=1)
-    x, labels = jac[rows], np.asarray(folds)[rows]
+    labels = np.asarray(folds)[rows]
     groups = np.unique(labels)
-    if len(groups) < 2:
+    if len(groups) < 2 or not rows.any():
+        return NO_FIT
+    x = span_basis(jac[rows])
+    if x.shape[1] == 0:
         return NO_FIT
     grams = [x[labels == g].T @ x[labels == g] for g in groups]
     total = np.sum(grams, axis=0)
@@ -207,3 +213,11 @@ def out_of_fold_excess(jac: np.ndarray, folds: np.ndarray) -> OutOfFold:
     root = vectors * np.sqrt(np.clip(values, 0.0, None)) @ vectors.T
     excess = np.linalg.eigvalsh(root @ kernel @ root)
     return OutOfFold(tuple(float(e) for e in excess[np.abs(excess) > 1e-9 * np.abs(excess).max()]))
+
+
+def span_basis(x: np.ndarray) -> np.ndarray:
+    """(N, r) orthonormal basis of the column span of x (N, k): its left singular vectors with a singular
+    value above 1e-12 of the largest (r = 0 for a zero matrix). Least-squares fits on it predict what fits
+    on x predict (x = basis T, T invertible on the span)."""
+    u, s, _ = np.linalg.svd(x, full_matrices=False)
+    return u[:, s > 1e-12 * s.max(initial=0.0)] if s.size else u
