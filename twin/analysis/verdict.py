@@ -9,8 +9,9 @@ is reported in the reason and in the candidate's `at_bound`.
 
 The power rule (issue 20). The held-out test allows for the error the fits on the other indenters carry
 into each left-out prediction (`significance.out_of_fold_excess`); where the other indenters barely
-constrain a direction the left-out one loads heavily, it allows a great deal (6.6x the noise for a
-registration offset fitted on one of a campaign's two points). Passing such a test is no evidence: the
+constrain a direction the left-out one loads heavily, it allows a great deal (3.2x the noise in the
+two-fold design of tests/test_diagnose_verdict.py; the 6.6-15x once reported for a registration offset on
+two points were round-off in that allowance, since fixed). Passing such a test is no evidence: the
 effect at its off value, which leaves the base residual r on the same left-out samples (no fit, so
 nothing extrapolated), might pass it too. A test supports the effect only if it tells the fitted effect
 from no effect: it accepts the held-out residual and rejects r. So a candidate is named only when the
