@@ -21,14 +21,14 @@ from effect_generator import apply_ft_delay
 from twin.analysis.data import CampaignData, load_campaign
 from twin.analysis.diagnose import diagnose
 from twin.analysis.nuisances import NUISANCE_EFFECTS
-from twin.analysis.onset import REGISTRATION, onset_estimate
+from twin.analysis.onset import onset_estimate
 from twin.analysis.predict import Predictor, TwinModel
 from twin.analysis.refit import refit
 from twin.analysis.residual import base_residual
 from twin.analysis.sensitivity import linearise
 from twin.analysis.verdict import NOTHING_BEYOND_NUISANCES, Candidate
 from twin.cli.loop import _print_nuisances
-from twin.effects import EFFECTS
+from twin.effects import EFFECTS, REGISTRATION
 from twin.plant import make_plant
 
 SEED = 11

@@ -5,7 +5,8 @@ The fe case (the model measuring its own paths with a known offset) is in tests/
 import numpy as np
 import pytest
 
-from twin.analysis.onset import UNSEEN_STD, PathShift, contact_shift, offset_from_shifts
+from twin.analysis.onset import UNSEEN_STD, OnsetEstimate, PathShift, contact_shift, offset_from_shifts
+from twin.effects import REGISTRATION, apply_path, registration_values, registration_vector
 
 
 def hertz(z: np.ndarray, onset: float) -> np.ndarray:
@@ -59,3 +60,19 @@ def test_presses_at_one_point_see_only_the_normal_component() -> None:
     assert len(unseen) == 2 and np.abs(unseen @ unit).max() < 1e-9
     assert np.abs(unseen @ estimate).max() < 1e-12
     assert offset_from_shifts([])[2].shape == (3, 3), "no press: every direction is unseen"
+
+
+def test_the_registration_helpers_are_the_offset_the_path_effect_applies() -> None:
+    """values <-> (3,) offset, checked against the tips the effect moves; an axis past its 3 mm bound is clipped."""
+    values = registration_values(np.array([0.62e-3, -0.78e-3, 4e-3]))
+    tips = np.array([[0.0, 0.0, 0.0], [1e-2, -2e-2, 3e-2]])
+    moved = apply_path(tips, {REGISTRATION: values}) - tips
+    assert moved == pytest.approx(np.tile([0.62e-3, -0.78e-3, 3e-3], (2, 1)), abs=1e-15)
+    assert registration_vector(values) == pytest.approx(moved[0], abs=1e-15)
+    assert np.all(registration_vector(None) == 0.0), "no values: the effect is off"
+
+
+def test_the_onset_estimate_moves_the_current_offset_by_what_it_found() -> None:
+    estimate = OnsetEstimate(np.array([0.5e-3, 0.0, -0.2e-3]), np.zeros((3, 3)), np.zeros((0, 3)), ())
+    moved = estimate.values(registration_values(np.array([0.1e-3, 0.2e-3, 0.0])))
+    assert registration_vector(moved) == pytest.approx([0.6e-3, 0.2e-3, -0.2e-3], abs=1e-15)

@@ -15,14 +15,35 @@ from __future__ import annotations
 from collections.abc import Callable
 from dataclasses import dataclass, field, replace
 from functools import partial
+from typing import TYPE_CHECKING, Protocol
 
 import numpy as np
 
 from fe.params import SKIN_PARAMETERS, Knob, SkinParameters
 
+if TYPE_CHECKING:
+    from twin.analysis.predict import Predictor, TwinModel
+    from twin.analysis.residual import Base
+
 EffectValues = dict[str, dict[str, float]]
 CleanWrench = Callable[[np.ndarray], np.ndarray]
 """Noise-free sensor-frame wrench (N, 6) at the given times (N,) s."""
+
+
+class StartEstimate(Protocol):
+    """What an effect's data-driven start (`Effect.data_start`) found in the data."""
+
+    def start(self, current: dict[str, float]) -> dict[str, float] | None:
+        """The effect's values to try, about its `current` values (None: nothing worth trying)."""
+        ...
+
+    def to_dict(self) -> dict:
+        """A JSON-ready summary (what diagnosis reports beside the candidate)."""
+        ...
+
+
+DataStart = Callable[["Predictor", "TwinModel", "Base"], StartEstimate]
+"""An effect's start estimated from the data (predictor, the model, the base residual): no linearisation."""
 
 
 @dataclass(frozen=True)
@@ -59,6 +80,9 @@ class Effect:
     linear: bool = False
     """The measurement is linear in the parameters (an F/T calibration matrix, a drift rate): a linear
     least-squares fit is exact and needs no nonlinear polish."""
+    data_start: DataStart | None = None
+    """A start estimated from the data themselves (a registration offset from the contact onsets), tried
+    first among `starts` while the effect is off; None: the declared starts only."""
 
     def values(self, given: dict[str, float] | None = None) -> dict[str, float]:
         """Every parameter's value: `given` where present, the off value otherwise (bounds checked)."""
@@ -133,8 +157,33 @@ def _skin_effect(name: str, knobs: tuple[tuple[str, Knob], ...]) -> Effect:
 
 
 # -- the effects declared here: the indenter path and the F/T measurement ------------------------------------
+REGISTRATION = "registration_offset"
+"""The effect that offsets the indenter path (dx, dy, dz; m, biotac frame)."""
+REGISTRATION_AXES = ("dx", "dy", "dz")
+"""Its parameters, in the order of the offset's biotac-frame axes x, y, z."""
+
+
+def registration_vector(values: dict[str, float] | None) -> np.ndarray:
+    """(3,) m, biotac frame: the offset of `registration_offset` values (missing parameters off)."""
+    v = EFFECTS[REGISTRATION].values(values)
+    return np.array([v[axis] for axis in REGISTRATION_AXES])
+
+
+def registration_values(offset: np.ndarray) -> dict[str, float]:
+    """The `registration_offset` values of an offset (3,) m, biotac frame, each axis clipped to its bounds."""
+    bounds = {p.name: (p.lower, p.upper) for p in EFFECTS[REGISTRATION].parameters}
+    return {axis: float(np.clip(o, *bounds[axis])) for axis, o in zip(REGISTRATION_AXES, offset, strict=True)}
+
+
 def _registration(tips: np.ndarray, v: dict[str, float]) -> np.ndarray:
-    return tips + np.array([v["dx"], v["dy"], v["dz"]])
+    return tips + registration_vector(v)
+
+
+def _onset_start(predictor: Predictor, model: TwinModel, base: Base) -> StartEstimate:
+    """The registration offset's data-driven start: the contact-onset estimate (`twin.analysis.onset`)."""
+    from twin.analysis.onset import onset_start  # imported when called: the onset module uses this library
+
+    return onset_start(predictor, model, base)
 
 
 def _delay(times: np.ndarray, clean: CleanWrench, v: dict[str, float]) -> np.ndarray:
@@ -193,7 +242,7 @@ def _calibration_parameter(term: str) -> EffectParameter:
     return EffectParameter(term, 0.0, -0.2, 0.2, 0.01, "1")
 
 
-_REGISTRATION_STARTS = tuple({axis: sign * 1e-3} for axis in ("dx", "dy", "dz") for sign in (-1.0, 1.0))
+_REGISTRATION_STARTS = tuple({axis: sign * 1e-3} for axis in REGISTRATION_AXES for sign in (-1.0, 1.0))
 """A millimetre along each axis, both ways: where a registration search also looks (paper: 0.5-1.5 mm)."""
 
 
@@ -201,13 +250,14 @@ _DECLARED: dict[str, Effect] = {
     e.name: e
     for e in (
         Effect(
-            "registration_offset",
+            REGISTRATION,
             "The indenter path is offset from where registration says it is (biotac frame).",
             "physics",
-            (_mm("dx"), _mm("dy"), _mm("dz")),
+            tuple(_mm(axis) for axis in REGISTRATION_AXES),
             ("force", "pdc", "electrodes"),
             path=_registration,
             starts=_REGISTRATION_STARTS,
+            data_start=_onset_start,
         ),
         Effect(
             "time_delay",

@@ -166,7 +166,7 @@ def diagnose(
             chi2_drop=drop,
             evidence=drop - len(delta) * np.log(n),
             explained_fraction=drop / excess if excess > 0 else 0.0,
-            onset=lin.onset.to_dict() if lin.onset is not None else None,
+            onset=lin.data_start.to_dict() if lin.data_start is not None else None,
         )
         candidate.heldout_rms = heldout(effect, scored, r, residual.indenter)[0]
         ranked.append((candidate, lin))

@@ -3,13 +3,15 @@ they leave (`twin.analysis.significance`), and whether the fit's parameters are 
 
 from __future__ import annotations
 
+from collections.abc import Callable
+
 import numpy as np
 
 from twin.analysis.fit import uncertainty as fit_uncertainty
 from twin.analysis.predict import Predictor, TwinModel
 from twin.analysis.residual import Base
 from twin.analysis.sensitivity import Linearisation, linear_fit, linearise
-from twin.analysis.significance import out_of_fold_excess
+from twin.analysis.significance import NoiseTest, out_of_fold_excess
 from twin.analysis.verdict import Candidate, parameters_at_bound
 from twin.effects import EFFECTS, Effect
 
@@ -41,17 +43,38 @@ def heldout(effect: Effect, lin: Linearisation, r: np.ndarray, indenter: np.ndar
 
 def judge_heldout(candidate: Candidate, model: TwinModel, predictor: Predictor, base: Base) -> None:
     """Held-out RMS about the refitted values (the effect linearised again there: one fe replay per
-    parameter for a physics effect) and whether that held-out residual passes the noise test, which
-    allows for the error the fits on the other indenters carry into it (`significance.out_of_fold_excess`;
-    the parameter bounds of the fits are not modelled); and which refitted parameters sit at a bound."""
+    parameter for a physics effect), whether that held-out residual passes the noise test, which allows
+    for the error the fits on the other indenters carry into it (`significance.out_of_fold_excess`; the
+    parameter bounds of the fits are not modelled), and whether that test has power (`record_heldout`);
+    and which refitted parameters sit at a bound."""
     effect = EFFECTS[candidate.name]
     at_fit = linearise(effect, model, candidate.refit_parameters, predictor, base)
     rms, left_out = heldout(effect, at_fit, base.residual.values, base.residual.indenter)
-    test = base.noise_test(left_out, out_of_fold=out_of_fold_excess(at_fit.jac, base.residual.indenter))
-    candidate.heldout_rms = rms
-    candidate.heldout_is_noise = test.is_noise
-    candidate.heldout_rms_threshold = test.rms_threshold
+    out_of_fold = out_of_fold_excess(at_fit.jac, base.residual.indenter)
+    record_heldout(
+        candidate, rms, left_out, base.residual.values, lambda r: base.noise_test(r, out_of_fold=out_of_fold)
+    )
     candidate.at_bound = parameters_at_bound(candidate.name, candidate.refit_parameters)
+
+
+def record_heldout(
+    candidate: Candidate,
+    rms: float | None,
+    left_out: np.ndarray,
+    base_residual: np.ndarray,
+    test: Callable[[np.ndarray], NoiseTest],
+) -> None:
+    """Set the candidate's held-out figures: `rms` and the held-out residual `left_out` (N,; NaN where
+    there is no prediction), whether `test` (the held-out noise test) passes it, the RMS the test allows,
+    and the power rule (`twin.analysis.verdict`): the whitened RMS of `base_residual` (N,, the residual
+    without the effect) on the same samples and whether the same test rejects it."""
+    held = test(left_out)
+    without = np.where(np.isfinite(left_out), base_residual, np.nan)
+    candidate.heldout_rms = rms
+    candidate.heldout_is_noise = held.is_noise
+    candidate.heldout_rms_threshold = held.rms_threshold
+    candidate.heldout_base_rms = whitened_rms(without)
+    candidate.heldout_has_power = not test(without).is_noise
 
 
 def identifiability(candidate: Candidate, jac: np.ndarray) -> None:

@@ -34,10 +34,10 @@ import numpy as np
 from twin.analysis.data import CampaignData, TrajectoryRecord
 from twin.analysis.fit import Fit, GaussNewtonHooks, GaussNewtonSettings, Parameters, Prior, gauss_newton, linear_step
 from twin.analysis.fit import uncertainty as fit_uncertainty
-from twin.analysis.onset import REGISTRATION, onset_estimate
+from twin.analysis.onset import onset_estimate
 from twin.analysis.predict import Predictor, TwinModel
 from twin.analysis.residual import Base, base_residual, model_requests
-from twin.effects import EFFECTS
+from twin.effects import EFFECTS, REGISTRATION, registration_values, registration_vector
 
 SKIN_NUISANCES = ("skin_thickness", "skin_modulus", "indenter_friction")
 """Per-sensor skin nuisances (each a scale factor on a skin parameter)."""
@@ -367,8 +367,9 @@ def _best_starts(
 
 def _arm_offset(values: NuisanceValues, arm: tuple[int, str]) -> np.ndarray:
     """(3,) m: the registration offset of one (sensor, arm) in `values`."""
-    mine = {s.parameter: v for s, v in zip(values.slots, values.values, strict=True) if _is_arm(s, arm)}
-    return np.array([mine[p.name] for p in EFFECTS[REGISTRATION].parameters])
+    return registration_vector(
+        {s.parameter: v for s, v in zip(values.slots, values.values, strict=True) if _is_arm(s, arm)}
+    )
 
 
 def _is_arm(slot: Slot, arm: tuple[int, str]) -> bool:
@@ -378,11 +379,14 @@ def _is_arm(slot: Slot, arm: tuple[int, str]) -> bool:
 def _with_registration(values: NuisanceValues, offsets: dict[tuple[int, str], np.ndarray]) -> NuisanceValues:
     """`values` with each (sensor, arm)'s registration set to its offset (m, (3,)) in `offsets`, clipped to
     the effect's bounds."""
-    out = np.array(values.values)
-    for i, s in enumerate(values.slots):
-        if s.effect == REGISTRATION:
-            out[i] = offsets[(s.sensor, s.arm)]["xyz".index(s.parameter[-1])]
-    return values.at(values.parameters.with_values(np.clip(out, values.parameters.lower, values.parameters.upper)))
+    moved = {arm: registration_values(offset) for arm, offset in offsets.items()}
+    return NuisanceValues(
+        values.slots,
+        tuple(
+            moved[(s.sensor, s.arm)][s.parameter] if s.effect == REGISTRATION else v
+            for s, v in zip(values.slots, values.values, strict=True)
+        ),
+    )
 
 
 def _arm_cost(residual: np.ndarray, index: np.ndarray, base: Base, arm: tuple[int, str]) -> float:

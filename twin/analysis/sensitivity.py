@@ -9,10 +9,9 @@ from dataclasses import dataclass, replace
 import numpy as np
 
 from twin.analysis.fit import Parameters, linear_step
-from twin.analysis.onset import REGISTRATION, OnsetEstimate, onset_estimate
 from twin.analysis.predict import Predictor, TwinModel
 from twin.analysis.residual import Base
-from twin.effects import Effect
+from twin.effects import Effect, StartEstimate
 
 
 @dataclass(frozen=True)
@@ -23,7 +22,7 @@ class Linearisation:
     point: dict[str, float]
     offset: np.ndarray  # (N,) profiled change of the prediction from the base model to `point`
     jac: np.ndarray  # (N, k) finite-difference sensitivity at `point`
-    onset: OnsetEstimate | None = None  # a registration offset's contact-onset estimate (`twin.analysis.onset`)
+    data_start: StartEstimate | None = None  # the effect's start from the data (`Effect.data_start`), if any
 
 
 def linearise(
@@ -68,13 +67,13 @@ def sensitivity(effect: Effect, model: TwinModel, predictor: Predictor, base: Ba
 def sensitivities(effects: list[Effect], model: TwinModel, predictor: Predictor, base: Base) -> list[Linearisation]:
     """Linearise each effect where its fit is best begun: at the model's values, or, when the effect is
     off there and declares a probe (parameters that act only once it is on), at the probe; and when it is
-    off and declares starts (values across its range), at the start or the first linearisation's fit,
-    whichever leaves the least profiled chi-square when predicted nonlinearly (one prediction each), so
-    an effect far from its off value is fitted about a point near it; a registration offset also tries,
-    first among its starts, the offset the contact onsets give (`twin.analysis.onset`, no fe replay) when it
-    is large (`OnsetEstimate.large`); its Linearisation keeps the estimate either way. Each stage's replays,
-    over all the effects (the first linearisations, the trials, the second linearisations), are solved as one
-    batch."""
+    off and declares starts (values across its range, or one from the data), at the start or the first
+    linearisation's fit, whichever leaves the least profiled chi-square when predicted nonlinearly (one
+    prediction each), so an effect far from its off value is fitted about a point near it; an effect with a
+    data-driven start (`Effect.data_start`: a registration offset's contact onsets, `twin.analysis.onset`, no
+    fe replay) tries what that gives (when it gives one) before its declared starts; its Linearisation keeps
+    the estimate either way. Each stage's replays, over all the effects (the first linearisations, the
+    trials, the second linearisations), are solved as one batch."""
     points = []
     for effect in effects:
         point = effect.values(model.effects.get(effect.name))
@@ -86,16 +85,15 @@ def sensitivities(effects: list[Effect], model: TwinModel, predictor: Predictor,
     r = base.residual.values
     trials: list[list[dict[str, float]]] = []
     for i, (effect, lin) in enumerate(zip(effects, lins, strict=True)):
-        if not (effect.is_off(effect.values(model.effects.get(effect.name))) and effect.starts):
+        if not (effect.is_off(effect.values(model.effects.get(effect.name))) and (effect.starts or effect.data_start)):
             trials.append([])
             continue
         at = effect_parameters(effect, lin.point)
         fitted = at.moved(linear_step(lin.jac, r - lin.offset, at)).as_dict()
         first = []
-        if effect.name == REGISTRATION:
-            models = [base.model_for(model, t) for t in base.trajectories]
-            lins[i] = replace(lin, onset=onset_estimate(predictor, models, base.trajectories, base.sigma))
-            first = [lins[i].onset.values(lin.point)] if lins[i].onset.large else []
+        if effect.data_start is not None:
+            lins[i] = replace(lin, data_start=effect.data_start(predictor, model, base))
+            first = [start] if (start := lins[i].data_start.start(lin.point)) is not None else []
         trials.append([fitted, *first, *(effect.values({**lin.point, **start}) for start in effect.starts)])
     tried = [model.with_effects({e.name: t}) for e, ts in zip(effects, trials, strict=True) for t in ts]
     base.prefetch(predictor, tried)
@@ -109,7 +107,7 @@ def sensitivities(effects: list[Effect], model: TwinModel, predictor: Predictor,
             again[i] = ts[best]
     base.prefetch(predictor, [m for i, p in again.items() for m in linearisation_models(effects[i], model, p)])
     for i, point in again.items():
-        lins[i] = replace(linearise(effects[i], model, point, predictor, base), onset=lins[i].onset)
+        lins[i] = replace(linearise(effects[i], model, point, predictor, base), data_start=lins[i].data_start)
     return lins
 
 

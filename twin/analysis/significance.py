@@ -30,7 +30,8 @@ has mean n + sum_g tr(X_g (X_~g^T X_~g)^-1 X_g^T): for Gaussian noise it is a ch
 plus sum_j (1 + e_j) chi2(1), the e_j the m non-zero eigenvalues of (I - P)^T (I - P) - I
 (`out_of_fold_excess`). The excess is large where a fold barely excites a direction the left-out fold
 loads heavily (the F/T map's lateral columns, fitted on one indenter's small lateral forces: 793 on 20272
-values, 3.9 %, three e_j of 220 each, on the hidden-effect tests' campaign; docs/analysis.md). A held-out
+values, 3.9 %, three e_j of 220 each, on the hidden-effect tests' campaign, measured before `out_of_fold_excess`
+worked on an orthonormal basis; docs/analysis.md). A held-out
 residual is therefore noise when R is below the 1 - ALPHA quantile of that sum (over nu, the nuisances
 taken from its unit-weight part) plus a normal term of the noise estimates' spread, found by the
 Lugannani-Rice saddlepoint tail (`weighted_chi2_quantile`): a few large e_j make the sum skewed, and a
@@ -177,11 +178,17 @@ def out_of_fold_excess(jac: np.ndarray, folds: np.ndarray) -> OutOfFold:
     (I - P)^T (I - P) = I + W K W^T with W = [U V] and K = [[0, -I], [-I, U^T U]], whose non-zero
     eigenvalues are those of the small (W^T W)^(1/2) K (W^T W)^(1/2). W^T W needs only each fold's
     A_g = X_g^T X_g: U_g^T U_g = M_g A_g M_g, U_g^T V_h = M_g A_g (g != h), V_g^T V_h = sum of the A_f
-    outside g and h (0 for U_g^T U_h, U_g^T V_g)."""
+    outside g and h (0 for U_g^T U_h, U_g^T V_g). X is first replaced by an orthonormal basis of its span
+    (`span_basis`): the fits' predictions, so P, are the same, and the blocks are of order one (in parameter
+    units, a registration offset's columns per metre, the A_g and M_g blocks differ by some 27 orders of
+    magnitude and the spectrum drowns in round-off: e_j up to 4e5 where the direct trace sums them to 94)."""
     rows = np.isfinite(jac).all(axis=1)
-    x, labels = jac[rows], np.asarray(folds)[rows]
+    labels = np.asarray(folds)[rows]
     groups = np.unique(labels)
     if len(groups) < 2:
+        return NO_FIT
+    x = span_basis(jac[rows])
+    if x.shape[1] == 0:
         return NO_FIT
     grams = [x[labels == g].T @ x[labels == g] for g in groups]
     total = np.sum(grams, axis=0)
@@ -207,3 +214,11 @@ def out_of_fold_excess(jac: np.ndarray, folds: np.ndarray) -> OutOfFold:
     root = vectors * np.sqrt(np.clip(values, 0.0, None)) @ vectors.T
     excess = np.linalg.eigvalsh(root @ kernel @ root)
     return OutOfFold(tuple(float(e) for e in excess[np.abs(excess) > 1e-9 * np.abs(excess).max()]))
+
+
+def span_basis(x: np.ndarray) -> np.ndarray:
+    """(N, r) orthonormal basis of the column span of x (N, k): its left singular vectors with a singular
+    value above 1e-12 of the largest (r = 0 for a zero matrix). Least-squares fits on it predict what fits
+    on x predict (x = basis T, T invertible on the span)."""
+    u, s, _ = np.linalg.svd(x, full_matrices=False)
+    return u[:, s > 1e-12 * s.max(initial=0.0)]

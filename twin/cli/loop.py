@@ -88,6 +88,8 @@ def diagnose(
         held = "-" if c.heldout_rms is None else f"{c.heldout_rms:.2f}"
         if c.heldout_is_noise is not None:
             held += " (noise)" if c.heldout_is_noise else " (not noise)"
+        if c.heldout_has_power is False:
+            held += f"; the base passes it too ({c.heldout_base_rms:.2f})"
         refit = "-" if c.refit_rms is None else f"{c.refit_rms:.2f}"
         table.add_row(str(rank), c.name, c.kind, f"{c.evidence:.0f}", f"{c.explained_fraction:.0%}", held, refit, fit)
     out_console.print(
