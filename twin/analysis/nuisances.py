@@ -419,29 +419,54 @@ def _gauss_newton(
 def _best_starts(
     nominal: Base, model: TwinModel, predictor: Predictor, fitted: NuisanceValues, residual: np.ndarray
 ) -> NuisanceValues:
-    """The fitted values with each arm's registration replaced by whichever of its fit, its contact-onset
-    estimate about the fit (`twin.analysis.onset`, from the fit's replays) and `REGISTRATION_STARTS` leaves
+    """The fitted values with each arm's registration (and joint offsets) replaced by whichever of its fit, its
+    contact-onset start about the fit (`_onset_start`, from the fit's replays) and `REGISTRATION_STARTS` leaves
     that arm's trajectories the least squared residual (one replay set per start: every arm is moved to its
-    onset estimate, or to the same start, at once; the starts' replays solved as one batch)."""
-    slots = fitted.slots
-    arms = sorted({(s.sensor, s.arm) for s in slots if s.effect == REGISTRATION})
+    onset start, or to the same start, at once; the starts' replays solved as one batch)."""
+    arms = sorted({(s.sensor, s.arm) for s in fitted.slots if s.effect == REGISTRATION})
     index = nominal.residual.trajectory_index
-    onset = {}
+    trials = [_onset_start(nominal, model, predictor, fitted, arms)]
+    trials += [_with_registration(fitted, {arm: offset for arm in arms}) for offset in REGISTRATION_STARTS]
+    _prefetch(nominal, model, predictor, trials)  # every start's replays in one batch
+    best = {arm: (_arm_cost(residual, index, nominal, arm), fitted) for arm in arms}
+    for trial in trials:
+        moved = nominal.residual.values - _shifted(nominal, model, predictor, trial)
+        for arm in arms:
+            cost = _arm_cost(moved, index, nominal, arm)
+            if cost < best[arm][0]:
+                best[arm] = (cost, trial)
+    chosen = tuple(
+        best[(s.sensor, s.arm)][1].values[i] if s.effect in (REGISTRATION, JOINT_OFFSET) else v
+        for i, (s, v) in enumerate(zip(fitted.slots, fitted.values, strict=True))
+    )
+    return NuisanceValues(fitted.slots, chosen)
+
+
+def _onset_start(
+    nominal: Base, model: TwinModel, predictor: Predictor, fitted: NuisanceValues, arms: list[tuple[int, str]]
+) -> NuisanceValues:
+    """`fitted` moved, arm by arm, to what the contact onsets about it say (`twin.analysis.onset`, from the fit's
+    replays): the registration offset alone where the arm has no joint offsets; else the registration offset
+    and the joint offsets together, the Gaussian-prior (`PRIORS`) least squares of each path's shift s_k =
+    row_k . (dt + J_k dq) (`tip_sensitivity`), since each pose is off by its own amount."""
+    offsets, moved = {}, np.array(fitted.values)
     for arm in arms:
         mine = [t for t in nominal.trajectories if (t.sensor_id, t.arm) == arm]
-        models = [fitted.model_for(model, t) for t in mine]
-        onset[arm] = _arm_offset(fitted, arm) + onset_estimate(predictor, models, mine, nominal.sigma).offset
-    starts = [onset, *({arm: offset for arm in arms} for offset in REGISTRATION_STARTS)]
-    trials = [_with_registration(fitted, start) for start in starts]
-    _prefetch(nominal, model, predictor, trials)  # every start's replays in one batch
-    best = {arm: (_arm_cost(residual, index, nominal, arm), _arm_offset(fitted, arm)) for arm in arms}
-    for start, moved in zip(starts, trials, strict=True):
-        residual = nominal.residual.values - _shifted(nominal, model, predictor, moved)
-        for arm in arms:
-            cost = _arm_cost(residual, index, nominal, arm)
-            if cost < best[arm][0]:
-                best[arm] = (cost, start[arm])
-    return _with_registration(fitted, {arm: offset for arm, (_, offset) in best.items()})
+        estimate = onset_estimate(predictor, [fitted.model_for(model, t) for t in mine], mine, nominal.sigma)
+        joints = [i for i, s in enumerate(fitted.slots) if s.effect == JOINT_OFFSET and (s.sensor, s.arm) == arm]
+        offsets[arm] = _arm_offset(fitted, arm) + estimate.offset
+        used = [(t, shift) for t, shift in zip(mine, estimate.shifts, strict=True) if np.isfinite(shift.std)]
+        if joints and used:
+            rows = np.array([np.r_[s.row, s.row @ tip_sensitivity(t)] / s.std for t, s in used])
+            prior = np.r_[[PRIORS[REGISTRATION]] * 3, [PRIORS[JOINT_OFFSET]] * len(joints)]
+            system = np.vstack([rows, np.diag(1.0 / prior)])
+            target = np.r_[[s.shift / s.std for _, s in used], np.zeros(len(prior))]
+            step = np.linalg.lstsq(system, target, rcond=None)[0]
+            offsets[arm] = _arm_offset(fitted, arm) + step[:3]
+            moved[joints] = moved[joints] + step[3:]
+    bounds = fitted.parameters
+    start = NuisanceValues(fitted.slots, tuple(float(v) for v in np.clip(moved, bounds.lower, bounds.upper)))
+    return _with_registration(start, offsets)
 
 
 def _arm_offset(values: NuisanceValues, arm: tuple[int, str]) -> np.ndarray:
