@@ -49,7 +49,9 @@ SURFACE_CONTACT_NUISANCES = (
     "is unobservable; the campaign must press past the registration error (docs/analysis.md). Pressed past it "
     "(1.5 mm normal, 1.0 mm angled; 2026-11-27, with the contact-onset start) both paths touch but the per-arm "
     "translation and skin scales stop at 1.38x in sample, 2.34x held out (offset (-1.82, +0.64, +1.30) mm, "
-    "friction x1.63), 385 s a test: a translation per arm does not take this plant's registration; open defect"
+    "friction x1.63), 385 s a test: a translation per arm does not take this plant's registration. With each arm's "
+    "joint offsets as nuisances (session 15) the deeper campaign reaches 1.02x in sample but 2.39x held out (ten "
+    "registration parameters per arm are not determined by two presses); open defect"
 )
 """Why the two realistic-plant cases are expected failures for now (measured; see docs/analysis.md)."""
 
