@@ -7,6 +7,16 @@ spread; the paper calibrates t_s, mu_NH and mu_fr per sensor). These are fitted 
 calibrates them, and diagnosis then ranks candidate effects on what remains:
 
 - `registration_offset` (dx, dy, dz; m, biotac frame) per (sensor, arm): the arms are registered apart;
+- `joint_offset` (q1..q7; rad) per (sensor, arm): the arm's joint zero offsets against its kinematic model. They
+  move the tool tip by an amount that depends on the arm's pose, so presses of one arm in different poses (a
+  normal and a 30-degree press at one point) are off by different amounts, which one offset per arm cannot
+  take (measured: 0.29 mm apart on the realistic plant of tests/test_nuisances.py, predicted to 3 um by the
+  first-order displacement below). Each trajectory's path moves by its arm's registration offset plus
+  J_k q (`tip_sensitivity`: the tip's linear Jacobian at the trajectory's mean joint reading, in the biotac
+  frame through the estimated registration). Their sensitivities cost no replay: a trajectory's prediction
+  depends on its own path offset only, so the registration offset's columns, split by trajectory and
+  multiplied by J_k, are the joint offsets' columns (chain rule). Row-only files have no joint readings and
+  get the registration offset alone;
 - `skin_thickness`, `skin_modulus`, `indenter_friction` (scale factors) per sensor.
 
 The F/T bias is removed by taring and each trajectory's channel offsets are projected out of the
@@ -37,15 +47,30 @@ from twin.analysis.fit import uncertainty as fit_uncertainty
 from twin.analysis.onset import onset_estimate
 from twin.analysis.predict import Predictor, TwinModel
 from twin.analysis.residual import Base, base_residual, model_requests
-from twin.effects import EFFECTS, REGISTRATION, registration_values, registration_vector
+from twin.backend import N_JOINTS
+from twin.effects import EFFECTS, REGISTRATION, EffectParameter, registration_values, registration_vector
+from twin.kinematics import jacobian as arm_jacobian
+from twin.registration import PAPER_JOINT_OFFSET_STD
 
 SKIN_NUISANCES = ("skin_thickness", "skin_modulus", "indenter_friction")
 """Per-sensor skin nuisances (each a scale factor on a skin parameter)."""
 NUISANCE_EFFECTS = (*SKIN_NUISANCES, REGISTRATION)
 """Library effects the nuisance stage fits; diagnosis does not offer them as missing effects."""
-PRIORS = {"skin_thickness": 0.1, "skin_modulus": 0.1, "indenter_friction": 0.3, REGISTRATION: 1.5e-3}
+JOINT_OFFSET = "joint_offset"
+"""The nuisance of an arm's joint zero offsets (not a library effect: it acts through `tip_sensitivity`)."""
+JOINT_PARAMETERS = tuple(EffectParameter(f"q{j + 1}", 0.0, -0.01, 0.01, 1e-3, "rad") for j in range(N_JOINTS))
+"""The joint offsets' parameters, chain order (bounds: 5x the prior)."""
+PRIORS = {
+    "skin_thickness": 0.1,
+    "skin_modulus": 0.1,
+    "indenter_friction": 0.3,
+    REGISTRATION: 1.5e-3,
+    JOINT_OFFSET: PAPER_JOINT_OFFSET_STD,
+}
 """1-sigma prior of each nuisance about the model's value (scale factors: relative; registration: m per
-axis), about twice a real campaign's spread (5 % skin, 10 % friction, registration 0.5-1.5 mm)."""
+axis; joint offsets: rad per joint), about twice a real campaign's spread (5 % skin, 10 % friction,
+registration 0.5-1.5 mm); the joint offsets' is the RMS that reproduces the paper's registration band
+(`twin.registration.PAPER_JOINT_OFFSET_STD`)."""
 REGISTRATION_STARTS = tuple(
     np.array(v) for v in ((1e-3, 0, 0), (-1e-3, 0, 0), (0, 1e-3, 0), (0, -1e-3, 0), (0, 0, 1e-3), (0, 0, -1e-3))
 )
@@ -89,11 +114,22 @@ class NuisanceValues:
     values: tuple[float, ...]
 
     def model_for(self, model: TwinModel, trajectory: TrajectoryRecord) -> TwinModel:
-        """`model` with the nuisances of `trajectory`'s sensor and arm merged into its effects."""
+        """`model` with the nuisances of `trajectory`'s sensor and arm merged into its effects; its joint
+        offsets move its path on top of its arm's registration offset (`tip_sensitivity`)."""
         effects: dict[str, dict[str, float]] = {}
+        joints = np.zeros(N_JOINTS)
         for slot, value in zip(self.slots, self.values, strict=True):
-            if slot.applies(trajectory):
+            if not slot.applies(trajectory):
+                continue
+            if slot.effect == JOINT_OFFSET:
+                joints[_joint(slot)] = value
+            else:
                 effects.setdefault(slot.effect, {})[slot.parameter] = value
+        if joints.any():
+            given = {**model.effects.get(REGISTRATION, {}), **effects.get(REGISTRATION, {})}
+            effects[REGISTRATION] = registration_values(
+                registration_vector(given) + tip_sensitivity(trajectory) @ joints
+            )
         return model.with_effects(effects)
 
     @property
@@ -121,8 +157,22 @@ class NuisanceValues:
         return {s.label: v for s, v in zip(self.slots, self.values, strict=True)}
 
 
-def _parameter(slot: Slot):
-    return next(p for p in EFFECTS[slot.effect].parameters if p.name == slot.parameter)
+def _parameter(slot: Slot) -> EffectParameter:
+    parameters = JOINT_PARAMETERS if slot.effect == JOINT_OFFSET else EFFECTS[slot.effect].parameters
+    return next(p for p in parameters if p.name == slot.parameter)
+
+
+def _joint(slot: Slot) -> int:
+    """The chain index of a joint-offset slot."""
+    return int(slot.parameter[1:]) - 1
+
+
+def tip_sensitivity(trajectory: TrajectoryRecord) -> np.ndarray:
+    """(3, 7) m/rad: how the tool tip moves, in the biotac frame, per radian of each joint's zero offset at
+    the trajectory's mean joint reading (first order: the linear rows of the arm's geometric Jacobian,
+    rotated by the estimated registration)."""
+    _, jac = arm_jacobian(trajectory.arm, trajectory.raw.joints.mean(axis=0), trajectory.tool_tip)
+    return trajectory.registration[:3, :3].T @ jac[:3]
 
 
 def _prior(values: NuisanceValues) -> Prior:
@@ -135,18 +185,27 @@ def _prior(values: NuisanceValues) -> Prior:
 def model_values(slots: tuple[Slot, ...], model: TwinModel) -> NuisanceValues:
     """The model's own value of each slot (the off value where the model lacks the effect)."""
     return NuisanceValues(
-        slots, tuple(EFFECTS[s.effect].values(model.effects.get(s.effect))[s.parameter] for s in slots)
+        slots,
+        tuple(
+            _parameter(s).off
+            if s.effect == JOINT_OFFSET
+            else EFFECTS[s.effect].values(model.effects.get(s.effect))[s.parameter]
+            for s in slots
+        ),
     )
 
 
 def nuisance_slots(trajectories: list[TrajectoryRecord]) -> tuple[Slot, ...]:
-    """The slots a campaign has: skin scales per sensor, registration offsets per (sensor, arm) used."""
+    """The slots a campaign has: skin scales per sensor, registration offsets per (sensor, arm) used, and that
+    arm's joint offsets where every one of its trajectories has joint readings (not a row-only file)."""
     slots = []
     for sensor in sorted({t.sensor_id for t in trajectories}):
         for effect in SKIN_NUISANCES:
             slots += [Slot(effect, p.name, sensor, None) for p in EFFECTS[effect].parameters]
         for arm in sorted({t.arm for t in trajectories if t.sensor_id == sensor}):
             slots += [Slot(REGISTRATION, p.name, sensor, arm) for p in EFFECTS[REGISTRATION].parameters]
+            if not any(t.rows_only for t in trajectories if (t.sensor_id, t.arm) == (sensor, arm)):
+                slots += [Slot(JOINT_OFFSET, p.name, sensor, arm) for p in JOINT_PARAMETERS]
     return tuple(slots)
 
 
@@ -258,20 +317,38 @@ def _jacobian(base: Base, model: TwinModel, predictor: Predictor, values: Nuisan
     (backward at an upper bound), and the other way too when the first step's replay fails on samples the
     current values reach (the one that fails on fewer is kept); `base` must be the residual at `values` or
     the nominal one (differences only). The replays of the values and of every first step are solved as
-    one batch."""
-    steps = [_steps(values, i) for i in range(len(values.slots))]
+    one batch. The joint offsets' columns come from the registration offset's (`_joint_columns`)."""
+    steps = [() if s.effect == JOINT_OFFSET else _steps(values, i) for i, s in enumerate(values.slots)]
     first = [values.moved(_along(len(steps), i, tries[0])) for i, tries in enumerate(steps) if tries]
     _prefetch(base, model, predictor, [values, *first])
     here = _shifted(base, model, predictor, values)
-    columns = []
+    columns = np.zeros((len(here), len(steps)))
     for i, tries in enumerate(steps):
         tried = []
         for step in tries:
             tried.append((_shifted(base, model, predictor, values.moved(_along(len(steps), i, step))) - here) / step)
             if np.isfinite(tried[-1]).sum() == np.isfinite(here).sum():
                 break
-        columns.append(max(tried, key=lambda c: np.isfinite(c).sum()))
-    return _usable(np.column_stack(columns))
+        if tried:
+            columns[:, i] = max(tried, key=lambda c: np.isfinite(c).sum())
+    _joint_columns(columns, base, values.slots)
+    return _usable(columns)
+
+
+def _joint_columns(columns: np.ndarray, base: Base, slots: tuple[Slot, ...]) -> None:
+    """Fill the joint offsets' columns in place by the chain rule: on trajectory k's rows, d r / d q_j =
+    sum over axes of (d r / d offset_axis) J_k[axis, j], the registration offset's columns restricted to
+    those rows (a trajectory's prediction depends on its own path offset only)."""
+    position = {(s.effect, s.parameter, s.sensor, s.arm): c for c, s in enumerate(slots)}
+    index = base.residual.trajectory_index
+    for k, trajectory in enumerate(base.trajectories):
+        rows = index == k
+        for i, slot in enumerate(slots):
+            if slot.effect == JOINT_OFFSET and slot.applies(trajectory):
+                axes = [
+                    position[(REGISTRATION, p.name, slot.sensor, slot.arm)] for p in EFFECTS[REGISTRATION].parameters
+                ]
+                columns[rows, i] = columns[np.ix_(rows, axes)] @ tip_sensitivity(trajectory)[:, _joint(slot)]
 
 
 def _steps(values: NuisanceValues, i: int) -> tuple[float, ...]:
@@ -340,29 +417,54 @@ def _gauss_newton(
 def _best_starts(
     nominal: Base, model: TwinModel, predictor: Predictor, fitted: NuisanceValues, residual: np.ndarray
 ) -> NuisanceValues:
-    """The fitted values with each arm's registration replaced by whichever of its fit, its contact-onset
-    estimate about the fit (`twin.analysis.onset`, from the fit's replays) and `REGISTRATION_STARTS` leaves
+    """The fitted values with each arm's registration (and joint offsets) replaced by whichever of its fit, its
+    contact-onset start about the fit (`_onset_start`, from the fit's replays) and `REGISTRATION_STARTS` leaves
     that arm's trajectories the least squared residual (one replay set per start: every arm is moved to its
-    onset estimate, or to the same start, at once; the starts' replays solved as one batch)."""
-    slots = fitted.slots
-    arms = sorted({(s.sensor, s.arm) for s in slots if s.effect == REGISTRATION})
+    onset start, or to the same start, at once; the starts' replays solved as one batch)."""
+    arms = sorted({(s.sensor, s.arm) for s in fitted.slots if s.effect == REGISTRATION})
     index = nominal.residual.trajectory_index
-    onset = {}
+    trials = [_onset_start(nominal, model, predictor, fitted, arms)]
+    trials += [_with_registration(fitted, {arm: offset for arm in arms}) for offset in REGISTRATION_STARTS]
+    _prefetch(nominal, model, predictor, trials)  # every start's replays in one batch
+    best = {arm: (_arm_cost(residual, index, nominal, arm), fitted) for arm in arms}
+    for trial in trials:
+        moved = nominal.residual.values - _shifted(nominal, model, predictor, trial)
+        for arm in arms:
+            cost = _arm_cost(moved, index, nominal, arm)
+            if cost < best[arm][0]:
+                best[arm] = (cost, trial)
+    chosen = tuple(
+        best[(s.sensor, s.arm)][1].values[i] if s.effect in (REGISTRATION, JOINT_OFFSET) else v
+        for i, (s, v) in enumerate(zip(fitted.slots, fitted.values, strict=True))
+    )
+    return NuisanceValues(fitted.slots, chosen)
+
+
+def _onset_start(
+    nominal: Base, model: TwinModel, predictor: Predictor, fitted: NuisanceValues, arms: list[tuple[int, str]]
+) -> NuisanceValues:
+    """`fitted` moved, arm by arm, to what the contact onsets about it say (`twin.analysis.onset`, from the fit's
+    replays): the registration offset alone where the arm has no joint offsets; else the registration offset
+    and the joint offsets together, the Gaussian-prior (`PRIORS`) least squares of each path's shift s_k =
+    row_k . (dt + J_k dq) (`tip_sensitivity`), since each pose is off by its own amount."""
+    offsets, moved = {}, np.array(fitted.values)
     for arm in arms:
         mine = [t for t in nominal.trajectories if (t.sensor_id, t.arm) == arm]
-        models = [fitted.model_for(model, t) for t in mine]
-        onset[arm] = _arm_offset(fitted, arm) + onset_estimate(predictor, models, mine, nominal.sigma).offset
-    starts = [onset, *({arm: offset for arm in arms} for offset in REGISTRATION_STARTS)]
-    trials = [_with_registration(fitted, start) for start in starts]
-    _prefetch(nominal, model, predictor, trials)  # every start's replays in one batch
-    best = {arm: (_arm_cost(residual, index, nominal, arm), _arm_offset(fitted, arm)) for arm in arms}
-    for start, moved in zip(starts, trials, strict=True):
-        residual = nominal.residual.values - _shifted(nominal, model, predictor, moved)
-        for arm in arms:
-            cost = _arm_cost(residual, index, nominal, arm)
-            if cost < best[arm][0]:
-                best[arm] = (cost, start[arm])
-    return _with_registration(fitted, {arm: offset for arm, (_, offset) in best.items()})
+        estimate = onset_estimate(predictor, [fitted.model_for(model, t) for t in mine], mine, nominal.sigma)
+        joints = [i for i, s in enumerate(fitted.slots) if s.effect == JOINT_OFFSET and (s.sensor, s.arm) == arm]
+        offsets[arm] = _arm_offset(fitted, arm) + estimate.offset
+        used = [(t, shift) for t, shift in zip(mine, estimate.shifts, strict=True) if np.isfinite(shift.std)]
+        if joints and used:
+            rows = np.array([np.r_[s.row, s.row @ tip_sensitivity(t)] / s.std for t, s in used])
+            prior = np.r_[[PRIORS[REGISTRATION]] * 3, [PRIORS[JOINT_OFFSET]] * len(joints)]
+            system = np.vstack([rows, np.diag(1.0 / prior)])
+            target = np.r_[[s.shift / s.std for _, s in used], np.zeros(len(prior))]
+            step = np.linalg.lstsq(system, target, rcond=None)[0]
+            offsets[arm] = _arm_offset(fitted, arm) + step[:3]
+            moved[joints] = moved[joints] + step[3:]
+    bounds = fitted.parameters
+    start = NuisanceValues(fitted.slots, tuple(float(v) for v in np.clip(moved, bounds.lower, bounds.upper)))
+    return _with_registration(start, offsets)
 
 
 def _arm_offset(values: NuisanceValues, arm: tuple[int, str]) -> np.ndarray:
