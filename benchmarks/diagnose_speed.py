@@ -1,15 +1,16 @@
-"""Speed of `twin diagnose` on a campaign file, and of the replays its relaxation candidate costs, old warm start
-against new in one process.
+"""Speed of `twin diagnose` on a campaign file: the warm start of held poses before and now, in one process.
 
 The skin_relaxation candidate is linearised at its probe (a relaxing fraction of 0.15): its replays are timed
 (the skin re-solved every `RELAXATION_SOLVE_INTERVAL_S` while a pose is held), about 8 times the solves of an
-untimed replay, and were a third of the whole diagnosis on the demo campaign (session 15). Since 2026-11-27 a
-pose held after a held one starts its Newton solve from the creep's extrapolation (`BatchedStepper._predict`);
-`creep_start=False` is the warm start before (the last state). Part 1 replays every trajectory of the file under
-the probe's skin both ways, on one `BatchedStepper` stepped in lock step (the same for both), and prints wall,
-Newton rounds, linear solves and the largest force difference (N) between the two (both converge to the same
-tolerances, so it is of the order of the Newton tolerance). Part 2 (`--diagnose`) times the whole
-`twin diagnose` (nominal model, 3 refits) with the new warm start, per stage.
+untimed replay, and were a third of the whole diagnosis on the demo campaign (2026-11-27). Since then a pose
+held after a held one starts its Newton solve from the creep's extrapolation (`BatchedStepper.creep_start`);
+the baseline sets `creep_start=False` on every stepper built (the last state, the warm start before).
+
+Part 1 replays every trajectory of the file under the probe's skin (`Predictor.prefetch`, one batched run, as
+diagnose does) both ways and prints the walls, their ratio and the largest difference of the predicted
+increment forces (N; both solves converge to the same tolerances). Part 2 (`--diagnose`) runs the whole
+`twin diagnose` (nominal model, 3 refits, as the CLI) both ways: wall per stage, ratio, and whether the two
+diagnoses agree (verdict, ranking, largest relative difference of any number).
 
     python benchmarks/diagnose_speed.py CAMPAIGN.hdf5 [--diagnose] [--device cpu]
 
@@ -19,55 +20,55 @@ The demo campaign: `twin demo` writes it (runs/demo/campaign/biotac2.hdf5).
 from __future__ import annotations
 
 import argparse
+import json
 import os
 import time
+from collections.abc import Iterator
+from contextlib import contextmanager, nullcontext
 from pathlib import Path
 
 import numpy as np
 
 from fe.batched_stepper import BatchedStepper
-from twin.analysis.data import load_campaign
-from twin.analysis.diagnose import diagnose
-from twin.analysis.predict import Predictor, TwinModel, _pose_trajectory
-from twin.effects import EFFECTS
+from twin.analysis.data import CampaignData, load_campaign
+from twin.analysis.diagnose import diagnose, strict_json
+from twin.analysis.predict import Predictor, TwinModel
+from twin.effects import EFFECTS, apply_skin
 
 RELAXATION = "skin_relaxation"
 
 
-def timed_replays(path: Path, creep_start: bool, device: str) -> dict:
-    """Replay every trajectory of the file under the relaxation probe's skin on one lock-stepped BatchedStepper;
-    wall (s), Newton rounds, linear solves and each trajectory's forces (K, 3) N (NaN after a failure)."""
-    data = load_campaign(path)
+@contextmanager
+def last_state_warm_start() -> Iterator[None]:
+    """Inside, every `BatchedStepper` built starts held poses from the last state (`creep_start=False`)."""
+    init = BatchedStepper.__init__
+
+    def baseline(self: BatchedStepper, *args: object, **kwargs: object) -> None:
+        init(self, *args, **kwargs)
+        self.creep_start = False
+
+    BatchedStepper.__init__ = baseline
+    try:
+        yield
+    finally:
+        BatchedStepper.__init__ = init
+
+
+def probe_replays(data: CampaignData, device: str) -> tuple[float, np.ndarray]:
+    """Wall (s) of the relaxation probe's replays of every trajectory (one batched prefetch, inflation
+    excluded) and their increment forces (N, all trajectories stacked)."""
     model = TwinModel(mesh_max_edge=data.mesh_max_edge).with_effects({RELAXATION: EFFECTS[RELAXATION].probe})
     predictor = Predictor(device)
-    poses = [_pose_trajectory(t, predictor._plan(model, t)) for t in data.trajectories]
-    skin = predictor._model_fe(model).inflated_skin()
-    stepper = BatchedStepper(skin, [p.indenter for p in poses], device)
-    stepper.creep_start = creep_start
-    lengths = np.array([len(p.rotations) for p in poses])
-    forces = np.full((len(poses), lengths.max(), 3), np.nan)
-    going = np.ones(len(poses), dtype=bool)
+    predictor.fe_model(apply_skin(model.skin, model.effects), model.mesh_max_edge, model.inflation)  # kernels loaded
     start = time.perf_counter()
-    for k in range(lengths.max()):
-        active = going & (k < lengths)
-        last = np.minimum(k, lengths - 1)
-        rotation = np.stack([p.rotations[j] for p, j in zip(poses, last, strict=True)])
-        translation = np.stack([p.translations[j] for p, j in zip(poses, last, strict=True)])
-        times = np.array([p.times[j] for p, j in zip(poses, last, strict=True)])
-        for i, result in enumerate(stepper.step(rotation, translation, active, times)):
-            if result is None:
-                continue
-            going[i] &= result.converged
-            forces[i, k] = result.force if result.converged else np.nan
+    predictor.prefetch(model, data.trajectories)
     wall = time.perf_counter() - start
-    counters = stepper.shell.counters
-    return {"wall": wall, "rounds": counters["evaluations"], "solves": counters["linear_solves"], "forces": forces}
+    return wall, np.concatenate([predictor.predict(model, t).increment_force for t in data.trajectories])
 
 
-def diagnose_stages(path: Path, device: str) -> dict[str, float]:
-    """Wall seconds of `twin diagnose`'s stages on the file (nominal model, 3 refits, as the CLI)."""
+def diagnosis(data: CampaignData, device: str) -> tuple[dict[str, float], dict]:
+    """Wall seconds of `twin diagnose`'s stages on the file and its JSON form."""
     start = time.perf_counter()
-    data = load_campaign(path)
     stamps: dict[str, float] = {}
     result = diagnose(
         [data],
@@ -77,32 +78,58 @@ def diagnose_stages(path: Path, device: str) -> dict[str, float]:
     )
     total = time.perf_counter() - start
     evidence, refit = stamps.get("evidence", total), stamps.get("refit", total)
-    print(f"verdict: {result.verdict} ({result.reason})")
-    return {"base and sensitivities": evidence, "scores": refit - evidence, "refits and held out": total - refit}
+    stages = {"base and sensitivities": evidence, "scores": refit - evidence, "refits and held out": total - refit}
+    return stages, strict_json(result.to_dict())
+
+
+def largest_relative_difference(a: object, b: object) -> float:
+    """Largest relative difference between the numbers of two JSON-like values of one shape (inf where their
+    strings, Nones or shapes differ)."""
+    if isinstance(a, dict) and isinstance(b, dict) and a.keys() == b.keys():
+        return max((largest_relative_difference(a[k], b[k]) for k in a), default=0.0)
+    if isinstance(a, list) and isinstance(b, list) and len(a) == len(b):
+        return max((largest_relative_difference(x, y) for x, y in zip(a, b, strict=True)), default=0.0)
+    if isinstance(a, int | float) and isinstance(b, int | float) and not isinstance(a, bool):
+        return abs(a - b) / max(abs(a), abs(b), 1e-300) if a != b else 0.0
+    return 0.0 if a == b else float("inf")
 
 
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("campaign", type=Path, help="a campaign file (e.g. the demo's)")
-    parser.add_argument("--diagnose", action="store_true", help="also time the whole diagnosis")
+    parser.add_argument("--diagnose", action="store_true", help="also run the whole diagnosis both ways")
     parser.add_argument("--device", default="cpu")
     args = parser.parse_args()
-    print(f"load average at start: {os.getloadavg()[0]:.2f}")
-    old = timed_replays(args.campaign, False, args.device)
-    new = timed_replays(args.campaign, True, args.device)
-    difference = np.nanmax(np.abs(old["forces"] - new["forces"]))
-    print("\nthe relaxation probe's timed replays, every trajectory of the file, lock-stepped")
-    print(f"{'warm start at a held pose':34} {'wall s':>8} {'rounds':>8} {'solves':>8}")
-    for name, run in (("last state (before)", old), ("creep extrapolated (now)", new)):
-        print(f"{name:34} {run['wall']:8.1f} {run['rounds']:8.0f} {run['solves']:8.0f}")
-    print(f"ratio (before / now): {old['wall'] / new['wall']:.2f}; largest force difference {difference:.2e} N")
-    print(f"load average: {os.getloadavg()[0]:.2f}")
-    if args.diagnose:
-        stages = diagnose_stages(args.campaign, args.device)
-        print("\n`twin diagnose` with the new warm start (s)")
-        for name, seconds in stages.items():
-            print(f"{name:34} {seconds:8.1f}")
-        print(f"{'total':34} {sum(stages.values()):8.1f}   (target: 60 s; load average {os.getloadavg()[0]:.2f})")
+    data = load_campaign(args.campaign)
+    ways = (("last state (before)", last_state_warm_start), ("creep extrapolated (now)", nullcontext))
+    print(f"{len(data.trajectories)} trajectories; load average at start {os.getloadavg()[0]:.2f}")
+    replays = {}
+    for name, way in ways:
+        with way():
+            replays[name] = probe_replays(data, args.device)
+    (before, f0), (now, f1) = replays.values()
+    print("\nthe relaxation probe's timed replays (one batched run)")
+    for name, (wall, _) in replays.items():
+        print(f"{name:28} {wall:8.1f} s")
+    print(f"ratio before / now: {before / now:.2f}; largest force difference {np.nanmax(np.abs(f0 - f1)):.1e} N")
+    print(f"load average now {os.getloadavg()[0]:.2f}")
+    if not args.diagnose:
+        return
+    runs = {}
+    for name, way in ways:
+        with way():
+            runs[name] = diagnosis(data, args.device)
+    print("\n`twin diagnose` (s)")
+    print(f"{'stage':28}" + "".join(f" {name:>26}" for name in runs))
+    for stage in next(iter(runs.values()))[0]:
+        print(f"{stage:28}" + "".join(f" {stages[stage]:26.1f}" for stages, _ in runs.values()))
+    (old_stages, old), (new_stages, new) = runs.values()
+    old_total, new_total = sum(old_stages.values()), sum(new_stages.values())
+    print(f"{'total':28} {old_total:26.1f} {new_total:26.1f}   ratio {old_total / new_total:.2f} (target 60 s)")
+    same_ranking = [c["name"] for c in old["candidates"]] == [c["name"] for c in new["candidates"]]
+    print(f"verdicts {old['verdict']!r} / {new['verdict']!r}; same ranking: {same_ranking}; largest relative")
+    print(f"difference of any number: {largest_relative_difference(old, new):.1e}; load {os.getloadavg()[0]:.2f}")
+    print(json.dumps({"before_s": old_total, "now_s": new_total}))
 
 
 if __name__ == "__main__":
