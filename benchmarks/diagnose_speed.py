@@ -1,13 +1,13 @@
 """Speed of `twin diagnose` on a campaign file: the warm start of held poses before and now, in one process.
 
 The skin_relaxation candidate is linearised at its probe (a relaxing fraction of 0.15): its replays are timed
-(the skin re-solved every `RELAXATION_SOLVE_INTERVAL_S` while a pose is held), about 8 times the solves of an
+(the skin re-solved every `RELAXATION_SOLVE_INTERVAL_S` while a pose is held), about 7 times the solves of an
 untimed replay, and were a third of the whole diagnosis on the demo campaign (2026-11-27). Since then a pose
 held after a held one starts its Newton solve from the creep's extrapolation (`BatchedStepper.creep_start`);
 the baseline sets `creep_start=False` on every stepper built (the last state, the warm start before).
 
 Part 1 replays every trajectory of the file under the probe's skin (`Predictor.prefetch`, one batched run, as
-diagnose does) both ways and prints the walls, their ratio and the largest difference of the predicted
+diagnose does) both ways and prints wall and CPU seconds, their ratios and the largest difference of the predicted
 increment forces (N; both solves converge to the same tolerances). Part 2 (`--diagnose`) runs the whole
 `twin diagnose` (nominal model, 3 refits, as the CLI) both ways: wall per stage, ratio, and whether the two
 diagnoses agree (verdict, ranking, largest relative difference of any number).
