@@ -184,8 +184,10 @@ class BatchedStepper:
             self.relaxation.reset(np.arange(B), self.x)
         self.time_s = np.full(B, np.nan)
         """Time (s) of each system's last step (NaN: none since its reset, or untimed)."""
-        self._time_start = np.full(B, np.nan)
-        self._dt = np.zeros(B)
+        self._time_start, self._dt = np.full(B, np.nan), np.zeros(B)
+        self.creep_start = True
+        """Whether a pose held after a held one starts from the creep's extrapolation (`_predict`); False: from
+        the last state, the warm start before 2026-11-27 (benchmarks/diagnose_speed.py compares the two)."""
         self._depth, self._admitted_at = np.zeros(B), np.zeros(B)
         self._increment_travel = np.zeros((B, 3))
         self._half = np.array([s.indenter_half_layer for s in self.skins])
@@ -312,8 +314,7 @@ class BatchedStepper:
         shell, rows = self.shell, np.flatnonzero(which)
         shell.set_poses(self.pose_rotation, self.pose_translation, self._start_rotation, self._start_translation)
         put_rows(shell.x_trial, rows, self.x[rows])
-        free_now = np.zeros(self.batch, dtype=bool)
-        free_ref = np.zeros(self.batch, dtype=bool)
+        free_now, free_ref = np.zeros(self.batch, dtype=bool), np.zeros(self.batch, dtype=bool)
         free_now[rows], pressed = self._sweep(rows)
         gap_ref, _, face_ref, _ = shell.proximity(self._reference_w, rows)
         free_ref[rows] = (gap_ref.min(axis=1) >= 0.0) & (face_ref >= 0.0)
@@ -447,7 +448,9 @@ class BatchedStepper:
 
     def _predict(self, rows: np.ndarray, travel: np.ndarray) -> np.ndarray:
         """Warm starts (k,V,3) m of systems `rows` moving their tips by `travel` (k,3) m: the last increment's
-        displacement extrapolated by the share of its tip travel that the new move repeats, except that,
+        displacement extrapolated by the share of its tip travel that the new move repeats (at a pose held after
+        a held one, where only a viscoelastic skin's creep moves it, by its decay exp(-dt / tau) over the step:
+        the creep of one Prony branch slows geometrically, half the Newton rounds of a hold), except that,
         when the move turns (its travel or the indenter's rotation leaves the last increment's line), vertices
         in contact at the last equilibrium stick: carried by the indenter's rigid motion from its start pose to
         its new one (zero slip, where friction holds most of them; far fewer Newton rounds when an env's
@@ -456,10 +459,11 @@ class BatchedStepper:
         DOFs stay where they are (the solve moves only the free ones, so a moved fixed DOF would stay moved)."""
         last, start = self._travel[rows], self.x[rows] - self._start_translation[rows, None]
         moved = np.einsum("bi,bi->b", last, last)
-        has_motion = self._has_motion[rows] & (moved > 0.0)
-        along = np.einsum("bi,bi->b", travel, last) / np.maximum(moved, 1e-300)
-        share = np.where(has_motion, np.clip(along, 0, 1), 0)
-        x = self.x[rows] + share[:, None, None] * np.where(has_motion[:, None, None], self._motion[rows], 0.0)
+        along = np.einsum("bi,bi->b", travel, last) / np.maximum(moved, 1e-300)  # 0 without a last move
+        creep = np.exp(-self._dt[rows] / self.relaxation.times[rows]) if self.relaxation is not None else 0.0
+        held = self._has_motion[rows] & (moved == 0.0) & ~travel.any(axis=1) & self.creep_start  # creeping on
+        share = np.where(held, creep, np.clip(along, 0, 1))
+        x = self.x[rows] + share[:, None, None] * np.where(self._has_motion[rows, None, None], self._motion[rows], 0.0)
         turn = self.pose_rotation[rows] @ np.transpose(self._start_rotation[rows], (0, 2, 1))
         stuck = np.einsum("bij,bvj->bvi", turn, start) + self.pose_translation[rows, None]
         off_line = np.linalg.norm(travel - along[:, None] * last, axis=1) > 1e-3 * np.linalg.norm(travel, axis=1)

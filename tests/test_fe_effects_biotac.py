@@ -89,6 +89,27 @@ def test_viscoelastic_force_relaxes_during_a_pause_towards_the_long_term_elastic
     assert np.allclose(again[-1].force, results[-1].force, rtol=1e-9, atol=1e-12)
 
 
+def test_a_pause_resolved_every_tenth_of_a_second_relaxes_as_one_step_of_it_does(
+    frictionless_biotac: BioTacModel,
+) -> None:
+    # The re-solves of a pause start from the creep's extrapolation (`BatchedStepper.creep_start`): where they
+    # converge is the integrator's business alone, so ten steps of 0.1 s end where one of 1 s does (the
+    # integrator is exact for an elastic stress linear in time over a step: 0.07 % over a 1 s pause, docs/fe.md)
+    # and the force falls at every re-solve, less each time (one branch: exp(-t / tau)).
+    model = _inflated(frictionless_biotac, relaxation_fraction=0.3, relaxation_time_s=0.5)
+    times = DEPTHS / RATE
+    results, stepper, pose = _press(model, times)
+    held = [stepper.step(*pose, times[-1] + 0.1 * k) for k in range(1, 11)]
+    assert all(r.converged for r in held)
+    assert stepper.engine.creep_start
+    stepper.reset()
+    one_step = _press(model, times, stepper)[0][-1:] + [stepper.step(*pose, times[-1] + 1.0)]
+    drops = -np.diff([results[-1].force[2], *(r.force[2] for r in held)])
+    assert np.all(drops > 0.0) and np.all(np.diff(drops) < 0.0)
+    assert held[-1].force[2] == pytest.approx(one_step[-1].force[2], rel=1e-3)
+    assert held[-1].force[2] < 0.97 * results[-1].force[2]
+
+
 def test_gent_stiffening_raises_the_force_at_depth(
     frictionless_biotac: BioTacModel, baseline: list[IncrementResult]
 ) -> None:

@@ -1,0 +1,139 @@
+"""Speed of `twin diagnose` on a campaign file: the warm start of held poses before and now, in one process.
+
+The skin_relaxation candidate is linearised at its probe (a relaxing fraction of 0.15): its replays are timed
+(the skin re-solved every `RELAXATION_SOLVE_INTERVAL_S` while a pose is held), about 7 times the solves of an
+untimed replay, and were a third of the whole diagnosis on the demo campaign (2026-11-27). Since then a pose
+held after a held one starts its Newton solve from the creep's extrapolation (`BatchedStepper.creep_start`);
+the baseline sets `creep_start=False` on every stepper built (the last state, the warm start before).
+
+Part 1 replays every trajectory of the file under the probe's skin (`Predictor.prefetch`, one batched run, as
+diagnose does) both ways and prints wall and CPU seconds, their ratios and the largest difference of the predicted
+increment forces (N; both solves converge to the same tolerances). Part 2 (`--diagnose`) runs the whole
+`twin diagnose` (nominal model, 3 refits, as the CLI) both ways: wall per stage, ratio, and whether the two
+diagnoses agree (verdict, ranking, largest relative difference of any number).
+
+    python benchmarks/diagnose_speed.py CAMPAIGN.hdf5 [--diagnose] [--device cpu]
+
+The demo campaign: `twin demo` writes it (runs/demo/campaign/biotac2.hdf5).
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import time
+from collections.abc import Iterator
+from contextlib import contextmanager, nullcontext
+from pathlib import Path
+
+import numpy as np
+
+from fe.batched_stepper import BatchedStepper
+from twin.analysis.data import CampaignData, load_campaign
+from twin.analysis.diagnose import diagnose, strict_json
+from twin.analysis.predict import Predictor, TwinModel
+from twin.effects import EFFECTS, apply_skin
+
+RELAXATION = "skin_relaxation"
+
+
+@contextmanager
+def last_state_warm_start() -> Iterator[None]:
+    """Inside, every `BatchedStepper` built starts held poses from the last state (`creep_start=False`)."""
+    init = BatchedStepper.__init__
+
+    def baseline(self: BatchedStepper, *args: object, **kwargs: object) -> None:
+        init(self, *args, **kwargs)
+        self.creep_start = False
+
+    BatchedStepper.__init__ = baseline
+    try:
+        yield
+    finally:
+        BatchedStepper.__init__ = init
+
+
+def probe_replays(data: CampaignData, device: str) -> tuple[tuple[float, float], np.ndarray]:
+    """(wall, CPU) seconds of the relaxation probe's replays of every trajectory (one batched prefetch,
+    inflation excluded) and their increment forces (N, all trajectories stacked)."""
+    model = TwinModel(mesh_max_edge=data.mesh_max_edge).with_effects({RELAXATION: EFFECTS[RELAXATION].probe})
+    predictor = Predictor(device)
+    predictor.fe_model(apply_skin(model.skin, model.effects), model.mesh_max_edge, model.inflation)  # kernels loaded
+    start, cpu = time.perf_counter(), time.process_time()
+    predictor.prefetch(model, data.trajectories)
+    seconds = time.perf_counter() - start, time.process_time() - cpu
+    return seconds, np.concatenate([predictor.predict(model, t).increment_force for t in data.trajectories])
+
+
+def diagnosis(data: CampaignData, device: str) -> tuple[dict[str, float], dict]:
+    """Wall seconds of `twin diagnose`'s stages on the file (and its CPU seconds) and its JSON form."""
+    start, cpu = time.perf_counter(), time.process_time()
+    stamps: dict[str, float] = {}
+    result = diagnose(
+        [data],
+        TwinModel(mesh_max_edge=data.mesh_max_edge),
+        Predictor(device),
+        on_progress=lambda stage, _: stamps.setdefault(stage, time.perf_counter() - start),
+    )
+    total = time.perf_counter() - start
+    evidence, refit = stamps.get("evidence", total), stamps.get("refit", total)
+    stages = {"base and sensitivities": evidence, "scores": refit - evidence, "refits and held out": total - refit}
+    return stages | {"total": total, "CPU": time.process_time() - cpu}, strict_json(result.to_dict())
+
+
+def largest_relative_difference(a: object, b: object) -> float:
+    """Largest relative difference between the numbers of two JSON-like values of one shape (inf where their
+    strings, Nones or shapes differ)."""
+    if isinstance(a, dict) and isinstance(b, dict) and a.keys() == b.keys():
+        return max((largest_relative_difference(a[k], b[k]) for k in a), default=0.0)
+    if isinstance(a, list) and isinstance(b, list) and len(a) == len(b):
+        return max((largest_relative_difference(x, y) for x, y in zip(a, b, strict=True)), default=0.0)
+    if isinstance(a, int | float) and isinstance(b, int | float) and not isinstance(a, bool):
+        return abs(a - b) / max(abs(a), abs(b), 1e-300) if a != b else 0.0
+    return 0.0 if a == b else float("inf")
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("campaign", type=Path, help="a campaign file (e.g. the demo's)")
+    parser.add_argument("--diagnose", action="store_true", help="also run the whole diagnosis both ways")
+    parser.add_argument("--device", default="cpu")
+    args = parser.parse_args()
+    data = load_campaign(args.campaign)
+    ways = (("last state (before)", last_state_warm_start), ("creep extrapolated (now)", nullcontext))
+    print(f"{len(data.trajectories)} trajectories; load average at start {os.getloadavg()[0]:.2f}")
+    replays = {}
+    for name, way in ways:
+        with way():
+            replays[name] = probe_replays(data, args.device)
+    (before, f0), (now, f1) = replays.values()
+    print("\nthe relaxation probe's timed replays (one batched run)")
+    print(f"{'warm start of a held pose':28} {'wall s':>8} {'CPU s':>8}")
+    for name, ((wall, cpu), _) in replays.items():
+        print(f"{name:28} {wall:8.1f} {cpu:8.1f}")
+    ratios = f"wall {before[0] / now[0]:.2f}, CPU {before[1] / now[1]:.2f}"
+    print(f"ratio before / now: {ratios}; largest force difference {np.nanmax(np.abs(f0 - f1)):.1e} N")
+    print(f"load average now {os.getloadavg()[0]:.2f}")
+    if not args.diagnose:
+        return
+    runs = {}
+    for name, way in ways:
+        with way():
+            runs[name] = diagnosis(data, args.device)
+    print("\n`twin diagnose` (s)")
+    print(f"{'stage':28}" + "".join(f" {name:>26}" for name in runs))
+    for stage in next(iter(runs.values()))[0]:
+        print(f"{stage:28}" + "".join(f" {stages[stage]:26.1f}" for stages, _ in runs.values()))
+    (old_stages, old), (new_stages, new) = runs.values()
+    old_total, new_total = old_stages["total"], new_stages["total"]
+    cpu_ratio = old_stages["CPU"] / new_stages["CPU"]
+    print(f"ratio before / now: wall {old_total / new_total:.2f}, CPU {cpu_ratio:.2f} (target: 60 s wall)")
+    same_ranking = [c["name"] for c in old["candidates"]] == [c["name"] for c in new["candidates"]]
+    print(f"verdicts {old['verdict']!r} / {new['verdict']!r}; same ranking: {same_ranking}; largest relative")
+    print(f"difference of any number: {largest_relative_difference(old, new):.1e}; load {os.getloadavg()[0]:.2f}")
+    print(json.dumps({"before_s": old_total, "now_s": new_total}))
+
+
+if __name__ == "__main__":
+    main()
