@@ -438,10 +438,11 @@ class BatchedStepper:
         return converged, list(state.message)
 
     def _begin(self, which: np.ndarray, start: np.ndarray) -> None:
-        """Begin Newton for the `which` systems from positions `start` (k,V,3) m, their last equilibria being
-        the increment's start (friction slip) and their lagged contact forces taken at `start`, except that a
-        vertex pressed at both last equilibria takes its last lagged force changed as in the last increment, by
-        the share of the last displacement that `start` repeats (fewer Newton rounds after the first refresh)."""
+        """Begin Newton for the `which` systems (at least one) from positions `start` (k,V,3) m, their last
+        equilibria being the increment's start (friction slip) and their lagged contact forces taken at `start`,
+        except that a vertex pressed at both last equilibria (and at `start`) takes its last lagged force changed
+        as in the last increment, by the share of the last displacement that `start` repeats (fewer Newton rounds
+        after the first refresh, whose jump it shrinks)."""
         shell, rows = self.shell, np.flatnonzero(which)
         put_rows(shell.x_start, rows, self.x[rows])
         put_rows(shell.x, rows, start)
