@@ -172,6 +172,7 @@ class BatchedStepper:
         self.in_contact = np.zeros(B, dtype=bool)
         self._motion, self._has_motion, self._travel = np.zeros((B, V, 3)), np.zeros(B, dtype=bool), np.zeros((B, 3))
         self._gap, self._gap_change = np.zeros((B, V)), np.zeros((B, V))
+        self._lagged, self._lagged_change = np.zeros((B, V)), np.zeros((B, V))
         targets = np.array([s.target_volume for s in self.skins], dtype=np.float64)
         self.newton = NewtonBatch.idle(B, targets - self.shell.air.volume(p_rest))
         """Newton state of the increments under way (`running` marks the systems mid-solve); with trapped air
@@ -236,7 +237,7 @@ class BatchedStepper:
         self.x[which] = self.reference[which]
         self.pressure[which] = self.reference_pressure[which]
         self.in_contact[which] = self._has_motion[which] = False
-        self._travel[which] = self._gap[which] = self._gap_change[which] = 0.0
+        self._travel[which] = self._gap[which] = self._gap_change[which] = self._lagged[which] = 0.0
 
     def set_indenter(self, system: int, name: str) -> None:
         """Change one system's indenter (reset it first: the new one starts from the inflated state)."""
@@ -438,12 +439,21 @@ class BatchedStepper:
         return converged, list(state.message)
 
     def _begin(self, which: np.ndarray, start: np.ndarray) -> None:
-        """Begin Newton for the `which` systems from positions `start` (k,V,3) m, their last equilibria being
-        the increment's start (friction slip) and their lagged contact forces taken at `start`."""
+        """Begin Newton for the `which` systems (at least one) from positions `start` (k,V,3) m, their last
+        equilibria being the increment's start (friction slip) and their lagged contact forces taken at `start`,
+        except that a vertex pressed at both last equilibria (and at `start`) takes its last lagged force changed
+        as in the last increment, by the share of the last displacement that `start` repeats (fewer Newton rounds
+        after the first refresh, whose jump it shrinks)."""
         shell, rows = self.shell, np.flatnonzero(which)
         put_rows(shell.x_start, rows, self.x[rows])
         put_rows(shell.x, rows, start)
         shell.lag_contact(shell.x, which)
+        motion, last, change = self._motion[rows], self._lagged[rows], self._lagged_change[rows]
+        repeated = np.einsum("bvi,bvi->b", start - self.x[rows], motion)
+        share = np.clip(repeated / np.maximum(np.einsum("bvi,bvi->b", motion, motion), 1e-300), 0.0, 1.0)
+        lagged = get_rows(shell.lagged_force, rows)
+        pressed = self._has_motion[rows, None] & (lagged > 0.0) & (last > 0.0) & (last > change)
+        put_rows(shell.lagged_force, rows, np.where(pressed, np.maximum(last + share[:, None] * change, 0.0), lagged))
         shell.begin(self.newton, which, self.pressure)
 
     def _predict(self, rows: np.ndarray, travel: np.ndarray) -> np.ndarray:
@@ -494,6 +504,7 @@ class BatchedStepper:
         gap_rows = get_rows(shell.buf["indenter_gap"], rows)
         core_gap_rows = get_rows(shell.buf["core_gap"], rows)
         face_gap_rows = get_rows(shell.buf["indenter_face_gap"], rows).min(axis=1)
+        lagged_rows = get_rows(shell.lagged_force, rows)
         finished = np.isin(np.arange(self.batch), rows)
         clearance = np.full(self.batch, np.inf)
         if self._core_parts is not None:
@@ -514,6 +525,7 @@ class BatchedStepper:
             if state.converged[i]:
                 self._motion[i] = x - self.x[i]
                 self._has_motion[i] = True
+                self._lagged_change[i], self._lagged[i] = lagged_rows[k] - self._lagged[i], lagged_rows[k]
                 self._travel[i] = self._increment_travel[i]
                 self._gap_change[i] = np.minimum(gap, 0.0) - np.minimum(self._gap[i], 0.0)
                 self._gap[i] = gap

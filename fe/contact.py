@@ -36,7 +36,7 @@ head's back.
 import warp as wp
 
 from fe.indenter_sdf import body_sdf_and_grad
-from fe.wptypes import mat99d
+from fe.wptypes import add_block, mat99d
 
 wp.set_module_options({"enable_backward": False})  # no adjoint kernels: nothing differentiates them
 
@@ -243,9 +243,7 @@ def _sdf_curvature_world(
         dp = wp.vec3d()
         dp[j] = h
         r = _body_world(kind, dims, rotation, translation, p + dp)
-        col = (wp.vec3d(r[1], r[2], r[3]) - n) / h
-        for i in range(3):
-            curv[i, j] = col[i]
+        curv[j] = (wp.vec3d(r[1], r[2], r[3]) - n) / h  # row j: d n / d p_j, transposed by the symmetrisation
     return wp.float64(0.5) * (curv + wp.transpose(curv))
 
 
@@ -343,10 +341,7 @@ def indenter_surface_kernel(
                 K = law[2] * wp.outer(n, n) + law[1] * _sdf_curvature_world(shape, size, R, t, p, n)
                 for i in range(3):
                     for j in range(3):
-                        c = q[i] * q[j]
-                        for r in range(3):
-                            for s in range(3):
-                                H[3 * i + r, 3 * j + s] += c * K[r, s]
+                        H = add_block(H, i, j, q[i] * q[j] * K)
     face_energy[b, f] = e
     face_gap[b, f] = least
     if least < zero:
@@ -458,9 +453,11 @@ def indenter_friction_kernel(
         y = wp.length(ut)
         eps = slip_eps
         one = wp.float64(1.0)
+        cubed = y * y * y  # f0'' - f0' / y = -y / cubed on the slip's direction
         if y < eps:
             e = lam * (-y * y * y / (wp.float64(3.0) * eps * eps) + y * y / eps + eps / wp.float64(3.0))
             f1_over_y = wp.float64(2.0) / eps - y / (eps * eps)
+            cubed = eps * eps * y
         else:
             e = lam * y
             f1_over_y = one / y
@@ -469,10 +466,7 @@ def indenter_friction_kernel(
             proj = wp.identity(n=3, dtype=wp.float64) - wp.outer(nl, nl)
             Hf = proj * f1_over_y
             if y > _TINY:
-                if y < eps:
-                    Hf -= wp.outer(ut, ut) / (eps * eps * y)
-                else:
-                    Hf -= wp.outer(ut, ut) / (y * y * y)
+                Hf -= wp.outer(ut, ut) / cubed
             H = lam * (wp.transpose(A) @ Hf @ A)
     energy[b, v] = e
     wp.atomic_add(gradient, b, v, grad)

@@ -7,7 +7,7 @@ are exactly changes of the fluid volume. Lengths in metres, volume in m^3.
 
 import warp as wp
 
-from fe.wptypes import mat99d
+from fe.wptypes import add_block, mat99d
 
 wp.set_module_options({"enable_backward": False})  # no adjoint kernels: nothing differentiates them
 
@@ -16,14 +16,6 @@ wp.set_module_options({"enable_backward": False})  # no adjoint kernels: nothing
 def _skew(v: wp.vec3d) -> wp.mat33d:
     zero = wp.float64(0.0)
     return wp.mat33d(zero, -v[2], v[1], v[2], zero, -v[0], -v[1], v[0], zero)
-
-
-@wp.func
-def _put_block(H: mat99d, a: int, b: int, m: wp.mat33d) -> mat99d:
-    for i in range(3):
-        for j in range(3):
-            H[3 * a + i, 3 * b + j] = m[i, j]
-    return H
 
 
 @wp.kernel
@@ -45,18 +37,15 @@ def volume_kernel(
     x0 = x[b, tri[0]] - origin
     x1 = x[b, tri[1]] - origin
     x2 = x[b, tri[2]] - origin
+    xs = wp.matrix_from_rows(x0, x1, x2)
     sixth = wp.float64(1.0) / wp.float64(6.0)
     volume[b, t] = wp.dot(x0, wp.cross(x1, x2)) * sixth
-    wp.atomic_add(gradient, b, tri[0], wp.cross(x1, x2) * sixth)
-    wp.atomic_add(gradient, b, tri[1], wp.cross(x2, x0) * sixth)
-    wp.atomic_add(gradient, b, tri[2], wp.cross(x0, x1) * sixth)
+    for i in range(3):  # node i's gradient x_j x x_k, (i, j, k) cyclic
+        wp.atomic_add(gradient, b, tri[i], wp.cross(xs[(i + 1) % 3], xs[(i + 2) % 3]) * sixth)
     if want_hessian != 0:
         H = mat99d()
-        # d/dx1 of (x1 x x2) = -[x2]x, d/dx2 of (x1 x x2) = [x1]x, and cyclically.
-        H = _put_block(H, 0, 1, -_skew(x2) * sixth)
-        H = _put_block(H, 0, 2, _skew(x1) * sixth)
-        H = _put_block(H, 1, 2, -_skew(x0) * sixth)
-        H = _put_block(H, 1, 0, _skew(x2) * sixth)
-        H = _put_block(H, 2, 0, -_skew(x1) * sixth)
-        H = _put_block(H, 2, 1, _skew(x0) * sixth)
+        # d/dx_j of (x_j x x_k) = -[x_k]x, d/dx_k of (x_j x x_k) = [x_j]x, (i, j, k) cyclic.
+        for i in range(3):
+            H = add_block(H, i, (i + 1) % 3, -_skew(xs[(i + 2) % 3]) * sixth)
+            H = add_block(H, i, (i + 2) % 3, _skew(xs[(i + 1) % 3]) * sixth)
         hessian[b, t] = H

@@ -62,3 +62,12 @@ mat99d = wp.types.matrix(shape=(9, 9), dtype=wp.float64)
 vec12d = wp.types.vector(length=12, dtype=wp.float64)
 mat1818d = wp.types.matrix(shape=(18, 18), dtype=wp.float64)
 vec6i = wp.types.vector(length=6, dtype=wp.int32)
+
+
+@wp.func
+def add_block(H: mat99d, a: int, b: int, m: wp.mat33d) -> mat99d:
+    """H with m added to its 3x3 block (a, b): rows of node a, columns of node b of a triangle."""
+    for i in range(3):
+        for j in range(3):
+            H[3 * a + i, 3 * b + j] += m[i, j]
+    return H
