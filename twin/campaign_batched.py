@@ -19,6 +19,10 @@ before anything is solved. `BatchedRunner` works in three passes:
    one-at-a-time campaign (`twin.campaign.one_at_a_time`); they agree within the engine's tolerance (bit for
    bit on warp's CPU device, tests/test_campaign_batched.py). The solves are dropped once the part is written.
 
+The passes overlap by sensor (`fe_order`: most trajectories first): every schedule is submitted to the workers at
+once, a sensor's fe starts as soon as its own schedules are in, its synthesis runs on the workers while the next
+sensor is solved, and `twin.campaign.run_campaign` writes a sensor's file as soon as its last part is written.
+
 A trajectory whose controller goes on past where the batch stopped it (a measurement effect that hides more
 than a third of the force) is solved again, without a force limit, in a second batch.
 """

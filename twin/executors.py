@@ -5,7 +5,8 @@ order. Each worker process first runs `setup(*setup_args)` once (e.g. building t
 then any number of tasks; its workers may be kept for the next map with the same setup (the batched
 campaign maps twice over the same trajectories), until `close()`. Tasks must be idempotent: a campaign
 task writes its part file atomically, so a task that re-runs after its worker died writes exactly what the
-first attempt would have written.
+first attempt would have written. Maps may be consumed on another thread than the one that made the executor
+(one map at a time); `cancel()` then stops the workers when that thread's consumer is gone.
 
 - `LocalExecutor`: a `ProcessPoolExecutor` over spawned processes that die with their parent; needs
   nothing extra. Its pool serves every map with the same setup (the same function and argument objects)
