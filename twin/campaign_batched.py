@@ -292,6 +292,10 @@ class BatchedRunner:
                 arrived.put(result)
                 self._stage("schedules", done, len(tasks))
 
+        def solved_one() -> None:
+            host.failure.raise_if_any()  # a worker's failure ends the campaign now, not after this batch
+            self._stage("fe", next(solved), len(tasks))
+
         def synthesise_sensor(mine: list[TrajectoryTask]) -> None:
             exhausted.extend(self._synthesise(mine, config, plant, executor, finished, synthesised, len(tasks)))
 
@@ -306,7 +310,7 @@ class BatchedRunner:
                     schedules[key] = schedule
                 unsolved = [task for task in mine if not _kept(task, schedules[_key(task)])]
                 limit = FE_FORCE_LIMIT_FACTOR * config.settings.force_limit
-                self._solve(worker, unsolved, schedules, limit, lambda: self._stage("fe", next(solved), len(tasks)))
+                self._solve(worker, unsolved, schedules, limit, solved_one)
                 host.submit(lambda mine=mine: synthesise_sensor(mine))
             host.join()
         except BaseException:
