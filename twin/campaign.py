@@ -17,6 +17,8 @@ import json
 import os
 import shutil
 import tempfile
+import threading
+from collections import Counter
 from collections.abc import Callable, Iterator
 from contextlib import contextmanager
 from dataclasses import asdict, dataclass, field
@@ -25,7 +27,7 @@ from typing import Any
 
 import numpy as np
 
-from assets.biotac import BioTacGeometry, make_biotac
+from assets.biotac import BioTacGeometry, SkinMesh, make_biotac
 from assets.indenters import INDENTERS, indenter_name
 from fe.electrodes import ElectrodeModel
 from fe.params import SkinParameters
@@ -36,6 +38,7 @@ from twin.dataset import assemble_sensor_file, part_path, read_part, write_part
 from twin.effects import apply_path, apply_skin
 from twin.executors import Executor, LocalExecutor
 from twin.fe_models import inflated_model
+from twin.lanes import FirstFailure, Lane
 from twin.planning import PlannedTrajectory, plan_statistics, plan_trajectory, scene_tool_tip
 from twin.plant import Plant, make_plant, rigid_transform
 from twin.processing import process
@@ -574,6 +577,8 @@ def run_campaign(
     _check_part_digests(parts_dir, options_digest(options))
     own_executor = executor is None
     executor = executor if executor is not None else LocalExecutor(max(1, workers))
+    assembly = Lane("sensor files", FirstFailure())
+    files: dict[int, Path] = {}
     try:  # one pool (one start-up a worker) plans and runs the trajectories
         plan = plan_campaign(config, plant, executor, on_plan)
         jobs = [job for job in plan.planned if job.kept]
@@ -588,34 +593,61 @@ def run_campaign(
             (j, slots[(j.sensor_id, j.spec.trajectory_id)], plan.registration[(j.sensor_id, j.arm)], str(parts_dir))
             for j in todo
         ]
+        skin = make_biotac(config.mesh_max_edge).skin
+        assemble = _SensorFiles(config, plant, plan, skin, parts_dir, out_dir)
+        # each sensor's file is written on the lane as soon as its last part is (during the other sensors' work)
+        missing = Counter(j.sensor_id for j in todo)
+        for sid in config.sensors:
+            if not missing[sid]:
+                assembly.submit(lambda sid=sid: files.__setitem__(sid, assemble(sid)))
+        lock = threading.Lock()  # `finished` may be called from a runner's background thread
 
         def finished(sensor_id: int, trajectory_id: int, complete: bool) -> None:
             nonlocal done, incomplete
-            incomplete += not complete
-            if on_trajectory:
-                on_trajectory(sensor_id, read_part(part_path(parts_dir, sensor_id, trajectory_id)))
-            done += 1
-            if on_progress:
-                on_progress(done, len(jobs))
+            with lock:
+                incomplete += not complete
+                if on_trajectory:
+                    on_trajectory(sensor_id, read_part(part_path(parts_dir, sensor_id, trajectory_id)))
+                done += 1
+                missing[sensor_id] -= 1
+                if not missing[sensor_id]:
+                    assembly.submit(lambda: files.__setitem__(sensor_id, assemble(sensor_id)))
+                if on_progress:
+                    on_progress(done, len(jobs))
 
         runner(tasks, config, plant, executor, finished)
+        assembly.join()
     finally:
+        assembly.release()
         if own_executor:
             executor.close()
-    provenance = {
-        "code_version": code_version(),
-        "config": json.loads(json.dumps(asdict(config), default=str)),
-        "plant_fingerprint": plant.fingerprint(),
-    }  # the registration error is the plant's truth (nobody knows it on a real testbed): not in the file
-    files = {}
-    skin = make_biotac(config.mesh_max_edge).skin
-    for sid in config.sensors:
-        parts = sorted((parts_dir / f"biotac{sid}").glob("trajectory_*.npz"))
-        provenance_sid = {**provenance, "registration": {a: plan.registration[(sid, a)].tolist() for a in ARMS}}
-        files[sid] = assemble_sensor_file(
-            parts, out_dir / f"biotac{sid}.hdf5", sid, list(INDENTERS), provenance_sid, skin.triangles, skin.ventral
-        ).path
+    files = {sid: files[sid] for sid in config.sensors}
     return CampaignResult(files, plan.statistics(), len(todo), len(jobs) - len(todo), incomplete)
+
+
+@dataclass(frozen=True)
+class _SensorFiles:
+    """Assembles a sensor's HDF5 file from its parts (`twin.dataset.assemble_sensor_file`) with the campaign's
+    provenance; called with the sensor id, returns the file's path."""
+
+    config: CampaignConfig
+    plant: Plant
+    plan: CampaignPlan
+    skin: SkinMesh
+    parts_dir: Path
+    out_dir: Path
+
+    def __call__(self, sid: int) -> Path:
+        provenance = {
+            "code_version": code_version(),
+            "config": json.loads(json.dumps(asdict(self.config), default=str)),
+            "plant_fingerprint": self.plant.fingerprint(),
+            "registration": {a: self.plan.registration[(sid, a)].tolist() for a in ARMS},
+        }  # the registration error is the plant's truth (nobody knows it on a real testbed): not in the file
+        parts = sorted((self.parts_dir / f"biotac{sid}").glob("trajectory_*.npz"))
+        out_path = self.out_dir / f"biotac{sid}.hdf5"
+        triangles, ventral = self.skin.triangles, self.skin.ventral
+        return assemble_sensor_file(parts, out_path, sid, list(INDENTERS), provenance, triangles, ventral).path
 
 
 def _check_part_digests(parts_dir: Path, digest: str) -> None:

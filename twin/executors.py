@@ -5,7 +5,8 @@ order. Each worker process first runs `setup(*setup_args)` once (e.g. building t
 then any number of tasks; its workers may be kept for the next map with the same setup (the batched
 campaign maps twice over the same trajectories), until `close()`. Tasks must be idempotent: a campaign
 task writes its part file atomically, so a task that re-runs after its worker died writes exactly what the
-first attempt would have written.
+first attempt would have written. Maps may be consumed on another thread than the one that made the executor
+(one map at a time); `cancel()` then stops the workers when that thread's consumer is gone.
 
 - `LocalExecutor`: a `ProcessPoolExecutor` over spawned processes that die with their parent; needs
   nothing extra. Its pool serves every map with the same setup (the same function and argument objects)
@@ -56,6 +57,11 @@ class Executor(ABC):
     def close(self) -> None:  # noqa: B027 (an optional hook: most executors keep nothing)
         """Release the workers kept between maps (none by default)."""
 
+    def cancel(self) -> None:  # noqa: B027 (an optional hook: most executors have nothing to stop)
+        """Stop the workers' running tasks now, for a map consumed in another thread whose consumer is gone (an
+        interrupt or a failure in the thread that started it); that map then ends with an error. Nothing by
+        default (e.g. Ray's tasks finish on their own and write only what a re-run would write)."""
+
     def __enter__(self) -> Executor:
         return self
 
@@ -92,16 +98,21 @@ class LocalExecutor(Executor):
             for future in as_completed(futures):
                 yield future.result()
         except BaseException:
-            for process in list(pool._processes.values()):  # no public way before Python 3.14's terminate_workers
-                process.terminate()
+            _terminate(pool)
             self.close()
             raise
 
     def close(self) -> None:
         """Shut the kept pool down (its workers end after their current task; none is pending)."""
+        pool, self._pool, self._setup = self._pool, None, ()
+        if pool is not None:
+            pool.shutdown(wait=True, cancel_futures=True)
+
+    def cancel(self) -> None:
+        """Terminate the kept pool's workers at once and drop the pool (a running map ends with BrokenProcessPool)."""
         if self._pool is not None:
-            self._pool.shutdown(wait=True, cancel_futures=True)
-            self._pool, self._setup = None, ()
+            _terminate(self._pool)
+        self.close()
 
     def _pool_for(self, setup: Callable[..., None], setup_args: tuple) -> ProcessPoolExecutor:
         """The kept pool when it was set up by `setup` with these very argument objects, else a new one."""
@@ -113,6 +124,12 @@ class LocalExecutor(Executor):
             self._pool = ProcessPoolExecutor(self.workers, get_context("spawn"), _local_setup, initargs)
             self._setup = key
         return self._pool
+
+
+def _terminate(pool: ProcessPoolExecutor) -> None:
+    """Terminate a pool's worker processes (no public way before Python 3.14's terminate_workers)."""
+    for process in list((pool._processes or {}).values()):
+        process.terminate()
 
 
 PR_SET_PDEATHSIG = 1

@@ -7,6 +7,7 @@ layer is the one place that joins `twin` and `hardware`.
 from __future__ import annotations
 
 import json
+import threading
 from collections.abc import Callable
 from dataclasses import asdict
 from pathlib import Path
@@ -187,11 +188,16 @@ def run(
             from twin.campaign import one_at_a_time, run_campaign
             from twin.campaign_batched import BatchedRunner
 
-            stage_task = progress.add_task("planning", total=None)
+            stage_tasks: dict[str, int] = {}
+            stage_lock = threading.Lock()
 
             def stage(name: str, done: int, total: int) -> None:
+                """One bar per stage: the batched campaign's stages overlap (told from several threads)."""
                 label = {"schedules": "fe schedules", "fe": f"fe batch on {device}"}.get(name, name)
-                progress.update(stage_task, description=label, completed=done, total=total)
+                with stage_lock:
+                    if label not in stage_tasks:
+                        stage_tasks[label] = progress.add_task(label, total=total)
+                    progress.update(stage_tasks[label], completed=done, total=total)
 
             runner = one_at_a_time if device is None else BatchedRunner(device, slots, stage)
             on_trajectory = viewer.log_trajectory if viewer else None

@@ -108,6 +108,10 @@ class LoggedProgress(Progress):
     def _log(self, task_id) -> None:
         if self.console.is_terminal:
             return
+        with self._lock:  # rich's own (re-entrant) lock: the campaign's stages are told from several threads
+            self._log_line(task_id)
+
+    def _log_line(self, task_id) -> None:
         now = time.monotonic()
         task = next(t for t in self.tasks if t.id == task_id)
         changed = self._last_description.get(task_id) not in (None, task.description)

@@ -1,0 +1,80 @@
+"""Background lanes: daemon threads that run jobs one after another while the calling thread does other work.
+
+A campaign overlaps its host stages with the fe (`twin.campaign_batched.BatchedRunner`, `twin.campaign.run_campaign`):
+executor maps are consumed on a lane while the driver solves, and the sensor files are assembled on another.
+Every lane of a campaign shares one `FirstFailure`: the first exception raised on any of them (or recorded by the
+driver) is the one the campaign ends with; later ones (often its consequences, such as a pool broken by it) are
+dropped, and a lane runs no further job once a failure is recorded.
+"""
+
+from __future__ import annotations
+
+import queue
+import threading
+from collections.abc import Callable
+from typing import Any
+
+WAIT_POLL_S = 0.2
+"""How often (s) a thread waiting on a lane's results checks for a failure."""
+
+
+class FirstFailure:
+    """The first exception raised by any of several threads."""
+
+    def __init__(self) -> None:
+        self._lock = threading.Lock()
+        self.error: BaseException | None = None
+
+    def record(self, error: BaseException) -> None:
+        """Keep `error` unless an earlier one is kept."""
+        with self._lock:
+            if self.error is None:
+                self.error = error
+
+    def raise_if_any(self) -> None:
+        """Raise the kept exception, if any."""
+        if self.error is not None:
+            raise self.error
+
+
+class Lane:
+    """One daemon thread running the submitted jobs (callables without arguments) in submission order; a job that
+    raises records its exception in `failure`, and no job runs after a recorded failure."""
+
+    def __init__(self, name: str, failure: FirstFailure) -> None:
+        self.failure = failure
+        self._jobs: queue.Queue[Callable[[], None] | None] = queue.Queue()
+        self._thread = threading.Thread(target=self._run, name=name, daemon=True)
+        self._thread.start()
+
+    def submit(self, job: Callable[[], None]) -> None:
+        """Run `job` after the jobs submitted before it."""
+        self._jobs.put(job)
+
+    def take(self, results: queue.Queue[Any]) -> Any:
+        """The next item a job puts in `results`; raises the campaign's failure instead once there is one."""
+        while True:
+            self.failure.raise_if_any()
+            try:
+                return results.get(timeout=WAIT_POLL_S)
+            except queue.Empty:
+                continue
+
+    def join(self) -> None:
+        """Wait for every submitted job, then raise the first failure, if any."""
+        self._jobs.put(None)
+        self._thread.join()
+        self.failure.raise_if_any()
+
+    def release(self) -> None:
+        """Let the thread end after the jobs submitted so far, without waiting (e.g. when the caller failed)."""
+        self._jobs.put(None)
+
+    def _run(self) -> None:
+        while (job := self._jobs.get()) is not None:
+            if self.failure.error is not None:
+                continue
+            try:
+                job()
+            except BaseException as error:  # noqa: BLE001 (handed to the waiting thread, which raises it)
+                self.failure.record(error)
