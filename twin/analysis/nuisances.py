@@ -338,7 +338,9 @@ def _jacobian(base: Base, model: TwinModel, predictor: Predictor, values: Nuisan
 def _joint_columns(columns: np.ndarray, base: Base, slots: tuple[Slot, ...]) -> None:
     """Fill the joint offsets' columns in place by the chain rule: on trajectory k's rows, d r / d q_j =
     sum over axes of (d r / d offset_axis) J_k[axis, j], the registration offset's columns restricted to
-    those rows (a trajectory's prediction depends on its own path offset only)."""
+    those rows (a trajectory's prediction depends on its own path offset only). Exact for the raw change; the
+    columns are profiled, and the PDC gain's profiling couples a sensor's trajectories, so the split is exact to
+    within that profiling's share of each column (a Gauss-Newton step is then judged on real replays)."""
     position = {(s.effect, s.parameter, s.sensor, s.arm): c for c, s in enumerate(slots)}
     index = base.residual.trajectory_index
     for k, trajectory in enumerate(base.trajectories):
