@@ -275,10 +275,12 @@ def gauss_newton(
 
 
 def polish(cost: Callable[[np.ndarray], float], start: Parameters, reach: float = 5.0, evaluations: int = 60) -> Fit:
-    """Bounded derivative-free minimisation of the scalar `cost(values)` from `start`: one parameter by
-    Brent's bounded search within `reach` scales of its start (and its bounds), several by Powell's method
-    over the bounds with at most `evaluations` per parameter. The start is kept unless the result costs
-    less. The Fit has no residual, Jacobian or uncertainty (a scalar cost gives none)."""
+    """Bounded derivative-free minimisation of the scalar `cost(values)` from `start`: one parameter by a scan of
+    `evaluations` points over `reach` scales either side of its start (and within its bounds), then Brent's
+    bounded search between the best point's neighbours (a cost with several dips, such as a delay's against a
+    sampled signal, is not left in the first dip Brent meets); several by Powell's method over the bounds with
+    at most `evaluations` per parameter. The start is kept unless the result costs less. The Fit has no
+    residual, Jacobian or uncertainty (a scalar cost gives none)."""
     calls = 0
 
     def counted(x: np.ndarray) -> float:
@@ -290,7 +292,10 @@ def polish(cost: Callable[[np.ndarray], float], start: Parameters, reach: float 
     if len(x0) == 1:
         lo = max(start.lower[0], x0[0] - reach * start.scale[0])
         hi = min(start.upper[0], x0[0] + reach * start.scale[0])
-        best = minimize_scalar(lambda v: counted(np.array([v])), bounds=(lo, hi), method="bounded")
+        grid = np.linspace(lo, hi, evaluations)
+        k = int(np.argmin([counted(np.array([v])) for v in grid]))
+        bracket = (grid[max(k - 1, 0)], grid[min(k + 1, evaluations - 1)])
+        best = minimize_scalar(lambda v: counted(np.array([v])), bounds=bracket, method="bounded")
         x = np.array([best.x])
     else:
         bounds = list(zip(start.lower, start.upper, strict=True))
