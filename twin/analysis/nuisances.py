@@ -344,13 +344,16 @@ def _joint_columns(columns: np.ndarray, base: Base, slots: tuple[Slot, ...]) -> 
     position = {(s.effect, s.parameter, s.sensor, s.arm): c for c, s in enumerate(slots)}
     index = base.residual.trajectory_index
     for k, trajectory in enumerate(base.trajectories):
-        rows = index == k
-        for i, slot in enumerate(slots):
-            if slot.effect == JOINT_OFFSET and slot.applies(trajectory):
-                axes = [
-                    position[(REGISTRATION, p.name, slot.sensor, slot.arm)] for p in EFFECTS[REGISTRATION].parameters
-                ]
-                columns[rows, i] = columns[np.ix_(rows, axes)] @ tip_sensitivity(trajectory)[:, _joint(slot)]
+        mine = [i for i, slot in enumerate(slots) if slot.effect == JOINT_OFFSET and slot.applies(trajectory)]
+        if not mine:
+            continue
+        rows, sensitivity = index == k, tip_sensitivity(trajectory)
+        axes = [
+            position[(REGISTRATION, p.name, trajectory.sensor_id, trajectory.arm)]
+            for p in EFFECTS[REGISTRATION].parameters
+        ]
+        for i in mine:
+            columns[rows, i] = columns[np.ix_(rows, axes)] @ sensitivity[:, _joint(slots[i])]
 
 
 def _steps(values: NuisanceValues, i: int) -> tuple[float, ...]:
