@@ -164,6 +164,20 @@ def per_system(skin: InflatedSkin | Sequence[InflatedSkin], batch: int) -> list[
     return skins
 
 
+def _skin_values(skin: InflatedSkin) -> dict[str, float]:
+    """The per-system scalars of a skin that the kernels read: long-term moduli (Pa m, N m), Gent 1/Jm,
+    friction coefficient and the indenter's half-layer (m)."""
+    p = skin.params
+    return {
+        "mu_t": p.long_term_fraction * p.membrane_modulus,
+        "gent_beta": p.gent_inverse_jm,
+        "bending_stiffness": p.long_term_fraction * p.bending_stiffness,
+        "friction": p.friction,
+        "offset": skin.indenter_half_layer,
+        "layer_mu": p.long_term_fraction * p.mu_nh,
+    }
+
+
 def launch(kernel: wp.Kernel, dim: tuple, values: dict, device: str) -> None:
     """Launch `kernel` taking its arguments by name from `values` (robust to argument order); a kernel
     argument missing from `values` is an error naming it."""
@@ -300,7 +314,6 @@ class BatchedShell:
         per_batch = lambda values: arr(np.asarray(values, dtype=np.float64), wp.float64)  # noqa: E731
         z = lambda shape, dtype: wp.zeros(shape, dtype=dtype, device=device)  # noqa: E731
         cs = skin.contact
-        offsets = [s.indenter_half_layer for s in self.skins]
         self._static = {
             "triangles": arr(tri.astype(np.int32), wp.vec3i),
             "dm_inv": arr(dm_inv, wp.mat22d),
@@ -311,19 +324,15 @@ class BatchedShell:
             "bend_area": arr(bend_area[: len(stencils)], wp.float64),
             "coupling": arr(coupling[: len(stencils)], wp.mat33d),
             "vertex_area": arr(self.vertex_area, wp.float64),
-            "mu_t": per_batch([p.long_term_fraction * p.membrane_modulus for p in params]),
-            "gent_beta": per_batch([p.gent_inverse_jm for p in params]),
-            "bending_stiffness": per_batch([p.long_term_fraction * p.bending_stiffness for p in params]),
             "frozen_stress": z((B, len(tri)), wp.mat22d),
-            "friction": per_batch([p.friction for p in params]),
-            "offset": per_batch(offsets),
-            "layer_mu": per_batch([p.long_term_fraction * p.mu_nh for p in params]),
             "kappa": wp.float64(cs.penalty_stiffness),
             "min_stretch": wp.float64(cs.min_stretch),
             "quadrature": arr(rule(cs.surface_rule), wp.vec4d),
             "slip_eps": wp.float64(cs.slip_length),
             "origin": wp.vec3d(*skin.volume_origin),
         }
+        values = [_skin_values(s) for s in self.skins]
+        self._static |= {name: per_batch([v[name] for v in values]) for name in values[0]}
         self._core_mesh = None
         self.has_core = bool(len(skin.core_triangles))
         """Whether the skin has a rigid core (the core gaps in `buf["core_gap"]` mean something)."""
@@ -385,8 +394,7 @@ class BatchedShell:
         self._candidate = z((B, V), wp.float64)
         self._candidate_normal = z((B, V), wp.vec3d)
         self.pose = {name: z(B, wp.mat33d if "rotation" in name else wp.vec3d) for name in _POSE}
-        far = np.tile([0.0, 0.0, 1.0], (B, 1))  # 1 m away: no contact until a pose is set
-        self.set_poses(np.tile(np.eye(3), (B, 1, 1)), far, np.tile(np.eye(3), (B, 1, 1)), far)
+        self.move_away(np.arange(B))
         self.indenters = [(int(kind), tuple(float(d) for d in dims)) for kind, dims in indenters]
         self._kind = arr(np.array([kind for kind, _ in self.indenters], dtype=np.int32), wp.int32)
         self._dims = arr(np.array([dims for _, dims in self.indenters], dtype=np.float64), wp.vec4d)
@@ -446,6 +454,26 @@ class BatchedShell:
     def bending_angle_change(self, x: np.ndarray) -> np.ndarray:
         """Dihedral-angle changes from the rest state (n_bending, 3) rad at positions x (V,3) m."""
         return bending.stencil_rest_state(x, self._stencils, self._present)[0] - self._rest_angle
+
+    def move_away(self, rows: np.ndarray) -> None:
+        """Put the indenters of systems `rows` 1 m off the skin (no contact until a pose is set) and clear their
+        lagged friction forces."""
+        k = len(rows)
+        for name in _POSE:
+            away = np.tile(np.eye(3), (k, 1, 1)) if "rotation" in name else np.tile([0.0, 0.0, 1.0], (k, 1))
+            put_rows(self.pose[name], rows, away)
+        put_rows(self.lagged_force, rows, np.zeros((k, self.n_vertices)))
+
+    def set_skin(self, system: int, skin: InflatedSkin) -> None:
+        """Give one system another skin of the batch's mesh (`per_system`), whose bending and relaxation the
+        batch was built for (its starting state is the stepper's to install)."""
+        per_system([self.skin, skin], 2)
+        if (skin.params.bending and not self.n_bending) or (skin.params.relaxation_fraction > 0.0 and not self.relaxes):
+            raise ValueError("a batch built without bending or relaxation cannot take a skin that has them")
+        self.skins[system] = skin
+        for name, value in _skin_values(skin).items():
+            self._static[name][system : system + 1].assign(np.array([value]))
+        self.air.boyle_constant[system] = skin.air_boyle
 
     def set_indenter(self, system: int, kind: int, dims: tuple[float, float, float, float]) -> None:
         """Give one system another indenter (kind, dims of `fe.indenter_sdf`)."""
@@ -919,7 +947,7 @@ _POSE = ("rotation", "translation", "rotation_start", "translation_start")
 def put_rows(array: wp.array, rows: np.ndarray, values: np.ndarray) -> None:
     """array[i] = values[k] for the k-th system index i of `rows` (host -> device, one copy per row)."""
     for k, i in enumerate(rows):
-        array[int(i)].assign(values[k])
+        array[int(i) : int(i) + 1].assign(values[k : k + 1])
 
 
 def get_rows(array: wp.array, rows: np.ndarray) -> np.ndarray:

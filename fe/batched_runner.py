@@ -4,8 +4,10 @@
 each slot holds one trajectory at a time, a system that finishes an increment starts its next pose at
 once (`BatchedStepper.admit`) while the others go on iterating (`BatchedStepper.advance`), and a slot
 whose trajectory ends takes the next queued trajectory, whatever its indenter (the contact kernels read
-each system's own). So no system waits for the slowest one of the batch, as a lock-step
-`BatchedStepper.step` per pose would make it, and no slot idles while trajectories are queued.
+each system's own) and whatever its skin, where trajectories carry skins of one mesh (several sensors, or
+several models' parameters: `BatchedStepper.set_skin`). So no system waits for the slowest one of the
+batch, as a lock-step `BatchedStepper.step` per pose would make it, and no slot idles while trajectories
+are queued.
 
 A trajectory ends after its last pose, at its first increment that does not converge even in smaller
 steps (cut-backs through midpoints of the failed step, whose results are not reported), or at its first
@@ -31,7 +33,8 @@ from fe.indentation import IncrementResult
 @dataclass(frozen=True)
 class PoseTrajectory:
     """One indenter's poses: rotations (K,3,3) body -> sensor frame, tip positions (K,3) m, and the time of
-    each pose (K,) s (None: untimed, only for a skin without viscoelastic relaxation)."""
+    each pose (K,) s (None: untimed, only for a skin without viscoelastic relaxation); K = 0: nothing to
+    solve (the runner ends it at once, with no increments)."""
 
     indenter: str
     rotations: np.ndarray
@@ -45,8 +48,6 @@ class PoseTrajectory:
                 f"a trajectory's poses are rotations (K,3,3) and translations (K,3), got "
                 f"{rotations.shape} and {translations.shape}"
             )
-        if len(rotations) == 0:
-            raise ValueError("a trajectory needs at least one pose")
         if self.times is not None:
             times = np.asarray(self.times, dtype=np.float64)
             if times.shape != (len(rotations),) or not np.all(np.isfinite(times)) or np.any(np.diff(times) < 0):
@@ -102,33 +103,30 @@ def run_trajectories(
     """Solve every trajectory's poses in order on `slots` continuously batched systems on the warp `device`,
     the trajectories with the most poses first where they share one skin (so that few long ones do not start
     last and run on alone at the end); `on_trajectory(index, increments)` is called as each trajectory ends
-    (for progress and streaming; `index` into `trajectories`, whatever the order they ran in). After
+    (for progress and streaming; `index` into `trajectories`, whatever the order they ran in). Where the
+    trajectories carry skins of their own they run in the order given (e.g. by skin, for streaming). After
     `time_limit_s` the run stops where it is (`BatchedRun.complete` False; unfinished trajectories keep the
     increments they finished). `forcing`, `linear`: the CG tolerance rule and linear algebra of
     `fe.batched.BatchedShell`. A failed increment is cut back: retried from the last accepted pose through
     the midpoint (in pose and time), and so on up to `max_cuts` halvings of one step, before it ends the
     trajectory (`BatchedRun.counters["cut_backs"]`). Timed trajectories (all or none) are stepped at their
     times, each from its own clock. `skin`: the inflated skin of every trajectory, or one per trajectory
-    (skins that can share a batch, `can_share_batch`); then each trajectory keeps its own system, so `slots`
-    must be at least the number of trajectories."""
+    (skins that can share a batch, `can_share_batch`); a slot takes any skin."""
     if not trajectories:
         raise ValueError("no trajectories to run")
-    timed = [t.times is not None for t in trajectories]
-    if any(timed) and not all(timed):
-        raise ValueError("either every trajectory is timed or none is")
     if slots < 1:
         raise ValueError(f"slots must be at least 1, got {slots}")
     if max_cuts < 0:
         raise ValueError(f"max_cuts must be at least 0, got {max_cuts}")
     slots = min(slots, len(trajectories))
-    if not isinstance(skin, InflatedSkin) and slots < len(trajectories):
-        raise ValueError(f"one skin per trajectory needs a system each: {len(trajectories)} > {slots} slots")
     start = time.perf_counter()
     order = list(range(len(trajectories)))
-    if isinstance(skin, InflatedSkin):  # one skin: any slot runs any trajectory, the longest first
+    if isinstance(skin, InflatedSkin):  # one skin: the longest first
         order.sort(key=lambda k: -len(trajectories[k].rotations))
-    stepper = BatchedStepper(skin, [trajectories[k].indenter for k in order[:slots]], device, forcing, linear)
-    schedule = _Schedule(trajectories, order, force_limit, on_trajectory, stepper, max_cuts)
+    skins = per_system(skin, len(trajectories))
+    initial = _initial_skins(skins, order[:slots])
+    stepper = BatchedStepper(initial, [trajectories[k].indenter for k in order[:slots]], device, forcing, linear)
+    schedule = _Schedule(trajectories, skins, order, force_limit, on_trajectory, stepper, max_cuts)
     round_end_s: list[float] = []
     round_systems: list[int] = []
     complete = True
@@ -160,6 +158,18 @@ def run_trajectories(
     )
 
 
+def _initial_skins(skins: list[InflatedSkin], first: list[int]) -> list[InflatedSkin]:
+    """The skins a batch starts with, one per slot: those of the `first` trajectories, except that a batch built
+    without bending or relaxation cannot take a skin that has them later, so the first such skin of the run
+    takes the last slot(s)."""
+    initial = [skins[k] for k in first]
+    features = (lambda s: s.params.bending, lambda s: s.params.relaxation_fraction > 0.0)
+    missing = [needs for needs in features if any(map(needs, skins)) and not any(map(needs, initial))]
+    late = list({id(s): s for s in (next(s for s in skins if needs(s)) for needs in missing)}.values())
+    initial[len(initial) - len(late) :] = late[: len(initial)]
+    return initial
+
+
 class _Schedule:
     """Which trajectory and pose each slot is at; records results and refills slots, taking the trajectories in
     `order`."""
@@ -167,16 +177,17 @@ class _Schedule:
     def __init__(
         self,
         trajectories: Sequence[PoseTrajectory],
+        skins: Sequence[InflatedSkin],
         order: Sequence[int],
         force_limit: float,
         on_trajectory: Callable[[int, list[IncrementResult]], None] | None,
         stepper: BatchedStepper,
         max_cuts: int,
     ) -> None:
-        self.trajectories, self.queue = trajectories, deque(order)
+        self.trajectories, self.skins, self.queue = trajectories, skins, deque(order)
         self.force_limit, self.on_trajectory, self.stepper = force_limit, on_trajectory, stepper
         n = stepper.batch
-        self.results: list[list[IncrementResult]] = [[] for _ in trajectories]
+        self.results: list[list[IncrementResult]] = [[] for _ in range(len(trajectories))]
         self.current = np.full(n, -1)
         self.pose = np.zeros(n, dtype=int)
         self.waiting = np.zeros(n, dtype=bool)
@@ -188,12 +199,24 @@ class _Schedule:
             self._take(slot)
 
     def _take(self, slot: int) -> None:
-        """Give the slot the next queued trajectory (or leave it empty)."""
-        self.current[slot] = self.queue.popleft() if self.queue else -1
+        """Give the slot the next queued trajectory with poses (or leave it empty); one without poses ends at
+        once. A trajectory is first read here (a lazy sequence may wait for it)."""
+        self.current[slot] = -1
+        while self.queue and self.current[slot] < 0:
+            index = self.queue.popleft()
+            trajectory = self.trajectories[index]
+            if (trajectory.times is not None) != self.timed:
+                raise ValueError("either every trajectory is timed or none is")
+            if len(trajectory.rotations):
+                self.current[slot] = index
+            elif self.on_trajectory is not None:
+                self.on_trajectory(index, self.results[index])
         if self.current[slot] >= 0:
-            name = self.trajectories[self.current[slot]].indenter
+            name, skin = self.trajectories[self.current[slot]].indenter, self.skins[self.current[slot]]
             if self.stepper.indenters[slot] != name:
                 self.stepper.set_indenter(slot, name)
+            if self.stepper.skins[slot] is not skin:
+                self.stepper.set_skin(slot, skin)
         self.pose[slot] = 0
         self.cut_back[slot].restart()
         self.waiting[slot] = self.current[slot] >= 0

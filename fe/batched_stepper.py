@@ -147,21 +147,16 @@ class BatchedStepper:
         self.skins, self.skin = self.shell.skins, self.shell.skin
         skin = self.skin
         B, V = self.batch, len(skin.vertices)
-        self.reference = np.stack([s.reference for s in self.skins]).astype(np.float64)
+        self.reference = np.zeros((B, V, 3))
         """(B,V,3) starting (inflated) positions (m) of each system."""
-        self.reference_pressure = np.array([s.pressure for s in self.skins], dtype=np.float64)
-        """(B,) starting pressure (Pa) of each system."""
-        self._reference_w = wp.array(self.reference, dtype=wp.vec3d, device=device)
-        self.shell.x.assign(self.reference)
-        p_rest = self.reference_pressure
-        rest = self.shell.evaluate(self._reference_w, False, p_rest)
-        self.rest_volumes = rest.volume + self.shell.air.volume(p_rest)
-        """(B,) volume (m^3) each starting state encloses (liquid + air)."""
-        self._rest_residual = rest.residual_inf.copy()
-        self._rest_balance = np.array([self._force_balance(i, p_rest[i])[1] for i in range(B)])
-        self.x = self.reference.copy()
+        self.reference_pressure, self.rest_volumes = np.zeros(B), np.zeros(B)
+        """(B,) starting pressure (Pa) of each system, and the volume (m^3) its starting state encloses
+        (liquid + air)."""
+        self._rest_residual, self._rest_balance = np.zeros(B), np.zeros(B)
+        self._reference_w = wp.zeros((B, V), dtype=wp.vec3d, device=device)
+        self.x = np.zeros((B, V, 3))
         """(B,V,3) skin mid-surface positions (m) of the last accepted state."""
-        self.pressure = p_rest.copy()
+        self.pressure = np.zeros(B)
         self.pose_rotation, self.pose_translation = np.tile(np.eye(3), (B, 1, 1)), np.zeros((B, 3))
         self._start_rotation, self._start_translation = self.pose_rotation.copy(), self.pose_translation.copy()
         self._was_posed = np.zeros(B, dtype=bool)
@@ -173,16 +168,10 @@ class BatchedStepper:
         self._motion, self._has_motion, self._travel = np.zeros((B, V, 3)), np.zeros(B, dtype=bool), np.zeros((B, 3))
         self._gap, self._gap_change = np.zeros((B, V)), np.zeros((B, V))
         self._lagged, self._lagged_change = np.zeros((B, V)), np.zeros((B, V))
-        targets = np.array([s.target_volume for s in self.skins], dtype=np.float64)
-        self.newton = NewtonBatch.idle(B, targets - self.shell.air.volume(p_rest))
+        self.newton = NewtonBatch.idle(B, 0.0)
         """Newton state of the increments under way (`running` marks the systems mid-solve); with trapped air
         the held volume is the liquid's."""
-        self.relaxation = None
-        if self.shell.relaxes:
-            fractions = np.array([s.params.relaxation_fraction for s in self.skins])
-            times = np.array([s.params.relaxation_time_s for s in self.skins])
-            self.relaxation = SkinRelaxation(self.shell, fractions, times)
-            self.relaxation.reset(np.arange(B), self.x)
+        self.relaxation = SkinRelaxation(self.shell, np.zeros(B), np.ones(B)) if self.shell.relaxes else None
         self.time_s = np.full(B, np.nan)
         """Time (s) of each system's last step (NaN: none since its reset, or untimed)."""
         self._time_start, self._dt = np.full(B, np.nan), np.zeros(B)
@@ -191,31 +180,64 @@ class BatchedStepper:
         the last state, the warm start before 2026-11-27 (benchmarks/diagnose_speed.py compares the two)."""
         self._depth, self._admitted_at = np.zeros(B), np.zeros(B)
         self._increment_travel = np.zeros((B, 3))
-        self._half = np.array([s.indenter_half_layer for s in self.skins])
-        """(B,) half-layer (m) of each skin on the indenter's side (0: a zero-thickness membrane)."""
+        self._half, self._core_floor, self._skin_floor = np.zeros(B), np.zeros(B), np.zeros(B)
+        """(B,) half-layer (m) of each skin on the indenter's side (0: a zero-thickness membrane); nearest
+        approach (m) of the rigid indenter to the rigid core that a converged state may show (both half-layers
+        between them at `ContactSettings.min_stretch`); smallest indenter SDF (m) at any point of the skin's
+        mid-surface that a converged state may show: the half-layer at `ContactSettings.min_stretch`, or, for a
+        zero-thickness skin, `max_penetration` of the thickness inside the body."""
+        self._skin_spacing = np.zeros(B)
+        """(B,) node spacing (m) of the skin triangles' sampling in that check: half the margin it tests."""
         self.too_large = np.zeros(B, dtype=bool)
         """Whether each system's last increment was refused as too large a step, before any solve."""
-        self._core_floor = skin.contact.min_stretch * (self._half + skin.core_offset)
-        """(B,) nearest approach (m) of the rigid indenter to the rigid core that a converged state may show:
-        both half-layers between them at `ContactSettings.min_stretch`."""
-        thickness = np.array([s.params.thickness for s in self.skins])
-        penetration = skin.contact.max_penetration * thickness
-        self._skin_floor = np.where(self._half > 0.0, skin.contact.min_stretch * self._half, -penetration)
-        """(B,) smallest indenter SDF (m) at any point of the skin's mid-surface that a converged state may show:
-        the half-layer at `ContactSettings.min_stretch`, or, for a zero-thickness skin, `max_penetration` of
-        the thickness inside the body."""
-        self._skin_spacing = 0.5 * np.where(self._half > 0.0, self._skin_floor, penetration)
-        """(B,) node spacing (m) of the skin triangles' sampling in that check: half the margin it tests."""
         self._core_parts = None
         """Per core triangle, how many pieces each of its edges is split into for the rigid-against-rigid check
         (nodes half the smallest floor apart or closer; None: no core, or no layer between it and the
         indenter)."""
+        self._adopt(np.arange(B))
+
+    def _adopt(self, rows: np.ndarray) -> None:
+        """Install the skins of systems `rows` (`self.skins`): their starting states, the volumes those hold,
+        relaxation branches and admissibility floors, and put them in those states."""
+        skins, shell, settings = [self.skins[i] for i in rows], self.shell, self.skin.contact
+        self.reference[rows] = np.stack([s.reference for s in skins])
+        self.reference_pressure[rows] = [s.pressure for s in skins]
+        put_rows(self._reference_w, rows, self.reference[rows])
+        put_rows(shell.x, rows, self.reference[rows])
+        shell.move_away(rows)  # the starting state's figures without contact
+        p_rest, which = self.reference_pressure, np.isin(np.arange(self.batch), rows)
+        rest = shell.evaluate(self._reference_w, False, p_rest, which)
+        air = shell.air.volume(p_rest)
+        self.rest_volumes[rows] = (rest.volume + air)[rows]
+        self._rest_residual[rows] = rest.residual_inf[rows]
+        self._rest_balance[rows] = [self._force_balance(int(i), p_rest[i])[1] for i in rows]
+        self.newton.target[rows] = np.array([s.target_volume for s in skins]) - air[rows]
+        if self.relaxation is not None:
+            fractions = np.array([s.params.relaxation_fraction for s in skins])
+            self.relaxation.fractions[rows], self.relaxation.long_term[rows] = fractions, 1.0 - fractions
+            self.relaxation.times[rows] = [s.params.relaxation_time_s for s in skins]
+        self._half[rows] = [s.indenter_half_layer for s in skins]
+        self._core_floor[rows] = settings.min_stretch * (self._half[rows] + self.skin.core_offset)
+        thickness = np.array([s.params.thickness for s in skins])
+        penetration = settings.max_penetration * thickness
+        half = self._half[rows]
+        self._skin_floor[rows] = np.where(half > 0.0, settings.min_stretch * half, -penetration)
+        self._skin_spacing[rows] = 0.5 * np.where(half > 0.0, self._skin_floor[rows], penetration)
         spacing = 0.5 * self._core_floor.min()
-        if self.shell.has_core and spacing > 0.0:
-            corners = skin.core_vertices[skin.core_triangles]
+        if shell.has_core and spacing > 0.0:
+            corners = self.skin.core_vertices[self.skin.core_triangles]
             longest = np.linalg.norm(corners - np.roll(corners, 1, axis=1), axis=2).max(axis=1)
             parts = np.maximum(np.ceil(longest / spacing), 1).astype(np.int32)
-            self._core_parts = wp.array(parts, dtype=wp.int32, device=device)
+            self._core_parts = wp.array(parts, dtype=wp.int32, device=shell.device)
+        self.reset(np.isin(np.arange(self.batch), rows))
+
+    def set_skin(self, system: int, skin: InflatedSkin) -> None:
+        """Give one system another skin of the batch's mesh (`fe.batched.BatchedShell.set_skin`); it starts from
+        that skin's inflated state (reset it first)."""
+        if self.posed[system] or self.newton.running[system]:
+            raise RuntimeError(f"reset() system {system} before changing its skin")
+        self.shell.set_skin(system, skin)
+        self._adopt(np.array([system]))
 
     # -- state -------------------------------------------------------------------------------------
     def reset(self, which: np.ndarray | None = None) -> None:

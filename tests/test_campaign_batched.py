@@ -103,13 +103,21 @@ def _assert_same_campaign(reference: dict[str, np.ndarray], other: dict[str, np.
 
 
 def _spy_on_batches(monkeypatch: pytest.MonkeyPatch) -> list[float]:
-    """The force limit (N) of each batched fe run the campaign makes, in order."""
+    """The force limit (N) of each batched fe run the campaign makes that solves something, in order."""
     limits: list[float] = []
     run_trajectories = campaign_batched.run_trajectories
 
     def spy(*args: Any, **kwargs: Any) -> Any:
-        limits.append(args[4])
-        return run_trajectories(*args, **kwargs)
+        solved, told = [], kwargs["on_trajectory"]
+
+        def on_trajectory(index: int, increments: list) -> None:
+            solved.append(len(increments))  # before the campaign writes and drops them
+            told(index, increments)
+
+        run = run_trajectories(*args, **(kwargs | {"on_trajectory": on_trajectory}))
+        if any(solved):
+            limits.append(args[4])
+        return run
 
     monkeypatch.setattr(campaign_batched, "run_trajectories", spy)
     return limits

@@ -1,6 +1,6 @@
 """The batched campaign's pipeline by sensor (`twin.campaign_batched.BatchedRunner`, `twin.lanes`), with its three
-stages replaced by recorders (no simulation, no fe): the sensors' fe batches run largest first, one batch per
-sensor with exactly its trajectories; a sensor's fe starts while the other sensors' schedules are still being
+stages replaced by recorders (no simulation, no fe): the fe of every sensor runs as one batch, the largest sensor
+first, each trajectory with its sensor's skin; it starts while the other sensors' schedules are still being
 recorded; every part is reported once; a worker's exception ends the campaign with its own message and stops the
 workers. (That the pipelined campaign writes the same files is tests/test_campaign_batched.py's.)"""
 
@@ -58,10 +58,12 @@ class FakeStages:
         one_solve = SolveSchedule("sphere_medium", np.array([slot + 0.5]), np.eye(3)[None], np.zeros((1, 3)))
         return (job.sensor_id, job.spec.trajectory_id), one_solve
 
-    def run_trajectories(self, skin: Any, poses: list, device: str, slots: int, limit: float, on_trajectory) -> None:
-        self.events.append(("fe", skin, len(poses)))
+    def run_trajectories(self, skins: list, poses: Any, device: str, slots: int, limit: float, on_trajectory) -> None:
+        self.events.append(("fe batch", list(skins)))
         self.first_batch.set()
         for index in range(len(poses)):
+            assert len(poses[index].rotations) == 1  # read as the runner reads it: waits for its schedule
+            self.events.append(("fe", skins[index]))
             on_trajectory(index, [])
 
     def synthesise_part(self, job: Any, slot: int, registration: np.ndarray, parts_dir: str) -> tuple:
@@ -113,13 +115,13 @@ def test_the_sensors_are_solved_largest_first_while_the_others_are_still_planned
 
     BatchedRunner("cpu")(_tasks(tmp_path), CONFIG, None, InThisProcess(), record)
     assert fe_order(_tasks(tmp_path)) == [2, 3, 1]
-    batches = [(e[1], e[2]) for e in fake.events if e[0] == "fe"]
-    assert batches == [(2, 3), (3, 2), (1, 1)]  # one batch per sensor, with exactly its trajectories
-    assert fake.overlapped == [True]  # sensor 1's schedule was recorded after sensor 2's fe had started
-    first_fe = fake.events.index(("fe", 2, 3))
-    assert ("schedule", 1) in fake.events[first_fe:]
+    batches = [e[1] for e in fake.events if e[0] == "fe batch"]
+    assert batches == [[2, 2, 2, 3, 3, 1]]  # one batch of every trajectory (its skin is its sensor's), largest first
+    assert fake.overlapped == [True]  # sensor 1's schedule was recorded after the fe had started
+    started = next(k for k, e in enumerate(fake.events) if e[0] == "fe batch")
+    assert ("schedule", 1) in fake.events[started:]
     for sid in SENSOR_SIZES:  # a sensor's parts are synthesised after its fe
-        fe_at = next(k for k, e in enumerate(fake.events) if e[:2] == ("fe", sid))
+        fe_at = max(k for k, e in enumerate(fake.events) if e == ("fe", sid))
         assert all(k > fe_at for k, e in enumerate(fake.events) if e == ("synthesis", sid))
     expected = sorted((t[0].sensor_id, t[0].spec.trajectory_id, True) for t in _tasks(tmp_path))
     assert sorted(finished) == expected

@@ -277,11 +277,15 @@ def test_runner_checks_its_input_and_stops_at_its_time_limit(frictionless_biotac
     skin = frictionless_biotac.inflated_skin()
     with pytest.raises(ValueError, match="rotations"):
         PoseTrajectory("sphere_medium", np.eye(3), np.zeros(3))
-    with pytest.raises(ValueError, match="at least one pose"):
-        PoseTrajectory("sphere_medium", np.zeros((0, 3, 3)), np.zeros((0, 3)))
     with pytest.raises(ValueError, match="no trajectories"):
         run_trajectories(skin, [], "cpu")
     trajectory = PoseTrajectory("sphere_medium", np.eye(3)[None], np.array([[0.0, 0.0, 1.0]]))
+    empty = PoseTrajectory("sphere_medium", np.zeros((0, 3, 3)), np.zeros((0, 3)))
+    ended: list[int] = []
+    run = run_trajectories(skin, [empty, trajectory, empty], "cpu", slots=1, on_trajectory=lambda k, _: ended.append(k))
+    assert run.complete and [len(r) for r in run.results] == [0, 1, 0] and sorted(ended) == [0, 1, 2]
+    with pytest.raises(ValueError, match="every trajectory is timed or none"):
+        run_trajectories([skin, skin], [trajectory, dataclasses.replace(trajectory, times=np.zeros(1))], "cpu")
     with pytest.raises(ValueError, match="slots"):
         run_trajectories(skin, [trajectory], "cpu", slots=0)
     with pytest.raises(ValueError, match="max_cuts"):
@@ -377,3 +381,34 @@ def test_systems_of_one_batch_take_their_own_parameters(frictionless_biotac: Bio
     with pytest.raises(ValueError, match="share mesh"):
         moved = dataclasses.replace(skins[1], vertices=skins[1].vertices + 1e-3)
         BatchedStepper([skins[0], moved], ["sphere_medium"] * 2)
+
+
+def test_a_slot_takes_the_next_trajectory_whatever_its_skin(frictionless_biotac: BioTacModel) -> None:
+    """Trajectories of three skins of one mesh (the plain one, a stiffer relaxing one, one with trapped air and
+    friction) on two slots, which change skin and indenter as they take the next trajectory (in the order
+    given, the relaxing skin's first trajectory queued last so that a slot built without relaxation takes it):
+    each trajectory's increments are those it gets alone on a batch of its own skin (B = 1), bit for bit (the
+    CPU's direct solve is per system, so the systems of a batch do not touch each other)."""
+    plain = frictionless_biotac.inflated_skin()
+    stiff = inflated_biotac(friction=0.0, mu_nh=5.6e5, relaxation_fraction=0.3).inflated_skin()
+    soft = inflated_biotac(friction=0.3, air_volume_fraction=0.1).inflated_skin()
+    paths = _paths(frictionless_biotac)
+    base = [_pose_trajectory(name, p) for (name, *_), p in zip(PATHS, paths, strict=True)]
+    timed = [dataclasses.replace(t, times=0.5 * np.arange(len(STEPS))) for t in base]
+    trajectories = [timed[0], timed[2], timed[1], timed[0], timed[2]]
+    skins = [plain, soft, soft, plain, stiff]
+    run = run_trajectories(skins, trajectories, "cpu", slots=2)
+    assert run.complete
+    for skin, trajectory, together in zip(skins, trajectories, run.results, strict=True):
+        alone = run_trajectories(skin, [trajectory], "cpu", slots=1).results[0]
+        assert len(together) == len(alone) == len(STEPS)
+        for a, b in zip(alone, together, strict=True):
+            assert a.converged and b.converged, b.message
+            np.testing.assert_array_equal(a.force, b.force)
+            np.testing.assert_array_equal(a.displacement, b.displacement)
+            assert a.pressure == b.pressure
+    stiff_force = np.linalg.norm(run.results[4][-1].force)
+    assert stiff_force > 1.5 * np.linalg.norm(run.results[3][-1].force)  # its own skin, not the slot's last one
+    with pytest.raises(ValueError, match="share mesh"):
+        moved = dataclasses.replace(soft, vertices=soft.vertices + 1e-3)
+        run_trajectories([plain, moved], timed[:2], "cpu", slots=1)

@@ -32,7 +32,7 @@ from __future__ import annotations
 import itertools
 import queue
 from collections import Counter
-from collections.abc import Callable, Iterator
+from collections.abc import Callable, Iterator, Sequence
 from dataclasses import dataclass, fields
 from pathlib import Path
 
@@ -271,10 +271,11 @@ class BatchedRunner:
         finished: Finished,
     ) -> None:
         # Pipelined by sensor (`fe_order`): the workers record every schedule (all jobs submitted at once) while
-        # this process solves each sensor's fe as soon as its schedules are in, and each sensor's synthesis runs
-        # on the workers while the next sensor is solved. The executor's maps are consumed on one lane (in
-        # order, so that an executor running tasks in this process never runs two at once); `finished` is
-        # called from it.
+        # this process solves the fe of all sensors as one batch, sensor after sensor, starting as soon as the
+        # first sensor's schedules are in (`_Arriving`), and each sensor's synthesis runs on the workers as soon
+        # as its last trajectory is solved, while the batch goes on with the others. The executor's maps are
+        # consumed on one lane (in order, so that an executor running tasks in this process never runs two at
+        # once); `finished` is called from it.
         # Every task's schedule is recorded again, and a resume keeps a solved one only where the schedule is the
         # same: a plan re-derived in this run may differ by a hair (e.g. an inflation on CUDA, whose sums have no
         # fixed order, moving a touch point and with it the first solve by a controller tick).
@@ -285,6 +286,7 @@ class BatchedRunner:
         exhausted: list[TrajectoryTask] = []
         solved = itertools.count(1)
         synthesised = itertools.count(1)
+        left = Counter(task[0].sensor_id for task in tasks)
 
         def record_schedules() -> None:
             jobs = executor.map_unordered(plan_schedule, tasks, init_worker, (config, plant))
@@ -292,72 +294,53 @@ class BatchedRunner:
                 arrived.put(result)
                 self._stage("schedules", done, len(tasks))
 
-        def solved_one() -> None:
-            host.failure.raise_if_any()  # a worker's failure ends the campaign now, not after this batch
-            self._stage("fe", next(solved), len(tasks))
-
         def synthesise_sensor(mine: list[TrajectoryTask]) -> None:
             exhausted.extend(self._synthesise(mine, config, plant, executor, finished, synthesised, len(tasks)))
+
+        def ended(task: TrajectoryTask) -> None:
+            host.failure.raise_if_any()  # a worker's failure ends the campaign now, not after the batch
+            self._stage("fe", next(solved), len(tasks))
+            left[task[0].sensor_id] -= 1
+            if left[task[0].sensor_id] == 0:  # the sensor's fe is all in: its synthesis goes to the workers
+                mine = [t for t in tasks if t[0].sensor_id == task[0].sensor_id]
+                host.submit(lambda: synthesise_sensor(mine))
 
         try:
             host.submit(record_schedules)
             worker = CampaignWorker(config, plant)
-            schedules: dict[tuple[int, int], SolveSchedule] = {}
-            for sid in order:
-                mine = [task for task in tasks if task[0].sensor_id == sid]
-                while any(_key(task) not in schedules for task in mine):
-                    key, schedule = host.take(arrived)
-                    schedules[key] = schedule
-                unsolved = [task for task in mine if not _kept(task, schedules[_key(task)])]
-                limit = FE_FORCE_LIMIT_FACTOR * config.settings.force_limit
-                self._solve(worker, unsolved, schedules, limit, solved_one)
-                host.submit(lambda mine=mine: synthesise_sensor(mine))
+            arriving = _Arriving(tasks, lambda: host.take(arrived), _kept)
+            self._solve(worker, arriving, FE_FORCE_LIMIT_FACTOR * config.settings.force_limit, ended)
             host.join()
         except BaseException:
             host.release()
             executor.cancel()  # the workers stop now (a map consumed on the lane cannot end them itself)
             raise
         if exhausted:  # solve them again without a force limit, from their recorded schedules
-            schedules = {_key(task): read_solves(solves_path(task))[0] for task in exhausted}
+            exhausted.sort(key=lambda task: order.index(task[0].sensor_id))
+            recorded = {_key(task): read_solves(solves_path(task))[0] for task in exhausted}
             resolved = itertools.count(1)
-            for sid in fe_order(exhausted):
-                mine = [task for task in exhausted if task[0].sensor_id == sid]
-                self._solve(worker, mine, schedules, np.inf, lambda: self._stage("fe", next(resolved), len(exhausted)))
-            again = itertools.count(1)
-            if self._synthesise(exhausted, config, plant, executor, finished, again, len(exhausted)):
+            again = _Arriving(exhausted, iter(recorded.items()).__next__, lambda *_: False)
+            self._solve(worker, again, np.inf, lambda _: self._stage("fe", next(resolved), len(exhausted)))
+            done = itertools.count(1)
+            if self._synthesise(exhausted, config, plant, executor, finished, done, len(exhausted)):
                 raise RuntimeError("a trajectory solved without a force limit still ran out of solves")
 
     def _solve(
-        self,
-        worker: CampaignWorker,
-        tasks: list[TrajectoryTask],
-        schedules: dict[tuple[int, int], SolveSchedule],
-        force_limit: float,
-        ended: Callable[[], None],
+        self, worker: CampaignWorker, arriving: _Arriving, force_limit: float, ended: Callable[[TrajectoryTask], None]
     ) -> None:
-        """Solve one sensor's tasks' schedules as one batch ending trajectories above `force_limit` (N), write each
-        trajectory's solves as it ends and tell `ended()`."""
-        solving = []
-        for task in tasks:
-            if len(schedules[_key(task)].times):
-                solving.append(task)
-            else:  # the protocol asked for no solve
-                write_solves(solves_path(task), schedules[_key(task)], [])
-                ended()
-        if not solving:
-            return
+        """Solve the arriving schedules (of any sensors) as one batch, ending trajectories above `force_limit` (N);
+        write each trajectory's solves as it ends (but those kept from an earlier run) and tell `ended(task)`."""
 
         def written(index: int, increments: list[IncrementResult]) -> None:
-            write_solves(solves_path(solving[index]), schedules[_key(solving[index])], increments)
+            task = arriving.task(index)
+            if _key(task) not in arriving.kept:
+                write_solves(solves_path(task), arriving.schedules[_key(task)], increments)
             increments.clear()  # written: free the displacement fields as the run goes on
-            ended()
+            ended(task)
 
-        skin = worker.sensor(solving[0][0].sensor_id)[0].inflated_skin()
-        poses = []
-        for task in solving:
-            with naming_trajectory(task[0]):
-                poses.append(schedules[_key(task)].poses())
-        run_trajectories(skin, poses, self.device, self.slots, force_limit, on_trajectory=written)
+        skins = {sid: worker.sensor(sid)[0].inflated_skin() for sid in arriving.sensors}
+        per_task = [skins[sid] for sid in arriving.sensor_of]
+        run_trajectories(per_task, arriving, self.device, self.slots, force_limit, on_trajectory=written)
 
     def _synthesise(
         self,
@@ -384,6 +367,53 @@ class BatchedRunner:
     def _stage(self, name: str, done: int, total: int) -> None:
         if self.on_stage is not None:
             self.on_stage(name, done, total)
+
+
+class _Arriving(Sequence[PoseTrajectory]):
+    """Schedules as the trajectories of one batched run, read as the run asks for them: tasks (sorted sensor by
+    sensor) keep their sensor's block of indices, and the first look into a block waits until every schedule of
+    that sensor has arrived (`take()`: the next (key, schedule) recorded), then orders the block: the schedules
+    to solve, the longest first, then those with nothing to solve (no solve asked for, or solves `kept(task,
+    schedule)` from an earlier run) as trajectories without poses. So the fe starts once the first sensor's
+    schedules are in while the workers record the others'."""
+
+    def __init__(
+        self,
+        tasks: list[TrajectoryTask],
+        take: Callable[[], tuple[tuple[int, int], SolveSchedule]],
+        kept: Callable[[TrajectoryTask, SolveSchedule], bool],
+    ) -> None:
+        self._tasks, self._take, self._keep = tasks, take, kept
+        self.sensor_of = [task[0].sensor_id for task in tasks]
+        self.sensors = list(dict.fromkeys(self.sensor_of))
+        self.schedules: dict[tuple[int, int], SolveSchedule] = {}
+        self.kept: set[tuple[int, int]] = set()
+        """Keys of the tasks whose solves an earlier run kept (not solved, not written again)."""
+        self._order: dict[int, list[TrajectoryTask]] = {}
+
+    def __len__(self) -> int:
+        return len(self._tasks)
+
+    def task(self, index: int) -> TrajectoryTask:
+        """The task at `index` of the run (waiting for its sensor's schedules the first time)."""
+        sid = self.sensor_of[index]
+        if sid not in self._order:
+            mine = [task for task in self._tasks if task[0].sensor_id == sid]
+            while any(_key(task) not in self.schedules for task in mine):
+                key, schedule = self._take()
+                self.schedules[key] = schedule
+            self.kept |= {_key(task) for task in mine if self._keep(task, self.schedules[_key(task)])}
+            solves = [0 if _key(task) in self.kept else len(self.schedules[_key(task)].times) for task in mine]
+            self._order[sid] = [mine[k] for k in sorted(range(len(mine)), key=lambda k: -solves[k])]
+        return self._order[sid][index - self.sensor_of.index(sid)]
+
+    def __getitem__(self, index: int) -> PoseTrajectory:
+        task = self.task(index)
+        schedule = self.schedules[_key(task)]
+        if _key(task) in self.kept:
+            return PoseTrajectory(schedule.indenter, np.zeros((0, 3, 3)), np.zeros((0, 3)), np.zeros(0))
+        with naming_trajectory(task[0]):
+            return schedule.poses()
 
 
 def fe_order(tasks: list[TrajectoryTask]) -> list[int]:

@@ -119,8 +119,8 @@ class _PendingReplay:
 
 
 def _batches(work: list[_PendingReplay]) -> list[list[_PendingReplay]]:
-    """The pending replays grouped into batched runs: one group per set of skins that can share a batch
-    (and all timed or none), a group of several skins cut into runs of at most `PREFETCH_SLOTS` systems."""
+    """The pending replays grouped into batched runs: one per set of skins that can share a batch (and all
+    timed or none)."""
     groups: list[list[_PendingReplay]] = []
     for item in work:
         for group in groups:
@@ -132,13 +132,7 @@ def _batches(work: list[_PendingReplay]) -> list[list[_PendingReplay]]:
                 break
         else:
             groups.append([item])
-    runs = []
-    for group in groups:
-        if all(item.fe is group[0].fe for item in group):
-            runs.append(group)
-        else:
-            runs.extend(group[i : i + PREFETCH_SLOTS] for i in range(0, len(group), PREFETCH_SLOTS))
-    return runs
+    return groups
 
 
 class Predictor:
@@ -213,9 +207,9 @@ class Predictor:
         systems of as few batched runs on the predictor's device as the skins allow, so that `predict` then
         finds them cached. Each system carries its own model's inflated skin; replays that models share (same
         skin, same path: models that differ only in measurement effects) are solved once. Systems are
-        grouped into one run when their skins share a mesh (`fe.batched_runner.can_share_batch`) and all or
-        none relax; a run of one skin queues its trajectories through at most `PREFETCH_SLOTS` systems, a
-        run of several holds at most `PREFETCH_SLOTS` systems, one per replay. Each replay is what `predict`
+        grouped into one run when their skins share a mesh (`fe.batched_runner.can_share_batch`), queued
+        through at most `PREFETCH_SLOTS` systems (a system takes the next replay whatever its skin), the
+        longest first. Each replay is what `predict`
         would solve one at a time: the same events, stopped at the first increment that does not converge.
         progress(done, total) (default: the predictor's `on_replays`) after each replay solved; returns how many
         were solved."""
@@ -242,6 +236,7 @@ class Predictor:
 
     def _solve(self, batch: list[_PendingReplay], done: Callable[[], None]) -> None:
         """Solve one batch of pending replays in one batched run and cache them; done() after each."""
+        batch = sorted(batch, key=lambda item: -len(item.plan.events[1]))  # the longest first
         skins = [item.fe.inflated_skin() for item in batch]
         one_skin = all(item.fe is batch[0].fe for item in batch)
 
