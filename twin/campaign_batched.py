@@ -8,8 +8,9 @@ before anything is solved. `BatchedRunner` works in three passes:
    of every solve the backend asks for (each increment's pose once the arm rests; with a viscoelastic skin
    the held pose every `twin.sim_backend.RELAXATION_SOLVE_INTERVAL_S` as well) and answers with the rest
    state; electrode and PDC counts are not computed (their noise is drawn: the stream stays the same);
-2. fe (in this process, on the warp device): per sensor, every schedule is a timed `PoseTrajectory` of one
-   batched run (`fe.batched_runner.run_trajectories`: each system on its own clock, failed steps cut back as
+2. fe (in this process, on the warp device): every schedule of every sensor is a timed `PoseTrajectory` of one
+   batched run, with its sensor's skin (`fe.batched_runner.run_trajectories`: a slot takes the next trajectory
+   whatever its sensor, each system on its own clock, failed steps cut back as
    the one-at-a-time stepper does), which ends a trajectory at its first increment that fails or whose
    indenter force exceeds `FE_FORCE_LIMIT_FACTOR` times the protocol's force limit; each trajectory's
    schedule and results are written to `parts/fe_solves` as it ends (so a resume skips its fe);
@@ -20,8 +21,10 @@ before anything is solved. `BatchedRunner` works in three passes:
    bit on warp's CPU device, tests/test_campaign_batched.py). The solves are dropped once the part is written.
 
 The passes overlap by sensor (`fe_order`: most trajectories first): every schedule is submitted to the workers at
-once, a sensor's fe starts as soon as its own schedules are in, its synthesis runs on the workers while the next
-sensor is solved, and `twin.campaign.run_campaign` writes a sensor's file as soon as its last part is written.
+once, the fe batch starts as soon as the first sensor's schedules are in (`_Arriving`: the others are read as the
+batch reaches them), a sensor's synthesis runs on the workers as soon as its last trajectory is solved while the
+batch goes on with the others, and `twin.campaign.run_campaign` writes a sensor's file as soon as its last part
+is written. One batch for all sensors pays the nearly empty rounds at its end once, not once per sensor.
 
 A trajectory whose controller goes on past where the batch stopped it (a measurement effect that hides more
 than a third of the force) is solved again, without a force limit, in a second batch.
