@@ -122,28 +122,62 @@ def _multiply(
 
 
 @wp.kernel
+def _cg_residual(
+    rhs: wp.array2d(dtype=wp.vec3d),
+    ax: wp.array2d(dtype=wp.vec3d),
+    rr: wp.array(dtype=wp.float64),
+    bb: wp.array(dtype=wp.float64),
+):
+    """Per column rr = |b - A x0|^2 (A x0 in `ax`) and bb = |b|^2."""
+    c, v = wp.tid()
+    b = rhs[c, v]
+    wp.atomic_add(rr, c, wp.dot(b - ax[c, v], b - ax[c, v]))
+    wp.atomic_add(bb, c, wp.dot(b, b))
+
+
+@wp.kernel
 def _cg_start(
     preconditioner: wp.array2d(dtype=wp.mat33d),
     system_of: wp.array(dtype=wp.int32),
     state: wp.array(dtype=wp.int32),
+    warm: wp.array(dtype=wp.int32),
+    rr: wp.array(dtype=wp.float64),
+    bb: wp.array(dtype=wp.float64),
+    last: wp.array2d(dtype=wp.vec3d),
     rhs: wp.array2d(dtype=wp.vec3d),
+    ax: wp.array2d(dtype=wp.vec3d),
     x: wp.array2d(dtype=wp.vec3d),
     r: wp.array2d(dtype=wp.vec3d),
     p: wp.array2d(dtype=wp.vec3d),
     rz: wp.array(dtype=wp.float64),
-    bb: wp.array(dtype=wp.float64),
 ):
-    """x = 0, r = b, p = z = M^-1 r; rz = r.z and bb = b.b per column."""
+    """x = x0, r = b - A x0, p = z = M^-1 r and rz = r.z per column, x0 the column's last solution where it is
+    warm and that leaves a smaller residual than 0 does (rr < bb), else 0."""
     c, v = wp.tid()
     if state[c] != 1:
         return
     b = rhs[c, v]
+    if warm[c] == 1 and rr[c] < bb[c]:
+        x[c, v] = last[c, v]
+        b = b - ax[c, v]
     z = preconditioner[system_of[c], v] @ b
-    x[c, v] = wp.vec3d()
     r[c, v] = b
     p[c, v] = z
     wp.atomic_add(rz, c, wp.dot(b, z))
-    wp.atomic_add(bb, c, wp.dot(b, b))
+
+
+@wp.kernel
+def _cg_keep(
+    warm: wp.array(dtype=wp.int32),
+    state: wp.array(dtype=wp.int32),
+    iterations: wp.array(dtype=wp.int32),
+    x: wp.array2d(dtype=wp.vec3d),
+    last: wp.array2d(dtype=wp.vec3d),
+):
+    """last = x for the warm columns that iterated and converged."""
+    c, v = wp.tid()
+    if warm[c] == 1 and state[c] == 0 and iterations[c] > 0:
+        last[c, v] = x[c, v]
 
 
 @wp.kernel
@@ -393,9 +427,16 @@ class BatchedCG:
     """CG keeps no factorisation: no chord steps (`fe.linsolve.BatchedDirectSolver` does)."""
 
     def __init__(
-        self, matrix: BatchedBlockMatrix, columns: int, check_every: int = 25, use_graph: bool | None = None
+        self,
+        matrix: BatchedBlockMatrix,
+        columns: int,
+        check_every: int = 25,
+        use_graph: bool | None = None,
+        warm: np.ndarray | None = None,
     ) -> None:
-        """`use_graph`: replay the iterations as a CUDA graph (None: on CUDA devices)."""
+        """`use_graph`: replay the iterations as a CUDA graph (None: on CUDA devices); `warm` (columns,) bool:
+        columns that start from their last converged solution where it leaves a smaller residual than 0 (for a
+        right-hand side that changes little from one solve to the next; None: none)."""
         self.matrix, self.columns, self.check_every = matrix, columns, check_every
         self.use_graph = wp.get_device(matrix.device).is_cuda if use_graph is None else use_graph
         device, n = matrix.device, matrix.pattern.n_nodes
@@ -403,7 +444,9 @@ class BatchedCG:
         scalar = lambda dtype=wp.float64: wp.zeros(columns, dtype=dtype, device=device)  # noqa: E731
         self.x, self.r, self.z, self.p, self.ap = vec(), vec(), vec(), vec(), vec()
         self.rz, self.pap, self.rz_new, self.rr_new, self.beta, self.bb = (scalar() for _ in range(6))
-        self.tolerance = scalar()
+        self.tolerance, self.rr, self.last = scalar(), scalar(), vec()
+        warm = np.zeros(columns, dtype=bool) if warm is None else np.asarray(warm, dtype=bool)
+        self.warm = wp.array(warm.astype(np.int32), dtype=wp.int32, device=device)
         self.state, self.iterations = scalar(wp.int32), scalar(wp.int32)
         self.system_of = scalar(wp.int32)
         self.columns_of = wp.zeros((matrix.batch, 2), dtype=wp.int32, device=device)
@@ -462,15 +505,13 @@ class BatchedCG:
         self.columns_of.assign(columns_of)
         self.state.assign(np.where(active, CG_RUNNING, CG_CONVERGED).astype(np.int32))
         self.tolerance.assign(np.asarray(tolerance, dtype=np.float64))
-        for a in (self.iterations, self.rz, self.pap, self.rz_new, self.rr_new, self.bb, self.x):
+        for a in (self.iterations, self.rz, self.pap, self.rz_new, self.rr_new, self.bb, self.rr, self.x):
             a.zero_()
         shape = (self.columns, self.matrix.pattern.n_nodes)
-        wp.launch(
-            _cg_start,
-            shape,
-            [self.matrix.preconditioner, self.system_of, self.state, rhs, self.x, self.r, self.p, self.rz, self.bb],
-            device=device,
-        )
+        self.matrix.multiply(self.last, self.ap, self.system_of)
+        wp.launch(_cg_residual, shape, [rhs, self.ap, self.rr, self.bb], device=device)
+        starts = [self.warm, self.rr, self.bb, self.last, rhs, self.ap, self.x, self.r, self.p, self.rz]
+        wp.launch(_cg_start, shape, [self.matrix.preconditioner, self.system_of, self.state, *starts], device=device)
         bb = self.bb.numpy()
         active = np.asarray(active, dtype=bool)
         state = np.where(active & (bb > 0.0), CG_RUNNING, CG_CONVERGED)
@@ -488,4 +529,5 @@ class BatchedCG:
                 wp.capture_launch(self._graph)
             else:
                 self._iterate()
+        wp.launch(_cg_keep, shape, [self.warm, self.state, self.iterations, self.x, self.last], device=device)
         return self.x, self.iterations.numpy(), self.state.numpy()

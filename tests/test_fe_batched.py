@@ -82,6 +82,47 @@ def test_batched_cg_matches_a_direct_solve_and_flags_negative_curvature() -> Non
     assert state[2] == CG_CONVERGED and iterations[2] == 0 and not x.numpy()[2].any()
 
 
+def test_a_warm_column_starts_from_its_last_solution_when_that_is_closer() -> None:
+    """A warm CG column solves to the same tolerance from its last converged solution, in fewer iterations when
+    the right-hand side changed little, and from 0 (as a cold column) when the last solution is further away than
+    0 is; a column that did not run (inactive) keeps its last solution."""
+    rng = np.random.default_rng(5)
+    side = 24  # springs along the edges of a square grid: CG needs many iterations, far fewer than the unknowns
+    n_nodes = side * side
+    grid = np.arange(n_nodes).reshape(side, side)
+    elements = np.concatenate(
+        [np.c_[grid[:, :-1].ravel(), grid[:, 1:].ravel()], np.c_[grid[:-1].ravel(), grid[1:].ravel()]]
+    )
+    pattern = BlockPattern.from_connectivities([elements], n_nodes)
+    free = np.ones((n_nodes, 3))
+    free[0] = 0.0
+    matrix = BatchedBlockMatrix(pattern, 1, free, "cpu")
+    mat66 = wp.types.matrix(shape=(6, 6), dtype=wp.float64)
+    blocks = np.stack([[np.kron([[1.0, -1.0], [-1.0, 1.0]], np.eye(3)) + 1e-3 * np.eye(6) for _ in elements]])
+    matrix.assemble([(0, wp.array(blocks, dtype=mat66), None)], np.zeros(1))
+    warm, cold = BatchedCG(matrix, 1, warm=np.array([True])), BatchedCG(matrix, 1)
+    b = rng.standard_normal((1, n_nodes, 3)) * free
+
+    def solve(solver: BatchedCG, rhs: np.ndarray, active: bool = True) -> tuple[np.ndarray, int]:
+        x, iterations, state = solver.solve(
+            wp.array(rhs, dtype=wp.vec3d), np.zeros(1), np.array([active]), np.full(1, 1e-6), 2000
+        )
+        assert state[0] == CG_CONVERGED
+        return x.numpy()[0].copy(), int(iterations[0])
+
+    first, n_first = solve(warm, b)
+    assert n_first == solve(cold, b)[1] > 20  # nothing to start from yet: the same as cold
+    solve(warm, b, active=False)  # an inactive column keeps its last solution
+    nudged = b + 1e-5 * rng.standard_normal(b.shape) * free
+    again, n_again = solve(warm, nudged)
+    reference, n_cold = solve(cold, nudged)
+    assert n_again < n_cold / 2
+    scale = np.abs(reference).max()
+    assert np.abs(again - reference).max() <= 1e-4 * scale and np.abs(again - first).max() > 0.0
+    _, n_far = solve(warm, -10.0 * nudged)  # the last solution is further from this one than 0 is
+    assert n_far == solve(cold, -10.0 * nudged)[1]
+
+
 def _paths(model: BioTacModel) -> list:
     return [model.plan_trajectory(get_indenter(name), p, a, z, 1e-3, 1e-3) for name, p, a, z in PATHS]
 
