@@ -39,7 +39,7 @@ from fe.params import ContactSettings, NewtonSettings, SkinParameters
 from fe.shell import lumped_areas
 from fe.surface_quadrature import rule
 from fe.trapped_air import TrappedAir
-from fe.wptypes import mat99d, mat1818d, vec6i
+from fe.wptypes import launch, mat99d, mat1818d, vec6i
 
 _ENERGY_RESOLUTION = 1e-12
 LINEAR_SOLVERS = ("auto", "direct", "cg")
@@ -176,16 +176,6 @@ def _skin_values(skin: InflatedSkin) -> dict[str, float]:
         "offset": skin.indenter_half_layer,
         "layer_mu": p.long_term_fraction * p.mu_nh,
     }
-
-
-def launch(kernel: wp.Kernel, dim: tuple, values: dict, device: str) -> None:
-    """Launch `kernel` taking its arguments by name from `values` (robust to argument order); a kernel
-    argument missing from `values` is an error naming it."""
-    names = [arg.label for arg in kernel.adj.args]
-    missing = [n for n in names if n not in values]
-    if missing:
-        raise RuntimeError(f"kernel {kernel.key} takes {missing}, which fe.batched does not provide")
-    wp.launch(kernel, dim, [values[n] for n in names], device=device)
 
 
 @dataclass
@@ -340,12 +330,13 @@ class BatchedShell:
         clamped = np.broadcast_to(fixed.all(axis=1), (B, V))  # rigid on the rigid base: no core contact to find
         self._core_queried_gap = arr(np.where(clamped, np.inf, -1.0), wp.float64)  # -1: not searched yet
         if self.has_core:
-            self._core_vertices = arr(skin.core_vertices, wp.vec3d)
-            self._core_triangles = arr(skin.core_triangles.astype(np.int32), wp.vec3i)
+            self._static["core_vertices"] = arr(skin.core_vertices, wp.vec3d)
+            self._static["core_triangles"] = arr(skin.core_triangles.astype(np.int32), wp.vec3i)
             self._core_mesh = wp.Mesh(
                 points=arr(skin.core_vertices.astype(np.float32), wp.vec3),
                 indices=arr(skin.core_triangles.astype(np.int32).ravel(), wp.int32),
             )
+            self._static["core"] = self._core_mesh.id
         nt, nh = len(tri), len(stencils)
         self.x = z((B, V), wp.vec3d)
         self.x_trial = z((B, V), wp.vec3d)
@@ -436,11 +427,8 @@ class BatchedShell:
         N/m and bending rest angles shifted by (k,n_bending,3) rad (None: none)."""
         rows = np.asarray(rows)
         static, params = self._static, [self.skins[i].params for i in rows]
-        mu, kb = static["mu_t"].numpy(), static["bending_stiffness"].numpy()
-        mu[rows] = scale * np.array([p.membrane_modulus for p in params])
-        kb[rows] = scale * np.array([p.bending_stiffness for p in params])
-        static["mu_t"].assign(mu)
-        static["bending_stiffness"].assign(kb)
+        put_rows(static["mu_t"], rows, scale * np.array([p.membrane_modulus for p in params]))
+        put_rows(static["bending_stiffness"], rows, scale * np.array([p.bending_stiffness for p in params]))
         k = len(rows)
         frozen = np.zeros((k, self.n_triangles, 2, 2)) if frozen_stress is None else frozen_stress
         shift = np.zeros((k, self.n_bending, 3)) if angle_shift is None else angle_shift
@@ -499,36 +487,18 @@ class BatchedShell:
         for name in ("volume_gradient", "core_energy", "core_hessian", "indenter_energy", "indenter_hessian"):
             buf[name].zero_()
         buf["indenter_vertex_force"].zero_()
-        flag = 1 if want_hessian else 0
-        common = {**self._static, "x": x, "want_hessian": flag, "active": self._active}
-        elastic = self.gradients[0]
-        nt, nh = buf["membrane_energy"].shape[1], buf["bending_energy"].shape[1]
-        launch(
-            membrane.membrane_kernel,
-            (B, nt),
-            {**common, "energy": buf["membrane_energy"], "gradient": elastic, "hessian": buf["membrane_hessian"]},
-            dev,
-        )
-        if nh:
-            launch(
-                bending.bending_kernel,
-                (B, nh),
-                {**common, "rest_area": self._static["bend_area"], "energy": buf["bending_energy"]}
-                | {"gradient": elastic, "hessian": buf["bending_hessian"]},
-                dev,
-            )
-        launch(
-            volume.volume_kernel,
-            (B, nt),
-            {**common, "volume": buf["volume"], "gradient": buf["volume_gradient"], "hessian": buf["volume_hessian"]},
-            dev,
-        )
+        common = {"x": x, "want_hessian": 1 if want_hessian else 0, "active": self._active}
+        elastic, nt = self.gradients[0], self.n_triangles
+        outputs = {"energy": buf["membrane_energy"], "gradient": elastic, "hessian": buf["membrane_hessian"]}
+        self._launch(membrane.membrane_kernel, nt, common | outputs)
+        if self.n_bending:
+            outputs = {"energy": buf["bending_energy"], "gradient": elastic, "hessian": buf["bending_hessian"]}
+            self._launch(bending.bending_kernel, self.n_bending, common | outputs)
+        outputs = {"volume": buf["volume"], "gradient": buf["volume_gradient"], "hessian": buf["volume_hessian"]}
+        self._launch(volume.volume_kernel, nt, common | outputs)
         if self.has_core:
             core = {
                 **common,
-                "core": self._core_mesh.id,
-                "core_vertices": self._core_vertices,
-                "core_triangles": self._core_triangles,
                 "offset": wp.float64(self.skin.core_offset),
                 "energy": buf["core_energy"],
                 "gradient": self.gradients[1],
@@ -537,7 +507,7 @@ class BatchedShell:
                 "queried_at": self._core_queried_at,
                 "queried_gap": self._core_queried_gap,
             }
-            launch(contact.core_contact_kernel, (B, V), core, dev)
+            self._launch(contact.core_contact_kernel, V, core)
         surface = {
             "face_energy": buf["indenter_face_energy"],
             "gradient": self.gradients[2],
@@ -545,7 +515,7 @@ class BatchedShell:
             "face_gap": buf["indenter_face_gap"],
             "vertex_force": buf["indenter_vertex_force"],
         }
-        self._launch_faces(contact.indenter_surface_kernel, {**common, **surface})
+        self._launch(contact.indenter_surface_kernel, nt, common | surface)
         friction = {
             "x_start": self.x_start,
             "lagged_force": self.lagged_force,
@@ -556,7 +526,7 @@ class BatchedShell:
             "gap": buf["indenter_gap"],
             "normal": buf["indenter_normal"],
         }
-        self._launch_indenters(contact.indenter_friction_kernel, {**common, **friction})
+        self._launch(contact.indenter_friction_kernel, V, common | friction)
         self._totals.zero_()  # per system: volume (m^3) and energy (J), summed on the device, fetched once
         longest = max(buf[name].shape[1] for name in _TOTALS)
         launch(bk.totals, (B, longest), {**buf, "out": self._totals, "active": self._active}, dev)
@@ -592,10 +562,10 @@ class BatchedShell:
         contact at either (`fe.contact.indenter_face_gap_kernel`), for the systems `rows` (k,) (the shell's
         gap buffers then hold all B systems' values)."""
         buf = self.buf
-        values = {**self._static, "x": x, "gap": buf["indenter_gap"], "normal": buf["indenter_normal"]}
-        self._launch_indenters(contact.indenter_gap_kernel, values)
+        values = {"x": x, "gap": buf["indenter_gap"], "normal": buf["indenter_normal"]}
+        self._launch(contact.indenter_gap_kernel, self.n_vertices, values)
         values |= {"face_gap": buf["indenter_face_gap"], "face_moved": buf["indenter_face_moved"]}
-        self._launch_faces(contact.indenter_face_gap_kernel, values)
+        self._launch(contact.indenter_face_gap_kernel, self.n_triangles, values)
         face_gap = get_rows(buf["indenter_face_gap"], rows).min(axis=1)
         moved = get_rows(buf["indenter_face_moved"], rows).max(axis=1)
         return get_rows(buf["indenter_gap"], rows), get_rows(buf["indenter_normal"], rows), face_gap, moved
@@ -607,8 +577,7 @@ class BatchedShell:
         +inf for the other systems."""
         clearance = wp.full(self.batch, np.inf, dtype=wp.float64, device=self.device)
         values = {"parts": parts, "clearance": clearance, "floor": self._per_system("floor", floor)}
-        values |= {"core_vertices": self._core_vertices, "core_triangles": self._core_triangles}
-        self._launch_indenters(contact.indenter_clearance_kernel, values | {"active": self._flags(which)}, len(parts))
+        self._launch(contact.indenter_clearance_kernel, len(parts), values | {"active": self._flags(which)})
         return clearance.numpy()
 
     def indenter_skin_clearance(
@@ -620,20 +589,17 @@ class BatchedShell:
         (`fe.contact.indenter_skin_clearance_kernel`), a lower bound at least `floor` elsewhere; +inf for the
         other systems."""
         clearance = wp.full((self.batch, self.n_triangles), np.inf, dtype=wp.float64, device=self.device)
-        values = {"clearance": clearance, "x": x, "triangles": self._static["triangles"]}
+        values = {"clearance": clearance, "x": x, "active": self._flags(which)}
         values |= {"spacing": self._per_system("spacing", spacing), "floor": self._per_system("floor", floor)}
-        self._launch_faces(contact.indenter_skin_clearance_kernel, values | {"active": self._flags(which)})
+        self._launch(contact.indenter_skin_clearance_kernel, self.n_triangles, values)
         return clearance.numpy()
 
-    def _launch_indenters(self, kernel: wp.Kernel, values: dict, count: int | None = None) -> None:
-        """One launch of an indenter kernel for every system and each of `count` items (default the skin's
-        vertices), each system with its own indenter shape and pose."""
-        values = {**values, **self.pose, "kind": self._kind, "dims": self._dims}
-        launch(kernel, (self.batch, self.n_vertices if count is None else count), values, self.device)
-
-    def _launch_faces(self, kernel: wp.Kernel, values: dict) -> None:
-        """`_launch_indenters` over the skin's triangles instead of its vertices."""
-        self._launch_indenters(kernel, values, self.n_triangles)
+    def _launch(self, kernel: wp.Kernel, count: int, values: dict) -> None:
+        """One launch of `kernel` for every system and each of `count` items (skin vertices, triangles, ...),
+        taking its arguments by name from `values`, else from the shell's per-system and mesh data (`_static`)
+        and each system's own indenter shape and pose."""
+        values = {**self._static, **self.pose, "kind": self._kind, "dims": self._dims, **values}
+        launch(kernel, (self.batch, count), values, self.device)
 
     # -- Newton ------------------------------------------------------------------------------------
     def lag_contact(self, x: wp.array, mask: np.ndarray) -> np.ndarray:
@@ -643,9 +609,9 @@ class BatchedShell:
         force = self._lag_buf["vertex_force"]
         force.zero_()
         self._lag_buf["gradient"].zero_()
-        surface = {**self._static, **self._lag_buf, "x": x, "want_hessian": 0, "active": self._flags(mask)}
+        surface = {**self._lag_buf, "x": x, "want_hessian": 0, "active": self._flags(mask)}
         surface["face_hessian"] = self.buf["membrane_hessian"]  # not written: want_hessian 0
-        self._launch_faces(contact.indenter_surface_kernel, surface)
+        self._launch(contact.indenter_surface_kernel, self.n_triangles, surface)
         self._stats.zero_()
         values = {"vertex_force": force, "lagged_force": self.lagged_force, "candidate": self._candidate}
         values |= {"candidate_normal": self._candidate_normal, "stats": self._stats}
@@ -664,9 +630,8 @@ class BatchedShell:
         state.pressure[which] = np.asarray(pressure, dtype=np.float64)[which]
         state.running |= which
         names = ("converged", "failed", "refreshed", "iterations", "passes", "last_eta", "phase", "step", "dp")
-        for name in (*names, "factorized", "chord_failed", "has_hessian"):
+        for name in (*names, "attempt", "factorized", "chord_failed", "has_hessian"):
             getattr(state, name)[which] = 0
-        state.attempt[which] = 0
         state.last_residual[which] = np.nan
         for i in np.flatnonzero(which):
             state.message[i] = ""

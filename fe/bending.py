@@ -103,7 +103,7 @@ def bending_kernel(
     stencils: wp.array(dtype=vec6i),
     has_edge: wp.array(dtype=wp.vec3i),
     rest_angle: wp.array2d(dtype=wp.vec3d),
-    rest_area: wp.array(dtype=wp.float64),
+    bend_area: wp.array(dtype=wp.float64),
     coupling: wp.array(dtype=wp.mat33d),
     bending_stiffness: wp.array(dtype=wp.float64),
     want_hessian: int,
@@ -118,7 +118,7 @@ def bending_kernel(
         return
     nodes = stencils[t]
     present = has_edge[t]
-    k = bending_stiffness[b] * rest_area[t]
+    k = bending_stiffness[b] * bend_area[t]
     m = coupling[t]
     dtheta = wp.vec3d()
     jac = mat318d()
