@@ -39,7 +39,7 @@ from fe.params import ContactSettings, NewtonSettings, SkinParameters
 from fe.shell import lumped_areas
 from fe.surface_quadrature import rule
 from fe.trapped_air import TrappedAir
-from fe.wptypes import mat99d, mat1818d, vec6i
+from fe.wptypes import launch, mat99d, mat1818d, vec6i
 
 _ENERGY_RESOLUTION = 1e-12
 LINEAR_SOLVERS = ("auto", "direct", "cg")
@@ -176,16 +176,6 @@ def _skin_values(skin: InflatedSkin) -> dict[str, float]:
         "offset": skin.indenter_half_layer,
         "layer_mu": p.long_term_fraction * p.mu_nh,
     }
-
-
-def launch(kernel: wp.Kernel, dim: tuple, values: dict, device: str) -> None:
-    """Launch `kernel` taking its arguments by name from `values` (robust to argument order); a kernel
-    argument missing from `values` is an error naming it."""
-    names = [arg.label for arg in kernel.adj.args]
-    missing = [n for n in names if n not in values]
-    if missing:
-        raise RuntimeError(f"kernel {kernel.key} takes {missing}, which fe.batched does not provide")
-    wp.launch(kernel, dim, [values[n] for n in names], device=device)
 
 
 @dataclass
@@ -330,22 +320,23 @@ class BatchedShell:
             "quadrature": arr(rule(cs.surface_rule), wp.vec4d),
             "slip_eps": wp.float64(cs.slip_length),
             "origin": wp.vec3d(*skin.volume_origin),
+            "core_offset": wp.float64(skin.core_offset),
+            "free": arr(self.free, wp.vec3d),
         }
         values = [_skin_values(s) for s in self.skins]
         self._static |= {name: per_batch([v[name] for v in values]) for name in values[0]}
         self._core_mesh = None
         self.has_core = bool(len(skin.core_triangles))
         """Whether the skin has a rigid core (the core gaps in `buf["core_gap"]` mean something)."""
-        self._core_queried_at = z((B, V), wp.vec3d)
         clamped = np.broadcast_to(fixed.all(axis=1), (B, V))  # rigid on the rigid base: no core contact to find
-        self._core_queried_gap = arr(np.where(clamped, np.inf, -1.0), wp.float64)  # -1: not searched yet
         if self.has_core:
-            self._core_vertices = arr(skin.core_vertices, wp.vec3d)
-            self._core_triangles = arr(skin.core_triangles.astype(np.int32), wp.vec3i)
+            self._static["core_vertices"] = arr(skin.core_vertices, wp.vec3d)
+            self._static["core_triangles"] = arr(skin.core_triangles.astype(np.int32), wp.vec3i)
             self._core_mesh = wp.Mesh(
                 points=arr(skin.core_vertices.astype(np.float32), wp.vec3),
                 indices=arr(skin.core_triangles.astype(np.int32).ravel(), wp.int32),
             )
+            self._static["core"] = self._core_mesh.id
         nt, nh = len(tri), len(stencils)
         self.x = z((B, V), wp.vec3d)
         self.x_trial = z((B, V), wp.vec3d)
@@ -354,6 +345,11 @@ class BatchedShell:
         self.lagged_normal = z((B, V), wp.vec3d)
         self.gradients = z((3, B, V), wp.vec3d)  # elastic, core, indenter
         self.buf = {
+            "elastic_gradient": self.gradients[0],
+            "core_gradient": self.gradients[1],
+            "indenter_gradient": self.gradients[2],
+            "queried_at": z((B, V), wp.vec3d),
+            "queried_gap": arr(np.where(clamped, np.inf, -1.0), wp.float64),  # -1: not searched yet
             "membrane_energy": z((B, nt), wp.float64),
             "membrane_hessian": z((B, nt), mat99d),
             "bending_energy": z((B, nh), wp.float64),
@@ -373,11 +369,13 @@ class BatchedShell:
             "indenter_face_moved": z((B, nt), wp.float64),
             "indenter_vertex_force": z((B, V), wp.vec3d),
         }
+        """What the energy kernels write (and the core search's memory), each under the name of its kernel
+        argument (`_launch`)."""
         self._lag_buf = {
-            "face_energy": z((B, nt), wp.float64),
-            "gradient": z((B, V), wp.vec3d),
-            "face_gap": z((B, nt), wp.float64),
-            "vertex_force": z((B, V), wp.vec3d),
+            "indenter_face_energy": z((B, nt), wp.float64),
+            "indenter_gradient": z((B, V), wp.vec3d),
+            "indenter_face_gap": z((B, nt), wp.float64),
+            "indenter_vertex_force": z((B, V), wp.vec3d),
         }
         """Scratch outputs of the surface contact evaluated for the friction lagging (`lag_contact`), so that
         it leaves the last evaluation's buffers as they are."""
@@ -409,7 +407,6 @@ class BatchedShell:
         sparse direct per system on the CPU (host assembly); both `assemble`, `multiply` and `solve`. The CG
         starts K u2 = grad V (the smooth field block Jacobi converges slowest on, ~230 iterations at 0.5 mm
         edges against ~40 for K u1 = -r) from the system's last u2, which the next Newton step barely moves."""
-        self._free_w = arr(self.free, wp.vec3d)
         self._system_of = np.concatenate([np.arange(B), np.arange(B)]).astype(np.int32)
         self._system_of_b = wp.array(np.arange(B, dtype=np.int32), dtype=wp.int32, device=device)
         self._active = z(B, wp.int32)
@@ -436,11 +433,8 @@ class BatchedShell:
         N/m and bending rest angles shifted by (k,n_bending,3) rad (None: none)."""
         rows = np.asarray(rows)
         static, params = self._static, [self.skins[i].params for i in rows]
-        mu, kb = static["mu_t"].numpy(), static["bending_stiffness"].numpy()
-        mu[rows] = scale * np.array([p.membrane_modulus for p in params])
-        kb[rows] = scale * np.array([p.bending_stiffness for p in params])
-        static["mu_t"].assign(mu)
-        static["bending_stiffness"].assign(kb)
+        put_rows(static["mu_t"], rows, scale * np.array([p.membrane_modulus for p in params]))
+        put_rows(static["bending_stiffness"], rows, scale * np.array([p.bending_stiffness for p in params]))
         k = len(rows)
         frozen = np.zeros((k, self.n_triangles, 2, 2)) if frozen_stress is None else frozen_stress
         shift = np.zeros((k, self.n_bending, 3)) if angle_shift is None else angle_shift
@@ -491,7 +485,7 @@ class BatchedShell:
         free-DOF residual at `pressure` (B,) Pa (in `self.residual`, with grad E in `self.gradient` and grad V
         in `self.bvec`). The kernels skip the other systems: their scalars come back 0 and their gradients
         0, their Hessians and residual rows are left as they were."""
-        B, V, buf, dev = self.batch, self.n_vertices, self.buf, self.device
+        B, V, buf = self.batch, self.n_vertices, self.buf
         start = time.perf_counter()
         active = np.ones(B, dtype=bool) if which is None else np.asarray(which, dtype=bool)
         self._active.assign(active.astype(np.int32))
@@ -499,84 +493,22 @@ class BatchedShell:
         for name in ("volume_gradient", "core_energy", "core_hessian", "indenter_energy", "indenter_hessian"):
             buf[name].zero_()
         buf["indenter_vertex_force"].zero_()
-        flag = 1 if want_hessian else 0
-        common = {**self._static, "x": x, "want_hessian": flag, "active": self._active}
-        elastic = self.gradients[0]
-        nt, nh = buf["membrane_energy"].shape[1], buf["bending_energy"].shape[1]
-        launch(
-            membrane.membrane_kernel,
-            (B, nt),
-            {**common, "energy": buf["membrane_energy"], "gradient": elastic, "hessian": buf["membrane_hessian"]},
-            dev,
-        )
-        if nh:
-            launch(
-                bending.bending_kernel,
-                (B, nh),
-                {**common, "rest_area": self._static["bend_area"], "energy": buf["bending_energy"]}
-                | {"gradient": elastic, "hessian": buf["bending_hessian"]},
-                dev,
-            )
-        launch(
-            volume.volume_kernel,
-            (B, nt),
-            {**common, "volume": buf["volume"], "gradient": buf["volume_gradient"], "hessian": buf["volume_hessian"]},
-            dev,
-        )
+        common = {"x": x, "want_hessian": 1 if want_hessian else 0, "active": self._active}
+        self._launch(membrane.membrane_kernel, self.n_triangles, common)
+        if self.n_bending:
+            self._launch(bending.bending_kernel, self.n_bending, common)
+        self._launch(volume.volume_kernel, self.n_triangles, common)
         if self.has_core:
-            core = {
-                **common,
-                "core": self._core_mesh.id,
-                "core_vertices": self._core_vertices,
-                "core_triangles": self._core_triangles,
-                "offset": wp.float64(self.skin.core_offset),
-                "energy": buf["core_energy"],
-                "gradient": self.gradients[1],
-                "hessian": buf["core_hessian"],
-                "gap": buf["core_gap"],
-                "queried_at": self._core_queried_at,
-                "queried_gap": self._core_queried_gap,
-            }
-            launch(contact.core_contact_kernel, (B, V), core, dev)
-        surface = {
-            "face_energy": buf["indenter_face_energy"],
-            "gradient": self.gradients[2],
-            "face_hessian": buf["membrane_hessian"],
-            "face_gap": buf["indenter_face_gap"],
-            "vertex_force": buf["indenter_vertex_force"],
-        }
-        self._launch_faces(contact.indenter_surface_kernel, {**common, **surface})
-        friction = {
-            "x_start": self.x_start,
-            "lagged_force": self.lagged_force,
-            "lagged_normal": self.lagged_normal,
-            "energy": buf["indenter_energy"],
-            "gradient": self.gradients[2],
-            "hessian": buf["indenter_hessian"],
-            "gap": buf["indenter_gap"],
-            "normal": buf["indenter_normal"],
-        }
-        self._launch_indenters(contact.indenter_friction_kernel, {**common, **friction})
+            self._launch(contact.core_contact_kernel, V, common)
+        self._launch(contact.indenter_surface_kernel, self.n_triangles, common)
+        friction = {"x_start": self.x_start, "lagged_force": self.lagged_force, "lagged_normal": self.lagged_normal}
+        self._launch(contact.indenter_friction_kernel, V, common | friction)
         self._totals.zero_()  # per system: volume (m^3) and energy (J), summed on the device, fetched once
-        longest = max(buf[name].shape[1] for name in _TOTALS)
-        launch(bk.totals, (B, longest), {**buf, "out": self._totals, "active": self._active}, dev)
+        self._launch(bk.totals, max(buf[name].shape[1] for name in _TOTALS), common | {"out": self._totals})
         self._stats.zero_()
-        launch(
-            bk.free_residual,
-            (B, V),
-            {
-                "gradients": self.gradients,
-                "volume_gradient": buf["volume_gradient"],
-                "pressure": self._per_system("pressure", pressure),
-                "free": self._free_w,
-                "residual": self.residual,
-                "gradient": self.gradient,
-                "bvec": self.bvec,
-                "stats": self._stats,
-                "active": self._active,
-            },
-            dev,
-        )
+        outputs = {"residual": self.residual, "gradient": self.gradient, "bvec": self.bvec, "stats": self._stats}
+        outputs |= {"gradients": self.gradients, "pressure": self._per_system("pressure", pressure)}
+        self._launch(bk.free_residual, V, common | outputs)
         stats, totals = self._stats.numpy(), self._totals.numpy()
         self.counters["evaluations"] += 1
         self.counters["evaluate_s"] += time.perf_counter() - start
@@ -592,10 +524,8 @@ class BatchedShell:
         contact at either (`fe.contact.indenter_face_gap_kernel`), for the systems `rows` (k,) (the shell's
         gap buffers then hold all B systems' values)."""
         buf = self.buf
-        values = {**self._static, "x": x, "gap": buf["indenter_gap"], "normal": buf["indenter_normal"]}
-        self._launch_indenters(contact.indenter_gap_kernel, values)
-        values |= {"face_gap": buf["indenter_face_gap"], "face_moved": buf["indenter_face_moved"]}
-        self._launch_faces(contact.indenter_face_gap_kernel, values)
+        self._launch(contact.indenter_gap_kernel, self.n_vertices, {"x": x})
+        self._launch(contact.indenter_face_gap_kernel, self.n_triangles, {"x": x})
         face_gap = get_rows(buf["indenter_face_gap"], rows).min(axis=1)
         moved = get_rows(buf["indenter_face_moved"], rows).max(axis=1)
         return get_rows(buf["indenter_gap"], rows), get_rows(buf["indenter_normal"], rows), face_gap, moved
@@ -607,8 +537,7 @@ class BatchedShell:
         +inf for the other systems."""
         clearance = wp.full(self.batch, np.inf, dtype=wp.float64, device=self.device)
         values = {"parts": parts, "clearance": clearance, "floor": self._per_system("floor", floor)}
-        values |= {"core_vertices": self._core_vertices, "core_triangles": self._core_triangles}
-        self._launch_indenters(contact.indenter_clearance_kernel, values | {"active": self._flags(which)}, len(parts))
+        self._launch(contact.indenter_clearance_kernel, len(parts), values | {"active": self._flags(which)})
         return clearance.numpy()
 
     def indenter_skin_clearance(
@@ -620,32 +549,28 @@ class BatchedShell:
         (`fe.contact.indenter_skin_clearance_kernel`), a lower bound at least `floor` elsewhere; +inf for the
         other systems."""
         clearance = wp.full((self.batch, self.n_triangles), np.inf, dtype=wp.float64, device=self.device)
-        values = {"clearance": clearance, "x": x, "triangles": self._static["triangles"]}
+        values = {"clearance": clearance, "x": x, "active": self._flags(which)}
         values |= {"spacing": self._per_system("spacing", spacing), "floor": self._per_system("floor", floor)}
-        self._launch_faces(contact.indenter_skin_clearance_kernel, values | {"active": self._flags(which)})
+        self._launch(contact.indenter_skin_clearance_kernel, self.n_triangles, values)
         return clearance.numpy()
 
-    def _launch_indenters(self, kernel: wp.Kernel, values: dict, count: int | None = None) -> None:
-        """One launch of an indenter kernel for every system and each of `count` items (default the skin's
-        vertices), each system with its own indenter shape and pose."""
-        values = {**values, **self.pose, "kind": self._kind, "dims": self._dims}
-        launch(kernel, (self.batch, self.n_vertices if count is None else count), values, self.device)
-
-    def _launch_faces(self, kernel: wp.Kernel, values: dict) -> None:
-        """`_launch_indenters` over the skin's triangles instead of its vertices."""
-        self._launch_indenters(kernel, values, self.n_triangles)
+    def _launch(self, kernel: wp.Kernel, count: int, values: dict) -> None:
+        """One launch of `kernel` for every system and each of `count` items (skin vertices, triangles, ...),
+        taking its arguments by name from `values`, else from the shell's per-system and mesh data (`_static`),
+        its buffers (`buf`) and each system's own indenter shape and pose."""
+        values = {**self._static, **self.buf, **self.pose, "kind": self._kind, "dims": self._dims, **values}
+        launch(kernel, (self.batch, count), values, self.device)
 
     # -- Newton ------------------------------------------------------------------------------------
     def lag_contact(self, x: wp.array, mask: np.ndarray) -> np.ndarray:
         """Refresh the lagged friction forces and normals of the masked systems from positions x where they
         changed by more than the friction tolerance (per vertex: the surface contact's forces at x lumped to
         it, `fe.contact.lag_candidates`); returns which systems changed ((B,) bool)."""
-        force = self._lag_buf["vertex_force"]
+        force = self._lag_buf["indenter_vertex_force"]
         force.zero_()
-        self._lag_buf["gradient"].zero_()
-        surface = {**self._static, **self._lag_buf, "x": x, "want_hessian": 0, "active": self._flags(mask)}
-        surface["face_hessian"] = self.buf["membrane_hessian"]  # not written: want_hessian 0
-        self._launch_faces(contact.indenter_surface_kernel, surface)
+        self._lag_buf["indenter_gradient"].zero_()
+        surface = {**self._lag_buf, "x": x, "want_hessian": 0, "active": self._flags(mask)}  # no Hessian written
+        self._launch(contact.indenter_surface_kernel, self.n_triangles, surface)
         self._stats.zero_()
         values = {"vertex_force": force, "lagged_force": self.lagged_force, "candidate": self._candidate}
         values |= {"candidate_normal": self._candidate_normal, "stats": self._stats}
@@ -664,9 +589,8 @@ class BatchedShell:
         state.pressure[which] = np.asarray(pressure, dtype=np.float64)[which]
         state.running |= which
         names = ("converged", "failed", "refreshed", "iterations", "passes", "last_eta", "phase", "step", "dp")
-        for name in (*names, "factorized", "chord_failed", "has_hessian"):
+        for name in (*names, "attempt", "factorized", "chord_failed", "has_hessian"):
             getattr(state, name)[which] = 0
-        state.attempt[which] = 0
         state.last_residual[which] = np.nan
         for i in np.flatnonzero(which):
             state.message[i] = ""

@@ -103,13 +103,13 @@ def bending_kernel(
     stencils: wp.array(dtype=vec6i),
     has_edge: wp.array(dtype=wp.vec3i),
     rest_angle: wp.array2d(dtype=wp.vec3d),
-    rest_area: wp.array(dtype=wp.float64),
+    bend_area: wp.array(dtype=wp.float64),
     coupling: wp.array(dtype=wp.mat33d),
     bending_stiffness: wp.array(dtype=wp.float64),
     want_hessian: int,
-    energy: wp.array2d(dtype=wp.float64),
-    gradient: wp.array2d(dtype=wp.vec3d),
-    hessian: wp.array2d(dtype=mat1818d),
+    bending_energy: wp.array2d(dtype=wp.float64),
+    elastic_gradient: wp.array2d(dtype=wp.vec3d),
+    bending_hessian: wp.array2d(dtype=mat1818d),
     active: wp.array(dtype=wp.int32),
 ):
     """Energy, gradient (scattered to the 6 stencil nodes) and 18x18 Hessian per (batch, triangle)."""
@@ -118,7 +118,7 @@ def bending_kernel(
         return
     nodes = stencils[t]
     present = has_edge[t]
-    k = bending_stiffness[b] * rest_area[t]
+    k = bending_stiffness[b] * bend_area[t]
     m = coupling[t]
     dtheta = wp.vec3d()
     jac = mat318d()
@@ -131,12 +131,12 @@ def bending_kernel(
             for j in range(12):
                 jac[i, 3 * s[j // 3] + j % 3] = g[j]
     lam = (m @ dtheta) * k  # dE / dtheta_i
-    energy[b, t] = wp.float64(0.5) * wp.dot(dtheta, lam)
+    bending_energy[b, t] = wp.float64(0.5) * wp.dot(dtheta, lam)
     for slot in range(6):
         f = wp.vec3d()
         for d in range(3):
             f[d] = lam[0] * jac[0, 3 * slot + d] + lam[1] * jac[1, 3 * slot + d] + lam[2] * jac[2, 3 * slot + d]
-        wp.atomic_add(gradient, b, nodes[slot], f)
+        wp.atomic_add(elastic_gradient, b, nodes[slot], f)
     if want_hessian != 0:
         # Gauss-Newton part k jac^T M jac, through w = k M jac (M symmetric).
         w = mat318d()
@@ -168,7 +168,7 @@ def bending_kernel(
                 avg = wp.float64(0.5) * (H[r, c] + H[c, r])
                 H[r, c] = avg
                 H[c, r] = avg
-        hessian[b, t] = H
+        bending_hessian[b, t] = H
 
 
 def build_stencils(triangles: np.ndarray) -> tuple[np.ndarray, np.ndarray]:

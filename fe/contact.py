@@ -148,19 +148,19 @@ def core_contact_kernel(
     core_vertices: wp.array(dtype=wp.vec3d),
     core_triangles: wp.array(dtype=wp.vec3i),
     vertex_area: wp.array(dtype=wp.float64),
-    offset: wp.float64,
+    core_offset: wp.float64,
     kappa: wp.float64,
     layer_mu: wp.array(dtype=wp.float64),
     min_stretch: wp.float64,
-    energy: wp.array2d(dtype=wp.float64),
-    gradient: wp.array2d(dtype=wp.vec3d),
-    hessian: wp.array2d(dtype=wp.mat33d),
-    gap: wp.array2d(dtype=wp.float64),
+    core_energy: wp.array2d(dtype=wp.float64),
+    core_gradient: wp.array2d(dtype=wp.vec3d),
+    core_hessian: wp.array2d(dtype=wp.mat33d),
+    core_gap: wp.array2d(dtype=wp.float64),
     queried_at: wp.array2d(dtype=wp.vec3d),
     queried_gap: wp.array2d(dtype=wp.float64),
     active: wp.array(dtype=wp.int32),
 ):
-    """Frictionless contact of skin vertex v with the core mesh: the inner half-layer (thickness `offset` m)
+    """Frictionless contact of skin vertex v with the core mesh: the inner half-layer (thickness `core_offset` m)
     squeezed by the `layer_response` law (modulus layer_mu[b] Pa).
 
     The closest-face search looks within offset + 1 mm of the core first (a small radius prunes the BVH
@@ -179,24 +179,24 @@ def core_contact_kernel(
         return
     p = x[b, v]
     zero = wp.float64(0.0)
-    energy[b, v] = zero
-    hessian[b, v] = wp.mat33d()
+    core_energy[b, v] = zero
+    core_hessian[b, v] = wp.mat33d()
     bound = queried_gap[b, v] - wp.length(p - queried_at[b, v])
     if bound > zero:
-        gap[b, v] = bound
+        core_gap[b, v] = bound
         return
-    reach = wp.float32(offset) + wp.float32(1.0e-3)
+    reach = wp.float32(core_offset) + wp.float32(1.0e-3)
     dn = core_distance(core, core_vertices, core_triangles, p, reach)
-    g = dn[0] - offset
+    g = dn[0] - core_offset
     queried_at[b, v] = p
     queried_gap[b, v] = g  # exact: a bound for the skip only where positive (outside the core)
-    gap[b, v] = g
+    core_gap[b, v] = g
     if g >= zero:
         return
     n = wp.vec3d(dn[1], dn[2], dn[3])
-    law = layer_response(g, offset, layer_mu[b], vertex_area[v], kappa, min_stretch)
-    energy[b, v] = law[0]
-    wp.atomic_add(gradient, b, v, n * law[1])
+    law = layer_response(g, core_offset, layer_mu[b], vertex_area[v], kappa, min_stretch)
+    core_energy[b, v] = law[0]
+    wp.atomic_add(core_gradient, b, v, n * law[1])
     h = wp.float64(1e-9)
     curv = wp.mat33d()
     for j in range(3):
@@ -207,7 +207,7 @@ def core_contact_kernel(
         for i in range(3):
             curv[i, j] = (plus[i + 1] - minus[i + 1]) / (wp.float64(2.0) * h)
     curv = wp.float64(0.5) * (curv + wp.transpose(curv))
-    hessian[b, v] = law[2] * wp.outer(n, n) + law[1] * curv
+    core_hessian[b, v] = law[2] * wp.outer(n, n) + law[1] * curv
 
 
 @wp.func
@@ -288,22 +288,22 @@ def indenter_surface_kernel(
     layer_mu: wp.array(dtype=wp.float64),
     min_stretch: wp.float64,
     want_hessian: int,
-    face_energy: wp.array2d(dtype=wp.float64),
-    gradient: wp.array2d(dtype=wp.vec3d),
-    face_hessian: wp.array2d(dtype=mat99d),
-    face_gap: wp.array2d(dtype=wp.float64),
-    vertex_force: wp.array2d(dtype=wp.vec3d),
+    indenter_face_energy: wp.array2d(dtype=wp.float64),
+    indenter_gradient: wp.array2d(dtype=wp.vec3d),
+    membrane_hessian: wp.array2d(dtype=mat99d),
+    indenter_face_gap: wp.array2d(dtype=wp.float64),
+    indenter_vertex_force: wp.array2d(dtype=wp.vec3d),
     active: wp.array(dtype=wp.int32),
 ):
     """Normal contact of skin triangle f with the indenter of batch b (the outer half-layer, thickness
     offset[b] m, squeezed by the `layer_response` law), integrated over the triangle: at each quadrature
     point q (barycentric N_i, weight w_q of the reference area A_f) the law of area w_q A_f at the point's
     gap, energy summed per face, gradient N_i psi' n to the nodes (and the force -N_i psi' n to
-    `vertex_force`, for the friction lagging), 9x9 Hessian blocks N_i N_j (psi'' n n^T + psi' d2g/dx2) added
-    to the triangle's block in `face_hessian` (the membrane's, written before: no block of its own to
+    `indenter_vertex_force`, for the friction lagging), 9x9 Hessian blocks N_i N_j (psi'' n n^T + psi' d2g/dx2)
+    added to the triangle's block in `membrane_hessian` (the membrane's, written before: no block of its own to
     assemble, and nothing written for a triangle out of contact). A face whose SDF lower bound
-    (`_triangle_bound`) clears the layer is skipped (its `face_gap` is that bound); otherwise `face_gap` is
-    its smallest gap (m) over the quadrature points."""
+    (`_triangle_bound`) clears the layer is skipped (its `indenter_face_gap` is that bound); otherwise that is its
+    smallest gap (m) over the quadrature points."""
     b, f = wp.tid()
     if active[b] == 0:  # a system left out of this evaluation: nothing is written for it
         return
@@ -317,10 +317,10 @@ def indenter_surface_kernel(
     size = dims[b]
     h = offset[b]
     zero = wp.float64(0.0)
-    face_energy[b, f] = zero
+    indenter_face_energy[b, f] = zero
     bound = _triangle_bound(shape, size, R, t, h, p0, p1, p2)
     if bound > zero:
-        face_gap[b, f] = bound
+        indenter_face_gap[b, f] = bound
         return
     H = mat99d()
     e = zero
@@ -342,14 +342,14 @@ def indenter_surface_kernel(
                 for i in range(3):
                     for j in range(3):
                         H = add_block(H, i, j, q[i] * q[j] * K)
-    face_energy[b, f] = e
-    face_gap[b, f] = least
+    indenter_face_energy[b, f] = e
+    indenter_face_gap[b, f] = least
     if least < zero:
         if want_hessian != 0:
-            face_hessian[b, f] = face_hessian[b, f] + H
+            membrane_hessian[b, f] = membrane_hessian[b, f] + H
         for i in range(3):
-            wp.atomic_add(gradient, b, tri[i], nodal[i])
-            wp.atomic_sub(vertex_force, b, tri[i], nodal[i])
+            wp.atomic_add(indenter_gradient, b, tri[i], nodal[i])
+            wp.atomic_sub(indenter_vertex_force, b, tri[i], nodal[i])
 
 
 @wp.kernel
@@ -364,15 +364,15 @@ def indenter_face_gap_kernel(
     rotation_start: wp.array(dtype=wp.mat33d),
     translation_start: wp.array(dtype=wp.vec3d),
     offset: wp.array(dtype=wp.float64),
-    face_gap: wp.array2d(dtype=wp.float64),
-    face_moved: wp.array2d(dtype=wp.float64),
+    indenter_face_gap: wp.array2d(dtype=wp.float64),
+    indenter_face_moved: wp.array2d(dtype=wp.float64),
 ):
-    """face_gap[b, f] (m): the smallest gap over the quadrature points of skin triangle f to the indenter of
-    batch b at its pose (rotation, translation), as `indenter_surface_kernel` reports it: `_triangle_bound`
-    where that is positive. face_moved[b, f] (m): the largest change of a quadrature point's gap
-    (`indenter_gap_and_normal`) on the triangle, fixed at x[b], as the indenter moves from pose
-    (rotation_start, translation_start) to (rotation, translation), among the points in contact at either
-    pose (0 where the triangle clears the layer at both, `_triangle_bound`)."""
+    """indenter_face_gap[b, f] (m): the smallest gap over the quadrature points of skin triangle f to the
+    indenter of batch b at its pose (rotation, translation), as `indenter_surface_kernel` reports it:
+    `_triangle_bound` where that is positive. indenter_face_moved[b, f] (m): the largest change of a
+    quadrature point's gap (`indenter_gap_and_normal`) on the triangle, fixed at x[b], as the indenter moves
+    from pose (rotation_start, translation_start) to (rotation, translation), among the points in contact at
+    either pose (0 where the triangle clears the layer at both, `_triangle_bound`)."""
     b, f = wp.tid()
     tri = triangles[f]
     p0 = x[b, tri[0]]
@@ -400,8 +400,8 @@ def indenter_face_gap_kernel(
                 largest = wp.max(largest, wp.abs(now - before))
         if bound <= zero:
             least = nearest
-    face_gap[b, f] = least
-    face_moved[b, f] = largest
+    indenter_face_gap[b, f] = least
+    indenter_face_moved[b, f] = largest
 
 
 @wp.kernel
@@ -420,11 +420,11 @@ def indenter_friction_kernel(
     lagged_normal: wp.array2d(dtype=wp.vec3d),
     slip_eps: wp.float64,
     want_hessian: int,
-    energy: wp.array2d(dtype=wp.float64),
-    gradient: wp.array2d(dtype=wp.vec3d),
-    hessian: wp.array2d(dtype=wp.mat33d),
-    gap: wp.array2d(dtype=wp.float64),
-    normal: wp.array2d(dtype=wp.vec3d),
+    indenter_energy: wp.array2d(dtype=wp.float64),
+    indenter_gradient: wp.array2d(dtype=wp.vec3d),
+    indenter_hessian: wp.array2d(dtype=wp.mat33d),
+    indenter_gap: wp.array2d(dtype=wp.float64),
+    indenter_normal: wp.array2d(dtype=wp.vec3d),
     active: wp.array(dtype=wp.int32),
 ):
     """Lagged smoothed Coulomb friction of skin vertex v with the indenter of batch b (its lagged normal
@@ -439,8 +439,8 @@ def indenter_friction_kernel(
     t = translation[b]
     zero = wp.float64(0.0)
     gn = indenter_gap_and_normal(kind[b], dims[b], R, t, offset[b], p)
-    gap[b, v] = gn[0]
-    normal[b, v] = wp.vec3d(gn[1], gn[2], gn[3])
+    indenter_gap[b, v] = gn[0]
+    indenter_normal[b, v] = wp.vec3d(gn[1], gn[2], gn[3])
     e = zero
     grad = wp.vec3d()
     H = wp.mat33d()
@@ -468,9 +468,9 @@ def indenter_friction_kernel(
             if y > _TINY:
                 Hf -= wp.outer(ut, ut) / cubed
             H = lam * (wp.transpose(A) @ Hf @ A)
-    energy[b, v] = e
-    wp.atomic_add(gradient, b, v, grad)
-    hessian[b, v] = H
+    indenter_energy[b, v] = e
+    wp.atomic_add(indenter_gradient, b, v, grad)
+    indenter_hessian[b, v] = H
 
 
 @wp.kernel
@@ -481,15 +481,15 @@ def indenter_gap_kernel(
     rotation: wp.array(dtype=wp.mat33d),
     translation: wp.array(dtype=wp.vec3d),
     offset: wp.array(dtype=wp.float64),
-    gap: wp.array2d(dtype=wp.float64),
-    normal: wp.array2d(dtype=wp.vec3d),
+    indenter_gap: wp.array2d(dtype=wp.float64),
+    indenter_normal: wp.array2d(dtype=wp.vec3d),
 ):
     """Gap (m) of skin vertex v to the indenter of batch b (kind[b], dims[b]; SDF minus the mid-surface
     offset), unit normal."""
     b, v = wp.tid()
     gn = indenter_gap_and_normal(kind[b], dims[b], rotation[b], translation[b], offset[b], x[b, v])
-    gap[b, v] = gn[0]
-    normal[b, v] = wp.vec3d(gn[1], gn[2], gn[3])
+    indenter_gap[b, v] = gn[0]
+    indenter_normal[b, v] = wp.vec3d(gn[1], gn[2], gn[3])
 
 
 @wp.kernel
@@ -501,7 +501,7 @@ def lag_candidates(
     stats: wp.array2d(dtype=wp.float64),
 ):
     """Normal force (N) of each vertex on the indenter of batch b, the magnitude of the surface contact's
-    forces lumped to it (`indenter_surface_kernel`'s `vertex_force`), and its direction (unit; 0 where no
+    forces lumped to it (`indenter_surface_kernel`'s `indenter_vertex_force`), and its direction (unit; 0 where no
     force); stats[b] = (largest change from the lagged force, largest force)."""
     b, v = wp.tid()
     force = vertex_force[b, v]

@@ -16,6 +16,8 @@ from dataclasses import dataclass
 import numpy as np
 import warp as wp
 
+from fe.wptypes import launch
+
 wp.set_module_options({"enable_backward": False})  # no adjoint kernels: nothing differentiates them
 
 CG_RUNNING, CG_CONVERGED, CG_NEGATIVE_CURVATURE, CG_ITERATION_LIMIT = 1, 0, -1, -2
@@ -89,7 +91,7 @@ def _invert_diagonal(
     values: wp.array2d(dtype=wp.mat33d),
     diagonal: wp.array(dtype=wp.int32),
     active: wp.array(dtype=wp.int32),
-    inverse: wp.array2d(dtype=wp.mat33d),
+    preconditioner: wp.array2d(dtype=wp.mat33d),
 ):
     """Block-Jacobi preconditioner: the inverse of each node's 3x3 diagonal block (identity if singular),
     for the active systems."""
@@ -98,9 +100,9 @@ def _invert_diagonal(
         return
     d = values[b, diagonal[v]]
     if wp.abs(wp.determinant(d)) > wp.float64(0.0):
-        inverse[b, v] = wp.inverse(d)
+        preconditioner[b, v] = wp.inverse(d)
     else:
-        inverse[b, v] = wp.identity(n=3, dtype=wp.float64)
+        preconditioner[b, v] = wp.identity(n=3, dtype=wp.float64)
 
 
 @wp.kernel
@@ -181,12 +183,14 @@ def _cg_keep(
 
 
 @wp.kernel
-def _to_single(values: wp.array2d(dtype=wp.mat33d), active: wp.array(dtype=wp.int32), out: wp.array2d(dtype=wp.mat33f)):
+def _to_single(
+    values: wp.array2d(dtype=wp.mat33d), active: wp.array(dtype=wp.int32), single: wp.array2d(dtype=wp.mat33f)
+):
     """The active systems' blocks rounded to float32 (the CG's products read half the bytes)."""
     b, k = wp.tid()
     if active[b] == 0:
         return
-    out[b, k] = wp.mat33f(values[b, k])
+    single[b, k] = wp.mat33f(values[b, k])
 
 
 @wp.func
@@ -382,7 +386,8 @@ class BatchedBlockMatrix:
         block-Jacobi preconditioner, for the `active` systems ((B,) bool; all by default; the others' matrices
         are left zero)."""
         flags = np.ones(self.batch, dtype=np.int32) if active is None else np.asarray(active, dtype=np.int32)
-        active_w = wp.array(flags, dtype=wp.int32, device=self.device)
+        values = {**vars(self), "active": wp.array(flags, dtype=wp.int32, device=self.device)}
+        values["shift"] = wp.array(np.asarray(shift, dtype=np.float64), dtype=wp.float64, device=self.device)
         self.values.zero_()
         for family, blocks, scale in terms:
             block_of = self.block_of[family]
@@ -390,26 +395,11 @@ class BatchedBlockMatrix:
                 continue
             k = int(round(np.sqrt(block_of.shape[1])))
             weights = self._ones if scale is None else wp.array(np.asarray(scale, dtype=np.float64), device=self.device)
-            wp.launch(
-                _scatter_blocks,
-                (self.batch, blocks.shape[1], k * k),
-                [scalar_view(blocks), k, block_of, weights, active_w, self.values],
-                device=self.device,
-            )
-        shift_w = wp.array(np.asarray(shift, dtype=np.float64), dtype=wp.float64, device=self.device)
-        wp.launch(
-            _constrain,
-            self.values.shape,
-            [self.values, self.block_row, self.columns, self.free, shift_w, active_w],
-            device=self.device,
-        )
-        wp.launch(_to_single, self.values.shape, [self.values, active_w, self.single], device=self.device)
-        wp.launch(
-            _invert_diagonal,
-            (self.batch, self.pattern.n_nodes),
-            [self.values, self.diagonal, active_w, self.preconditioner],
-            device=self.device,
-        )
+            element = {"blocks": scalar_view(blocks), "nodes_per_element": k, "block_of": block_of, "scale": weights}
+            launch(_scatter_blocks, (self.batch, blocks.shape[1], k * k), values | element, self.device)
+        launch(_constrain, self.values.shape, values, self.device)
+        launch(_to_single, self.values.shape, values, self.device)
+        launch(_invert_diagonal, (self.batch, self.pattern.n_nodes), values, self.device)
 
     def multiply(self, x: wp.array, y: wp.array, system_of: wp.array) -> None:
         """y[c] = A[system_of[c]] x[c] for (C, V) vec3d arrays."""
@@ -462,29 +452,14 @@ class BatchedCG:
         self.matrix.multiply(x, y, system_of)
 
     def _iterate(self) -> None:
-        m, device, shape = self.matrix, self.matrix.device, (self.columns, self.matrix.pattern.n_nodes)
+        m, shape = self.matrix, (self.columns, self.matrix.pattern.n_nodes)
+        values = {**vars(self), "values": m.single, "offsets": m.offsets, "columns": m.columns}
+        values |= {"preconditioner": m.preconditioner, "max_iterations": self._max_iterations}
         for _ in range(self.check_every):
-            wp.launch(
-                _cg_product,
-                (m.batch, m.pattern.n_nodes),
-                [m.single, m.offsets, m.columns, self.columns_of, self.state, self.p, self.ap, self.pap],
-                device=device,
-            )
-            wp.launch(
-                _cg_update,
-                shape,
-                [m.preconditioner, self.system_of, self.state, self.rz, self.pap, self.p, self.ap, self.x]
-                + [self.r, self.z, self.rz_new, self.rr_new],
-                device=device,
-            )
-            wp.launch(
-                _cg_scalars,
-                self.columns,
-                [self.tolerance, self._max_iterations, self.bb, self.state, self.iterations, self.rz, self.pap]
-                + [self.rz_new, self.rr_new, self.beta],
-                device=device,
-            )
-            wp.launch(_cg_direction, shape, [self.state, self.beta, self.z, self.p], device=device)
+            launch(_cg_product, (m.batch, m.pattern.n_nodes), values, m.device)
+            launch(_cg_update, shape, values, m.device)
+            launch(_cg_scalars, self.columns, values, m.device)
+            launch(_cg_direction, shape, values, m.device)
 
     def solve(
         self, rhs: wp.array, system_of: np.ndarray, active: np.ndarray, tolerance: np.ndarray, max_iterations: int
@@ -508,10 +483,10 @@ class BatchedCG:
         for a in (self.iterations, self.rz, self.pap, self.rz_new, self.rr_new, self.bb, self.rr, self.x):
             a.zero_()
         shape = (self.columns, self.matrix.pattern.n_nodes)
+        values = {**vars(self), "preconditioner": self.matrix.preconditioner, "rhs": rhs, "ax": self.ap}
         self.matrix.multiply(self.last, self.ap, self.system_of)
-        wp.launch(_cg_residual, shape, [rhs, self.ap, self.rr, self.bb], device=device)
-        starts = [self.warm, self.rr, self.bb, self.last, rhs, self.ap, self.x, self.r, self.p, self.rz]
-        wp.launch(_cg_start, shape, [self.matrix.preconditioner, self.system_of, self.state, *starts], device=device)
+        launch(_cg_residual, shape, values, device)
+        launch(_cg_start, shape, values, device)
         bb = self.bb.numpy()
         active = np.asarray(active, dtype=bool)
         state = np.where(active & (bb > 0.0), CG_RUNNING, CG_CONVERGED)
@@ -529,5 +504,5 @@ class BatchedCG:
                 wp.capture_launch(self._graph)
             else:
                 self._iterate()
-        wp.launch(_cg_keep, shape, [self.warm, self.state, self.iterations, self.x, self.last], device=device)
+        launch(_cg_keep, shape, values, device)
         return self.x, self.iterations.numpy(), self.state.numpy()

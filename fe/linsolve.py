@@ -14,6 +14,7 @@ import importlib.metadata
 import importlib.util
 import os
 import weakref
+from collections import defaultdict
 from collections.abc import Callable
 
 import numpy as np
@@ -311,7 +312,8 @@ class BatchedDirectSolver:
         self._trace = [_family_trace(pattern, f) for f in range(len(pattern.block_of))]
         self._node_of_free = self._free // 3
         self._matrices: dict[int, sp.csr_matrix] = {}
-        self._solvers: dict[int, SymmetricSolver] = {}
+        self._solvers: defaultdict[int, SymmetricSolver] = defaultdict(SymmetricSolver)
+        """Each system slot's factorisation, made at its first solve (its symbolic analysis kept)."""
         self._factorized = np.zeros(batch, dtype=bool)
         self.x = None
         """(C, V) vec3d solutions of the last solve (a warp array on the matrix's device, owned here)."""
@@ -346,11 +348,6 @@ class BatchedDirectSolver:
                 out[c, self._free] = self._matrices[int(b)] @ x_host[c, self._free]
         y.assign(out.reshape(y.shape + (3,)))
 
-    def _solver(self, system: int) -> SymmetricSolver:
-        if system not in self._solvers:
-            self._solvers[system] = SymmetricSolver()
-        return self._solvers[system]
-
     def solve(
         self, rhs: wp.array, system_of: np.ndarray, active: np.ndarray, tolerance: np.ndarray, max_iterations: int
     ) -> tuple[wp.array, np.ndarray, np.ndarray]:
@@ -361,7 +358,7 @@ class BatchedDirectSolver:
         for b in systems:
             self._factorized[b] = False
             try:
-                self._solver(int(b)).factorize(self._matrices[int(b)])
+                self._solvers[int(b)].factorize(self._matrices[int(b)])
             except SingularMatrixError:
                 continue
             self._factorized[b] = True
@@ -381,7 +378,7 @@ class BatchedDirectSolver:
                 state[columns] = CG_NEGATIVE_CURVATURE
                 continue
             try:
-                out[np.ix_(columns, self._free)] = self._solver(int(b)).solve(rhs_host[columns][:, self._free].T).T
+                out[np.ix_(columns, self._free)] = self._solvers[int(b)].solve(rhs_host[columns][:, self._free].T).T
             except SingularMatrixError:
                 state[columns] = CG_NEGATIVE_CURVATURE
         if self.x is None or self.x.shape != rhs.shape:

@@ -70,9 +70,9 @@ def membrane_kernel(
     gent_beta: wp.array(dtype=wp.float64),
     frozen_stress: wp.array2d(dtype=wp.mat22d),
     want_hessian: int,
-    energy: wp.array2d(dtype=wp.float64),
-    gradient: wp.array2d(dtype=wp.vec3d),
-    hessian: wp.array2d(dtype=mat99d),
+    membrane_energy: wp.array2d(dtype=wp.float64),
+    elastic_gradient: wp.array2d(dtype=wp.vec3d),
+    membrane_hessian: wp.array2d(dtype=mat99d),
     active: wp.array(dtype=wp.int32),
 ):
     """Energy, gradient (atomically scattered to nodes) and 9x9 Hessian per (batch, triangle).
@@ -98,14 +98,14 @@ def membrane_kernel(
     z = beta * i1_excess
     held = frozen_stress[b, t]
     frozen = half * area * wp.trace(held @ (C - wp.identity(n=2, dtype=wp.float64)))
-    energy[b, t] = area * half * mu_t[b] * i1_excess * _gent_log_ratio(z) + frozen
+    membrane_energy[b, t] = area * half * mu_t[b] * i1_excess * _gent_log_ratio(z) + frozen
     stiffening = one / (one - z)  # d(energy density)/d(I1) over its Neo-Hookean value mu t / 2
     coeff = area * mu_t[b] * stiffening
     P_unit = F - F @ c_inv / det_c  # half of dI1/dF
     P = coeff * P_unit + area * (F @ held)
     for a in range(3):
         ga = edge_gradient(a, Dinv)
-        wp.atomic_add(gradient, b, tri[a], P @ ga)
+        wp.atomic_add(elastic_gradient, b, tri[a], P @ ga)
     if want_hessian != 0:
         H = mat99d()
         for nb in range(3):
@@ -129,7 +129,7 @@ def membrane_kernel(
                     for i in range(3):
                         for j in range(3):
                             H[3 * na + i, 3 * nb + j] = H[3 * na + i, 3 * nb + j] + k * ra[i] * rb[j]
-        hessian[b, t] = H
+        membrane_hessian[b, t] = H
 
 
 def membrane_stress(

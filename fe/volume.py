@@ -25,8 +25,8 @@ def volume_kernel(
     origin: wp.vec3d,
     want_hessian: int,
     volume: wp.array2d(dtype=wp.float64),
-    gradient: wp.array2d(dtype=wp.vec3d),
-    hessian: wp.array2d(dtype=mat99d),
+    volume_gradient: wp.array2d(dtype=wp.vec3d),
+    volume_hessian: wp.array2d(dtype=mat99d),
     active: wp.array(dtype=wp.int32),
 ):
     """Per (batch, triangle): signed tetra volume to `origin`, its node gradients and 9x9 Hessian."""
@@ -41,11 +41,11 @@ def volume_kernel(
     sixth = wp.float64(1.0) / wp.float64(6.0)
     volume[b, t] = wp.dot(x0, wp.cross(x1, x2)) * sixth
     for i in range(3):  # node i's gradient x_j x x_k, (i, j, k) cyclic
-        wp.atomic_add(gradient, b, tri[i], wp.cross(xs[(i + 1) % 3], xs[(i + 2) % 3]) * sixth)
+        wp.atomic_add(volume_gradient, b, tri[i], wp.cross(xs[(i + 1) % 3], xs[(i + 2) % 3]) * sixth)
     if want_hessian != 0:
         H = mat99d()
         # d/dx_j of (x_j x x_k) = -[x_k]x, d/dx_k of (x_j x x_k) = [x_j]x, (i, j, k) cyclic.
         for i in range(3):
             H = add_block(H, i, (i + 1) % 3, -_skew(xs[(i + 2) % 3]) * sixth)
             H = add_block(H, i, (i + 2) % 3, _skew(xs[(i + 1) % 3]) * sixth)
-        hessian[b, t] = H
+        volume_hessian[b, t] = H

@@ -1,4 +1,5 @@
-"""Double-precision warp types shared by the FE kernels (Newton needs float64 accuracy), and warp's set-up.
+"""Double-precision warp types shared by the FE kernels (Newton needs float64 accuracy), launches by argument
+name, and warp's set-up.
 
 Where no NVIDIA CUDA driver can be loaded, warp is initialised here, on import, without the line its native
 library prints straight to stderr ("Warp CUDA warning: Could not find or load the NVIDIA CUDA driver"): a
@@ -71,3 +72,13 @@ def add_block(H: mat99d, a: int, b: int, m: wp.mat33d) -> mat99d:
         for j in range(3):
             H[3 * a + i, 3 * b + j] += m[i, j]
     return H
+
+
+def launch(kernel: wp.Kernel, dim: int | tuple, values: dict, device: str) -> None:
+    """Launch `kernel` taking its arguments by name from `values` (robust to argument order; other entries are
+    ignored); a kernel argument missing from `values` is an error naming it."""
+    names = [arg.label for arg in kernel.adj.args]
+    missing = [n for n in names if n not in values]
+    if missing:
+        raise RuntimeError(f"kernel {kernel.key} takes {missing}, which its caller does not provide")
+    wp.launch(kernel, dim, [values[n] for n in names], device=device)
