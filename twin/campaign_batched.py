@@ -21,7 +21,7 @@ before anything is solved. `BatchedRunner` works in three passes:
    bit on warp's CPU device, tests/test_campaign_batched.py). The solves are dropped once the part is written.
 
 The passes overlap by sensor (`fe_order`: most trajectories first): every schedule is submitted to the workers at
-once, the fe batch starts as soon as the first sensor's schedules are in (`_Arriving`: the others are read as the
+once, the fe batch starts as soon as it has a schedule for every slot (`_Arriving`: the others are read as the
 batch reaches them), a sensor's synthesis runs on the workers as soon as its last trajectory is solved while the
 batch goes on with the others, and `twin.campaign.run_campaign` writes a sensor's file as soon as its last part
 is written. One batch for all sensors pays the nearly empty rounds at its end once, not once per sensor.
@@ -274,8 +274,8 @@ class BatchedRunner:
         finished: Finished,
     ) -> None:
         # Pipelined by sensor (`fe_order`): the workers record every schedule (all jobs submitted at once) while
-        # this process solves the fe of all sensors as one batch, sensor after sensor, starting as soon as the
-        # first sensor's schedules are in (`_Arriving`), and each sensor's synthesis runs on the workers as soon
+        # this process solves the fe of all sensors as one batch, sensor after sensor, starting as soon as it has
+        # a schedule for every slot (`_Arriving`), and each sensor's synthesis runs on the workers as soon
         # as its last trajectory is solved, while the batch goes on with the others. The executor's maps are
         # consumed on one lane (in order, so that an executor running tasks in this process never runs two at
         # once); `finished` is called from it.
@@ -373,12 +373,12 @@ class BatchedRunner:
 
 
 class _Arriving(Sequence[PoseTrajectory]):
-    """Schedules as the trajectories of one batched run, read as the run asks for them: tasks (sorted sensor by
-    sensor) keep their sensor's block of indices, and the first look into a block waits until every schedule of
-    that sensor has arrived (`take()`: the next (key, schedule) recorded), then orders the block: the schedules
-    to solve, the longest first, then those with nothing to solve (no solve asked for, or solves `kept(task,
-    schedule)` from an earlier run) as trajectories without poses. So the fe starts once the first sensor's
-    schedules are in while the workers record the others'."""
+    """Schedules as the trajectories of one batched run, read as the run asks for them (`take()`: the next (key,
+    schedule) recorded, waiting for it): tasks (sorted sensor by sensor) keep their sensor's block of indices, and
+    a block is filled as the run reaches it, with the sensor's schedules to solve in the order they arrive while
+    some are still being recorded, then the rest the longest first, then those with nothing to solve (no solve
+    asked for, or solves `kept(task, schedule)` from an earlier run) as trajectories without poses. So the fe
+    starts once it has a schedule for every slot, while the workers record the others'."""
 
     def __init__(
         self,
@@ -386,29 +386,40 @@ class _Arriving(Sequence[PoseTrajectory]):
         take: Callable[[], tuple[tuple[int, int], SolveSchedule]],
         kept: Callable[[TrajectoryTask, SolveSchedule], bool],
     ) -> None:
-        self._tasks, self._take, self._keep = tasks, take, kept
+        self._take, self._keep, self._count = take, kept, len(tasks)
         self.sensor_of = [task[0].sensor_id for task in tasks]
         self.sensors = list(dict.fromkeys(self.sensor_of))
+        self._tasks = {_key(task): task for task in tasks}
         self.schedules: dict[tuple[int, int], SolveSchedule] = {}
         self.kept: set[tuple[int, int]] = set()
         """Keys of the tasks whose solves an earlier run kept (not solved, not written again)."""
-        self._order: dict[int, list[TrajectoryTask]] = {}
+        self._order: dict[int, list[tuple[int, int]]] = {sid: [] for sid in self.sensors}
 
     def __len__(self) -> int:
-        return len(self._tasks)
+        return self._count
 
     def task(self, index: int) -> TrajectoryTask:
-        """The task at `index` of the run (waiting for its sensor's schedules the first time)."""
+        """The task at `index` of the run (waiting for schedules until its sensor's block reaches it)."""
         sid = self.sensor_of[index]
-        if sid not in self._order:
-            mine = [task for task in self._tasks if task[0].sensor_id == sid]
-            while any(_key(task) not in self.schedules for task in mine):
-                key, schedule = self._take()
-                self.schedules[key] = schedule
-            self.kept |= {_key(task) for task in mine if self._keep(task, self.schedules[_key(task)])}
-            solves = [0 if _key(task) in self.kept else len(self.schedules[_key(task)].times) for task in mine]
-            self._order[sid] = [mine[k] for k in sorted(range(len(mine)), key=lambda k: -solves[k])]
-        return self._order[sid][index - self.sensor_of.index(sid)]
+        order, position = self._order[sid], index - self.sensor_of.index(sid)
+        mine = [key for key in self._tasks if key[0] == sid]
+        while len(order) <= position:
+            if all(key in self.schedules for key in mine):  # all in: the rest, the longest first
+                rest = [key for key in mine if key not in order]
+                solves = {key: 0 if self._kept(key) else len(self.schedules[key].times) for key in rest}
+                order.extend(sorted(rest, key=lambda key: -solves[key]))
+                break
+            key, schedule = self._take()
+            self.schedules[key] = schedule
+            if key[0] == sid and len(schedule.times) and not self._kept(key):
+                order.append(key)
+        return self._tasks[order[position]]
+
+    def _kept(self, key: tuple[int, int]) -> bool:
+        """Whether the task's solves are kept from an earlier run (noted in `kept`)."""
+        if self._keep(self._tasks[key], self.schedules[key]):
+            self.kept.add(key)
+        return key in self.kept
 
     def __getitem__(self, index: int) -> PoseTrajectory:
         task = self.task(index)
