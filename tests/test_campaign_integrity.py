@@ -120,6 +120,30 @@ def test_a_writer_never_touches_another_writers_temporary_file(tmp_path: Path) -
     assert sorted(p.name for p in tmp_path.iterdir()) == [part.name, other.name]
 
 
+def test_a_killed_writers_temporary_files_are_removed_by_the_next_run(tmp_path: Path) -> None:
+    """A process killed mid-write (a sensor file on the campaign's file thread, a part on a worker) leaves its
+    temporary file; the next run removes it, and leaves a running writer's and any other file alone."""
+    dead = subprocess.run([sys.executable, "-c", "import os; print(os.getpid())"], capture_output=True, text=True)
+    dead_pid = int(dead.stdout)  # exited: no process has this id now (ids are not reused this soon)
+    out = tmp_path / "run"
+    (out / "parts" / "biotac2").mkdir(parents=True)
+    stale = [
+        out / f"biotac2.hdf5.{dead_pid}-0123abcd.tmp",
+        out / "parts" / "biotac2" / f"trajectory_000001.npz.{dead_pid}-89abcdef.tmp",
+    ]
+    alive = out / f"biotac3.hdf5.{os.getpid()}-fedcba98.tmp"
+    other = out / "notes.tmp"
+    for path in [*stale, alive, other]:
+        path.write_bytes(b"half-written")
+    def stop(*_: object) -> None:  # stopped at planning, right after the start-up checks
+        raise KeyboardInterrupt
+
+    with pytest.raises(KeyboardInterrupt):
+        run_campaign(CONFIG, out, workers=1, on_plan=stop)
+    assert not any(path.exists() for path in stale)
+    assert alive.exists() and other.exists()
+
+
 def test_a_short_disk_is_reported_before_writing(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
     parts = write_fake_parts(tmp_path / "parts")
     size = sum(p.stat().st_size for p in parts)

@@ -34,7 +34,7 @@ from fe.params import SkinParameters
 from fe.sensor import BioTacModel
 from twin.backend import ARMS
 from twin.controller import Recording, execute
-from twin.dataset import assemble_sensor_file, part_path, read_part, write_part
+from twin.dataset import assemble_sensor_file, part_path, read_part, remove_stale_temporaries, write_part
 from twin.effects import apply_path, apply_skin
 from twin.executors import Executor, LocalExecutor
 from twin.fe_models import inflated_model
@@ -574,6 +574,7 @@ def run_campaign(
     parts_dir = out_dir / "parts"
     options = campaign_options(config, plant)
     claim_parts(parts_dir, options, restart)
+    remove_stale_temporaries(out_dir)  # files a killed run was writing (its workers' parts, its sensor files)
     _check_part_digests(parts_dir, options_digest(options))
     own_executor = executor is None
     executor = executor if executor is not None else LocalExecutor(max(1, workers))

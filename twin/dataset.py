@@ -12,6 +12,7 @@ from __future__ import annotations
 
 import json
 import os
+import re
 import secrets
 import shutil
 from collections.abc import Iterator
@@ -85,6 +86,33 @@ def write_part(path: Path, arrays: dict[str, np.ndarray]) -> None:
             handle.flush()
             os.fsync(handle.fileno())
         os.replace(tmp, path)
+
+
+_TEMPORARY = re.compile(r"\.(\d+)-[0-9a-f]{8}\.tmp$")
+"""How `_temporary_beside` ends a temporary file's name: the writer's process id and its random tag."""
+
+
+def remove_stale_temporaries(folder: Path) -> list[Path]:
+    """Remove the temporary files under `folder` (`_temporary_beside`'s) whose writer is no longer running, e.g.
+    a sensor file half-written when a campaign was killed; returns them."""
+    stale = []
+    for path in folder.rglob("*.tmp"):
+        match = _TEMPORARY.search(path.name)
+        if match and not _running(int(match.group(1))):
+            path.unlink(missing_ok=True)
+            stale.append(path)
+    return stale
+
+
+def _running(pid: int) -> bool:
+    """Whether a process with this id exists (one we may not signal counts as running)."""
+    try:
+        os.kill(pid, 0)
+    except ProcessLookupError:
+        return False
+    except PermissionError:
+        return True
+    return True
 
 
 @contextmanager
