@@ -769,8 +769,9 @@ class BatchedShell:
         """Relative CG tolerances (B,) of the next Newton step. "strict": a linear residual of 1 % of the
         Newton tolerance, whatever the residual (eta = 1e-2 tol / |r|, within 1e-10 ... 1e-3). "adaptive":
         Eisenstat and Walker's choice 2 (SIAM J. Sci. Comput. 17, 1996), eta = 0.9 (|r| / |r_prev|)^2,
-        safeguarded by 0.9 eta_prev^2, at most 0.1 (the first step of a solve: 0.1), and never asking for
-        a linear residual below half the Newton tolerance: solves are loose far from the solution."""
+        safeguarded by 0.9 eta_prev^2, within `NewtonSettings.min_forcing` ... 0.1 (the first step of a solve:
+        0.1), and never asking for a linear residual below half the Newton tolerance: solves are loose far from
+        the solution."""
         tol, residual = _tolerance(lin, self.skin.newton), np.maximum(lin.residual_inf, 1e-300)
         if self.forcing == "strict":
             return np.clip(1e-2 * tol / residual, 1e-10, 1e-3)
@@ -779,7 +780,7 @@ class BatchedShell:
         eta = 0.9 * ratio**2
         safeguard = 0.9 * state.last_eta**2
         eta = np.where(safeguard > 0.1, np.maximum(eta, safeguard), eta)
-        eta = np.where(first, _ETA_MAX, np.minimum(eta, _ETA_MAX))
+        eta = np.where(first, _ETA_MAX, np.clip(eta, self.skin.newton.min_forcing, _ETA_MAX))
         return np.clip(np.maximum(eta, 0.5 * tol / residual), 1e-10, _ETA_MAX)
 
     def _direction(

@@ -160,13 +160,21 @@ def run_trajectories(
 
 def _initial_skins(skins: list[InflatedSkin], first: list[int]) -> list[InflatedSkin]:
     """The skins a batch starts with, one per slot: those of the `first` trajectories, except that a batch built
-    without bending or relaxation cannot take a skin that has them later, so the first such skin of the run
-    takes the last slot(s)."""
+    without bending or relaxation cannot take a skin that has them later, so for each such feature of the run
+    the first skin with it takes a slot whose features other slots also have."""
     initial = [skins[k] for k in first]
     features = (lambda s: s.params.bending, lambda s: s.params.relaxation_fraction > 0.0)
-    missing = [needs for needs in features if any(map(needs, skins)) and not any(map(needs, initial))]
-    late = list({id(s): s for s in (next(s for s in skins if needs(s)) for needs in missing)}.values())
-    initial[len(initial) - len(late) :] = late[: len(initial)]
+    for needs in features:
+        if not any(map(needs, skins)) or any(map(needs, initial)):
+            continue
+        spare = [
+            i
+            for i, skin in enumerate(initial)
+            if all(not has(skin) or any(has(o) for o in initial[:i] + initial[i + 1 :]) for has in features)
+        ]
+        if not spare:
+            raise ValueError(f"{len(initial)} slot(s) cannot hold both a bending and a relaxing skin: use more slots")
+        initial[spare[-1]] = next(s for s in skins if needs(s))
     return initial
 
 

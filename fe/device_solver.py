@@ -436,6 +436,7 @@ class BatchedCG:
         self.rz, self.pap, self.rz_new, self.rr_new, self.beta, self.bb = (scalar() for _ in range(6))
         self.tolerance, self.rr, self.last = scalar(), scalar(), vec()
         warm = np.zeros(columns, dtype=bool) if warm is None else np.asarray(warm, dtype=bool)
+        self.warm_columns = warm
         self.warm = wp.array(warm.astype(np.int32), dtype=wp.int32, device=device)
         self.state, self.iterations = scalar(wp.int32), scalar(wp.int32)
         self.system_of = scalar(wp.int32)
@@ -487,9 +488,10 @@ class BatchedCG:
         self.matrix.multiply(self.last, self.ap, self.system_of)
         launch(_cg_residual, shape, values, device)
         launch(_cg_start, shape, values, device)
-        bb = self.bb.numpy()
+        bb, rr = self.bb.numpy(), self.rr.numpy()
         active = np.asarray(active, dtype=bool)
-        state = np.where(active & (bb > 0.0), CG_RUNNING, CG_CONVERGED)
+        met = self.warm_columns & (rr < bb) & (rr <= np.asarray(tolerance) ** 2 * bb)  # by its start
+        state = np.where(active & (bb > 0.0) & ~met, CG_RUNNING, CG_CONVERGED)
         state = np.where(active & ~np.isfinite(bb), CG_NEGATIVE_CURVATURE, state)  # a non-finite right-hand side
         self.state.assign(state.astype(np.int32))
         use_graph = self.use_graph

@@ -302,3 +302,7 @@ class NewtonSettings:
     its tolerance."""
     chord_contraction: float = 0.2
     """A chord step (last factorisation reused) is kept when it cuts the residual by at least this factor."""
+    min_forcing: float = 0.03
+    """The tightest relative CG tolerance the adaptive forcing asks of a Newton step (but never a linear residual
+    below half the Newton tolerance): tighter, block-Jacobi CG pays far more iterations than the Newton rounds it
+    saves (benchmarks/cg_work.py; 0 restores Eisenstat and Walker's choice alone)."""

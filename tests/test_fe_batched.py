@@ -17,7 +17,7 @@ import warp as wp
 from conftest import inflated_biotac
 
 from assets.indenters import get_indenter
-from fe.batched import InflatedSkin
+from fe.batched import BatchLinearization, InflatedSkin, NewtonBatch
 from fe.batched_runner import PoseTrajectory, run_trajectories
 from fe.batched_stepper import BatchedStepper
 from fe.device_solver import CG_CONVERGED, CG_NEGATIVE_CURVATURE, BatchedBlockMatrix, BatchedCG, BlockPattern
@@ -453,3 +453,44 @@ def test_a_slot_takes_the_next_trajectory_whatever_its_skin(frictionless_biotac:
     with pytest.raises(ValueError, match="share mesh"):
         moved = dataclasses.replace(soft, vertices=soft.vertices + 1e-3)
         run_trajectories([plain, moved], timed[:2], "cpu", slots=1)
+
+
+def test_a_batch_keeps_every_feature_a_later_skin_needs() -> None:
+    """Skins without bending, with bending, and relaxing without bending, on three slots: the first three
+    trajectories' skins lack relaxation, so one slot starts with the relaxing skin, but not the only bending one's
+    (the batch could then never take it); every trajectory gets what it gets alone (to round-off: zero bending
+    blocks in the batch's matrix). One slot cannot hold a bending
+    and a relaxing skin at once: a one-line error before any solve."""
+    flat = inflated_biotac(friction=0.0, bending=False).inflated_skin()
+    bent = inflated_biotac(friction=0.0).inflated_skin()
+    relaxing = inflated_biotac(friction=0.0, bending=False, relaxation_fraction=0.3).inflated_skin()
+    assert bent.params.bending and not flat.params.bending
+    model = inflated_biotac(friction=0.0)
+    paths = _paths(model)
+    timed = [
+        dataclasses.replace(_pose_trajectory(name, p), times=0.5 * np.arange(len(STEPS)))
+        for (name, *_), p in zip(PATHS, paths, strict=True)
+    ]
+    skins, trajectories = [flat, flat, bent, relaxing], [timed[0], timed[1], timed[0], timed[2]]
+    run = run_trajectories(skins, trajectories, "cpu", slots=3)
+    for skin, trajectory, together in zip(skins, trajectories, run.results, strict=True):
+        alone = run_trajectories(skin, [trajectory], "cpu", slots=1).results[0]
+        assert len(together) == len(alone) == len(STEPS)
+        for a, b in zip(alone, together, strict=True):  # to round-off: the batch's matrix has bending blocks
+            np.testing.assert_allclose(b.force, a.force, rtol=1e-9, atol=1e-15)
+    with pytest.raises(ValueError, match="cannot hold both a bending and a relaxing skin"):
+        run_trajectories([bent, relaxing], timed[:2], "cpu", slots=1)
+
+
+def test_the_adaptive_forcing_asks_no_tighter_than_its_floor(frictionless_biotac: BioTacModel) -> None:
+    """Newton converging fast (the residual falling 1000x) makes Eisenstat and Walker's choice ask a CG tolerance
+    of ~1e-6; the adaptive forcing stops at `NewtonSettings.min_forcing`, and without the floor follows the choice
+    down to half the Newton tolerance."""
+    skin = frictionless_biotac.inflated_skin()
+    lin = BatchLinearization(np.zeros(1), np.zeros(1), np.array([1e-3]), np.array([1e-3]), np.array([1.0]))
+    for floor, expected in ((0.03, 0.03), (0.0, 0.5 * skin.newton.relative_force_tolerance / 1e-3)):
+        settings = dataclasses.replace(skin.newton, min_forcing=floor)
+        shell = BatchedStepper(dataclasses.replace(skin, newton=settings), ["sphere_medium"]).shell
+        state = NewtonBatch.idle(1, 0.0)
+        state.last_residual[:], state.last_eta[:] = 1.0, 0.1
+        assert shell._forcing(state, lin)[0] == pytest.approx(expected)
