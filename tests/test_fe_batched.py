@@ -494,3 +494,19 @@ def test_the_adaptive_forcing_asks_no_tighter_than_its_floor(frictionless_biotac
         state = NewtonBatch.idle(1, 0.0)
         state.last_residual[:], state.last_eta[:] = 1.0, 0.1
         assert shell._forcing(state, lin)[0] == pytest.approx(expected)
+
+
+def test_a_slot_changing_skin_on_the_gpu_algebra(frictionless_biotac: BioTacModel) -> None:
+    """With the GPU's algebra (batched CG, its warm columns carried from one trajectory to the next), a slot that
+    changes between skins of different thickness (other half-layers and admissibility floors) gives each
+    trajectory what it gets alone, to the Newton tolerance; and the thicker skin's contact starts earlier."""
+    plain = frictionless_biotac.inflated_skin()
+    thick = inflated_biotac(friction=0.0, thickness=1.25 * plain.params.thickness).inflated_skin()
+    paths = _paths(frictionless_biotac)
+    trajectories = [_pose_trajectory(PATHS[0][0], paths[0])] * 3
+    skins = [plain, thick, plain]
+    run = run_trajectories(skins, trajectories, "cpu", slots=1, linear="cg")
+    for skin, trajectory, together in zip(skins, trajectories, run.results, strict=True):
+        alone = run_trajectories(skin, [trajectory], "cpu", slots=1, linear="cg").results[0]
+        _assert_agree(alone, together, 1e-5, 1e-8, 1e-5)
+    assert np.linalg.norm(run.results[1][1].force) > np.linalg.norm(run.results[0][1].force)
