@@ -394,6 +394,8 @@ class _Arriving(Sequence[PoseTrajectory]):
         self.kept: set[tuple[int, int]] = set()
         """Keys of the tasks whose solves an earlier run kept (not solved, not written again)."""
         self._order: dict[int, list[tuple[int, int]]] = {sid: [] for sid in self.sensors}
+        self._start = {sid: self.sensor_of.index(sid) for sid in self.sensors}
+        self._mine = {sid: [key for key in self._tasks if key[0] == sid] for sid in self.sensors}
 
     def __len__(self) -> int:
         return self._count
@@ -401,8 +403,7 @@ class _Arriving(Sequence[PoseTrajectory]):
     def task(self, index: int) -> TrajectoryTask:
         """The task at `index` of the run (waiting for schedules until its sensor's block reaches it)."""
         sid = self.sensor_of[index]
-        order, position = self._order[sid], index - self.sensor_of.index(sid)
-        mine = [key for key in self._tasks if key[0] == sid]
+        order, position, mine = self._order[sid], index - self._start[sid], self._mine[sid]
         while len(order) <= position:
             if all(key in self.schedules for key in mine):  # all in: the rest, the longest first
                 rest = [key for key in mine if key not in order]
