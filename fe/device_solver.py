@@ -436,6 +436,8 @@ class BatchedCG:
         self.rz, self.pap, self.rz_new, self.rr_new, self.beta, self.bb = (scalar() for _ in range(6))
         self.tolerance, self.rr, self.last = scalar(), scalar(), vec()
         warm = np.zeros(columns, dtype=bool) if warm is None else np.asarray(warm, dtype=bool)
+        if warm.shape != (columns,):
+            raise ValueError(f"warm needs one flag per column ({columns}), got shape {warm.shape}")
         self.warm_columns = warm
         self.warm = wp.array(warm.astype(np.int32), dtype=wp.int32, device=device)
         self.state, self.iterations = scalar(wp.int32), scalar(wp.int32)
