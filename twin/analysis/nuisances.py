@@ -37,7 +37,7 @@ lies in the span of the nuisances' signatures (`confounded`).
 from __future__ import annotations
 
 from collections.abc import Callable
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 
 import numpy as np
 
@@ -306,10 +306,7 @@ def fit_nuisances(
 def _shifted(base: Base, model: TwinModel, predictor: Predictor, values: NuisanceValues) -> np.ndarray:
     """Profiled change of the whitened prediction from `base` to the model with `values` (NaN where the
     fe replay failed)."""
-    moved = Base(
-        base.trajectories, base.sigma, base.residual, base.masks, base.prediction, base.nuisance, values.model_for
-    )
-    return moved.shifted(predictor, model)
+    return replace(base, model_for=values.model_for).shifted(predictor, model)
 
 
 def _jacobian(base: Base, model: TwinModel, predictor: Predictor, values: NuisanceValues) -> np.ndarray:
