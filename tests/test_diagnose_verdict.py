@@ -231,6 +231,7 @@ def test_a_held_out_test_that_cannot_tell_the_effect_from_none_does_not_name_it(
     assert candidate.heldout_is_noise, "the test allows the extrapolated fit so much that the candidate passes"
     assert candidate.heldout_base_rms == pytest.approx(whitened_rms(residual))
     assert candidate.heldout_base_rms < candidate.heldout_rms_threshold and candidate.heldout_has_power is False
+    assert candidate.heldout_is_noise is True, "plain bools, as `twin improve` writes them to its JSON history"
     outcome, reason, _ = verdict(1.5, False, plain.rms_threshold, order_candidates([candidate]))
     assert outcome == "unexplained", reason
     assert "its held-out test cannot tell it from no effect (threshold" in reason

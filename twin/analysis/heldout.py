@@ -73,10 +73,10 @@ def record_heldout(
     held = test(left_out)
     without = np.where(np.isfinite(left_out), base_residual, np.nan)
     candidate.heldout_rms = rms
-    candidate.heldout_is_noise = held.is_noise
-    candidate.heldout_rms_threshold = held.rms_threshold
+    candidate.heldout_is_noise = bool(held.is_noise)  # plain bools: `twin improve` writes them to its history
+    candidate.heldout_rms_threshold = float(held.rms_threshold)
     candidate.heldout_base_rms = whitened_rms(without)
-    candidate.heldout_has_power = not test(without).is_noise
+    candidate.heldout_has_power = not bool(test(without).is_noise)
 
 
 def identifiability(candidate: Candidate, jac: np.ndarray) -> None:
