@@ -7,14 +7,17 @@ the verdict on candidates with given figures.
 """
 
 import json
+from dataclasses import replace
 
 import numpy as np
 import pytest
 from scipy.stats import chi2, norm
 
 from twin.analysis.diagnose import Diagnosis, diagnose
-from twin.analysis.heldout import record_heldout, whitened_rms
+from twin.analysis.heldout import heldout, record_heldout, whitened_rms
 from twin.analysis.predict import TwinModel
+from twin.analysis.residual import Base, GainNuisance, Residual
+from twin.analysis.sensitivity import Linearisation
 from twin.analysis.significance import (
     NoiseTest,
     noise_test,
@@ -23,6 +26,7 @@ from twin.analysis.significance import (
     weighted_chi2_quantile,
 )
 from twin.analysis.verdict import NOTHING_BEYOND_NUISANCES, Candidate, order_candidates, parameters_at_bound, verdict
+from twin.effects import EFFECTS
 
 CHANNELS = 4
 
@@ -227,6 +231,7 @@ def test_a_held_out_test_that_cannot_tell_the_effect_from_none_does_not_name_it(
     assert candidate.heldout_is_noise, "the test allows the extrapolated fit so much that the candidate passes"
     assert candidate.heldout_base_rms == pytest.approx(whitened_rms(residual))
     assert candidate.heldout_base_rms < candidate.heldout_rms_threshold and candidate.heldout_has_power is False
+    assert candidate.heldout_is_noise is True, "plain bools, as `twin improve` writes them to its JSON history"
     outcome, reason, _ = verdict(1.5, False, plain.rms_threshold, order_candidates([candidate]))
     assert outcome == "unexplained", reason
     assert "its held-out test cannot tell it from no effect (threshold" in reason
@@ -273,3 +278,81 @@ def test_a_residual_at_the_noise_once_the_nuisances_are_fitted_is_nothing_beyond
 def test_a_nuisance_effect_cannot_also_be_a_candidate() -> None:
     with pytest.raises(ValueError, match="cannot be candidates"):
         diagnose([], TwinModel(), None, ["time_delay", "skin_modulus"], nuisances=True)
+
+
+def _profiled_held_out_test(base: Base, target: np.ndarray, jac: np.ndarray) -> NoiseTest:
+    """The held-out test (one parameter, leave one indenter out, sigma known) of `target` on `jac`."""
+    lin = Linearisation({"scale": 1.0}, np.zeros_like(target), jac[:, None])
+    _, left_out = heldout(EFFECTS["skin_modulus"], lin, target, base.residual.indenter)
+    axis = base.residual.covariates["axis"]
+    squares = [float(np.sum(left_out[axis == c] ** 2)) for c in range(CHANNELS)]
+    counts = [int(np.sum(axis == c)) for c in range(CHANNELS)]
+    excess = out_of_fold_excess(jac[:, None], base.residual.indenter)
+    return noise_test(squares, counts, [10**12] * CHANNELS, CHANNELS * 2 + 1, out_of_fold=excess)
+
+
+def _gain_case(gain: float, pressure: float, force: float = 100.0) -> tuple[NoiseTest, NoiseTest]:
+    """The held-out tests of the case below, profiled about the base's PDC and about the judged model's: a PDC
+    read-out gain error `gain` (relative); the effect changes the whitened force z by `force` ramp^1.5 on the first
+    indenter and the whitened PDC by `pressure` ramp^4 on the second (1500 samples each, unit noise)."""
+    rng = np.random.default_rng(25)
+    n = 1500
+    ramp = np.linspace(0.0, 1.0, n)
+    # per indenter (trajectory): whitened base PDC, and the effect's change of force z and of PDC per unit
+    base_pdc, force_change, pdc_change = (
+        [40 * ramp, 60 * ramp],
+        [force * ramp**1.5, 3 * ramp**1.5],
+        [5 * ramp**2, pressure * ramp**4],
+    )
+
+    def channels(
+        z: np.ndarray, pdc: np.ndarray, x: float | np.ndarray = 0.0, y: float | np.ndarray = 0.0
+    ) -> np.ndarray:
+        """(x, y, z, pdc) per sample, flattened, each channel's offset projected out."""
+        block = np.column_stack(np.broadcast_arrays(x, y, z, pdc))
+        return (block - block.mean(axis=0)).ravel()
+
+    base_prediction = np.concatenate([channels(np.zeros(n), p) for p in base_pdc])
+    signature = np.concatenate([channels(f, p) for f, p in zip(force_change, pdc_change, strict=True)])
+    judged = base_prediction + signature  # the model with the effect at its true value (1)
+    noise = np.concatenate([channels(*rng.standard_normal((4, n))) for _ in range(2)])
+    pdc_axis = np.tile(np.arange(CHANNELS), 2 * n) == 3
+    data = judged + gain * np.where(pdc_axis, judged, 0.0) + noise
+    axis = np.tile(np.arange(CHANNELS), 2 * n)
+    sensor = np.full(len(data), 2)
+    residual = Residual(
+        data - base_prediction,
+        np.repeat([0, 1], CHANNELS * n),
+        np.repeat(["sphere_small", "cylinder_long"], CHANNELS * n).astype(object),
+        {"axis": axis, "sensor": sensor},
+        np.ones(CHANNELS),
+    )
+    gains = GainNuisance(base_prediction, axis, sensor)
+    base = Base(
+        [],
+        np.ones(CHANNELS),
+        replace(residual, values=gains.project(data - base_prediction)),
+        [],
+        base_prediction,
+        gains,
+        data,
+    )
+    about_base = _profiled_held_out_test(
+        base, base.residual.values - gains.project(signature), gains.project(signature)
+    )
+    about = base.with_prediction(judged)
+    assert about.residual.values == pytest.approx(about.nuisance.project(data - judged))
+    return about_base, _profiled_held_out_test(about, about.residual.values, about.nuisance.project(signature))
+
+
+def test_the_pdc_gain_is_profiled_about_the_judged_model() -> None:
+    """The registration offsets of issue 20 in miniature: a sensor whose PDC read-out is 3 % low, and an effect
+    (at its true value, one parameter) that changes the pressure a lot on one indenter and the force on the other.
+    About the true effect the residual is the gain error times that model's PDC, plus noise. Profiled about the base
+    model's PDC (the effect off), the gain leaves 3 % of the effect's pressure change along its own signature, the
+    two indenters' fits disagree and the held-out test fails; profiled about the judged model's own PDC
+    (`Base.with_prediction`, what `judge_heldout` does), the residual is noise and the test passes."""
+    about_base, about_judged = _gain_case(-0.03, 300.0)
+    assert not about_base.is_noise, ("profiled about the base's PDC, 3 % of the pressure change is left", about_base)
+    assert about_judged.is_noise, about_judged
+    assert all(test.is_noise for test in _gain_case(0.0, 300.0)), "with an exact read-out gain both ways agree"

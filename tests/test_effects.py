@@ -1,8 +1,12 @@
 """The effect library: each effect does what its physics says, off means off, bad values are refused."""
 
+import ast
+from pathlib import Path
+
 import numpy as np
 import pytest
 
+import twin.effects as effects_module
 from fe.params import SkinParameters
 from twin.effects import EFFECTS, apply_path, apply_skin, check_values, measure_wrench
 
@@ -60,3 +64,13 @@ def test_bad_effect_values_are_refused() -> None:
         check_values({"time_delay": {"seconds": -1.0}})
     with pytest.raises(ValueError, match="no parameters"):
         check_values({"time_delay": {"minutes": 1.0}})
+
+
+def test_the_library_imports_nothing_from_the_analysis() -> None:
+    """The analysis uses the library, never the other way (its data-driven starts live in the analysis:
+    `twin.analysis.sensitivity.DATA_STARTS`): no import of `twin.analysis` anywhere in the module, nested or
+    type-only ones included."""
+    tree = ast.parse(Path(effects_module.__file__).read_text())
+    imported = [node.module or "" for node in ast.walk(tree) if isinstance(node, ast.ImportFrom)]
+    imported += [alias.name for node in ast.walk(tree) if isinstance(node, ast.Import) for alias in node.names]
+    assert [m for m in imported if m.startswith("twin.analysis")] == []

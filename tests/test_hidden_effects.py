@@ -49,12 +49,6 @@ CONFOUNDED = {
     "ft_calibration map ranks first in sample (evidence 771244 against 769451) and is the only candidate refitted "
     "here (top=1): 1.24x refitted, 2.19x held out, so the verdict is 'unexplained'; the hidden relaxation (fraction "
     "0.34, 0.34 s) is linearised at its probe (0.15, 1 s), far from its size",
-    "registration_offset": "on seed 5's points (2026-11-27, 2-core dev box, commit b930f90) the offset (0.24, 0.29, "
-    "0.33) mm ranks first and refits to 0.99x at (0.24, 0.29, 0.32) mm, but held out it leaves 1.04x against the "
-    "1.027x its test allows, so 'unexplained': cylinder_long predicted from sphere_small's fit leaves force z 1.24x "
-    "(white noise through the same fits: mean square 1.0035, at most 1.034 in 100 draws; observed 1.078), so the "
-    "in-sample residual about the true offset is not white and the fit's leverage (e_j up to 64) carries it over. "
-    "It passed before only because the held-out allowance was round-off (6.6x, fixed in out_of_fold_excess)",
 }
 """Library effects this small campaign does not find (measured; seen in benchmarks/diagnose_bench.py): their
 cases run every time and report as expected failures with the reason; a fix shows as XPASS."""

@@ -133,6 +133,26 @@ def test_improve_keeps_the_history_beside_the_dataset_or_the_model(
     assert len(read_history(model_file.parent / "twin-history.jsonl")) == 1
 
 
+def test_improve_reports_the_held_out_tests_power_in_its_table_and_json(
+    fake_inputs: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """As diagnose does: the RMS the held-out test allows, and the base residual on the same left-out samples
+    with whether it fails that test (the power rule); the existing keys keep their names."""
+    fitted = TwinModel().with_effects({"time_delay": {"seconds": 0.05}})
+    fit = EffectFit("time_delay", {"seconds": 0.05}, 2.0, 1.0, 1.01, fitted, True, [], 1.027, 1.02, False)
+    monkeypatch.setattr(refit_module, "fit_effect", lambda data, model, name, predictor=None: fit)
+    shown = runner.invoke(app, ["improve", str(fake_inputs), "--add", "time_delay"], env={"COLUMNS": "300"})
+    assert shown.exit_code == 0, shown.output
+    assert "1.027" in shown.stdout and "1.02 (passes it too: the test has no power)" in shown.stdout
+    result = runner.invoke(app, ["improve", str(fake_inputs), "--add", "time_delay", "--json"])
+    assert result.exit_code == 0, result.output
+    entry = json.loads(result.stdout, parse_constant=_raise_on_constant)
+    assert entry["heldout_base_rms"] == 1.02 and entry["heldout_has_power"] is False
+    assert entry["heldout_rms_threshold"] == 1.027
+    assert {"rms_before", "rms_after", "heldout_rms", "heldout_is_noise", "at_bound", "added"} <= set(entry)
+    assert read_history(fake_inputs.parent / "twin-history.jsonl")[-1]["heldout_has_power"] is False
+
+
 class _NarrowBasin:
     """A delay whose signature appears only near its true size: the prediction moves by a fixed pattern
     weighted by a bump around 0.25 s (flat at zero delay), and the data hold that pattern plus noise."""

@@ -15,35 +15,14 @@ from __future__ import annotations
 from collections.abc import Callable
 from dataclasses import dataclass, field, replace
 from functools import partial
-from typing import TYPE_CHECKING, Protocol
 
 import numpy as np
 
 from fe.params import SKIN_PARAMETERS, Knob, SkinParameters
 
-if TYPE_CHECKING:
-    from twin.analysis.predict import Predictor, TwinModel
-    from twin.analysis.residual import Base
-
 EffectValues = dict[str, dict[str, float]]
 CleanWrench = Callable[[np.ndarray], np.ndarray]
 """Noise-free sensor-frame wrench (N, 6) at the given times (N,) s."""
-
-
-class StartEstimate(Protocol):
-    """What an effect's data-driven start (`Effect.data_start`) found in the data."""
-
-    def start(self, current: dict[str, float]) -> dict[str, float] | None:
-        """The effect's values to try, about its `current` values (None: nothing worth trying)."""
-        ...
-
-    def to_dict(self) -> dict:
-        """A JSON-ready summary (what diagnosis reports beside the candidate)."""
-        ...
-
-
-DataStart = Callable[["Predictor", "TwinModel", "Base"], StartEstimate]
-"""An effect's start estimated from the data (predictor, the model, the base residual): no linearisation."""
 
 
 @dataclass(frozen=True)
@@ -76,13 +55,11 @@ class Effect:
     point (a relaxation time while the relaxing fraction is zero); empty: linearise at the off point."""
     starts: tuple[dict[str, float], ...] = ()
     """Values across the range at which a search also tries the effect (each a prediction), for effects
-    whose slope at the off value misjudges a large size (a registration offset of a millimetre)."""
+    whose slope at the off value misjudges a large size (a registration offset of a millimetre); a start
+    estimated from the data themselves is the analysis's (`twin.analysis.sensitivity.DATA_STARTS`)."""
     linear: bool = False
     """The measurement is linear in the parameters (an F/T calibration matrix, a drift rate): a linear
     least-squares fit is exact and needs no nonlinear polish."""
-    data_start: DataStart | None = None
-    """A start estimated from the data themselves (a registration offset from the contact onsets), tried
-    first among `starts` while the effect is off; None: the declared starts only."""
 
     def values(self, given: dict[str, float] | None = None) -> dict[str, float]:
         """Every parameter's value: `given` where present, the off value otherwise (bounds checked)."""
@@ -179,13 +156,6 @@ def _registration(tips: np.ndarray, v: dict[str, float]) -> np.ndarray:
     return tips + registration_vector(v)
 
 
-def _onset_start(predictor: Predictor, model: TwinModel, base: Base) -> StartEstimate:
-    """The registration offset's data-driven start: the contact-onset estimate (`twin.analysis.onset`)."""
-    from twin.analysis.onset import onset_start  # imported when called: the onset module uses this library
-
-    return onset_start(predictor, model, base)
-
-
 def _delay(times: np.ndarray, clean: CleanWrench, v: dict[str, float]) -> np.ndarray:
     return clean(times - v["seconds"])
 
@@ -257,7 +227,6 @@ _DECLARED: dict[str, Effect] = {
             ("force", "pdc", "electrodes"),
             path=_registration,
             starts=_REGISTRATION_STARTS,
-            data_start=_onset_start,
         ),
         Effect(
             "time_delay",

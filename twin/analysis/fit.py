@@ -79,6 +79,16 @@ class Parameters:
         """The same parameters at `values` (which must lie within the bounds)."""
         return Parameters(self.names, np.asarray(values, dtype=float), self.lower, self.upper, self.scale)
 
+    def subset(self, index: list[int]) -> Parameters:
+        """The parameters at positions `index`, in that order."""
+        return Parameters(
+            tuple(self.names[i] for i in index),
+            self.values[index],
+            self.lower[index],
+            self.upper[index],
+            self.scale[index],
+        )
+
     def at_bound(self, tolerance: float = AT_BOUND) -> tuple[str, ...]:
         """Names whose value lies within `tolerance` times its bound range of a bound (`near_bound`)."""
         near = near_bound(self.values, self.lower, self.upper, tolerance)

@@ -42,17 +42,19 @@ def heldout(effect: Effect, lin: Linearisation, r: np.ndarray, indenter: np.ndar
 
 
 def judge_heldout(candidate: Candidate, model: TwinModel, predictor: Predictor, base: Base) -> None:
-    """Held-out RMS about the refitted values (the effect linearised again there: one fe replay per
+    """Held-out RMS about the refitted values (the residual about the refitted model, each sensor's PDC gain
+    profiled about that model's own PDC, `Base.about`; the effect linearised again there: one fe replay per
     parameter for a physics effect), whether that held-out residual passes the noise test, which allows
     for the error the fits on the other indenters carry into it (`significance.out_of_fold_excess`; the
-    parameter bounds of the fits are not modelled), and whether that test has power (`record_heldout`);
-    and which refitted parameters sit at a bound."""
+    parameter bounds of the fits are not modelled), and whether that test has power (`record_heldout`: the
+    base residual on the same samples); and which refitted parameters sit at a bound."""
     effect = EFFECTS[candidate.name]
-    at_fit = linearise(effect, model, candidate.refit_parameters, predictor, base)
-    rms, left_out = heldout(effect, at_fit, base.residual.values, base.residual.indenter)
-    out_of_fold = out_of_fold_excess(at_fit.jac, base.residual.indenter)
+    about = base.about(predictor, model.with_effects({candidate.name: candidate.refit_parameters}))
+    at_fit = linearise(effect, model, candidate.refit_parameters, predictor, about)
+    rms, left_out = heldout(effect, at_fit, about.residual.values, about.residual.indenter)
+    out_of_fold = out_of_fold_excess(at_fit.jac, about.residual.indenter)
     record_heldout(
-        candidate, rms, left_out, base.residual.values, lambda r: base.noise_test(r, out_of_fold=out_of_fold)
+        candidate, rms, left_out, base.residual.values, lambda r: about.noise_test(r, out_of_fold=out_of_fold)
     )
     candidate.at_bound = parameters_at_bound(candidate.name, candidate.refit_parameters)
 
@@ -71,10 +73,10 @@ def record_heldout(
     held = test(left_out)
     without = np.where(np.isfinite(left_out), base_residual, np.nan)
     candidate.heldout_rms = rms
-    candidate.heldout_is_noise = held.is_noise
-    candidate.heldout_rms_threshold = held.rms_threshold
+    candidate.heldout_is_noise = bool(held.is_noise)  # plain bools: `twin improve` writes them to its history
+    candidate.heldout_rms_threshold = float(held.rms_threshold)
     candidate.heldout_base_rms = whitened_rms(without)
-    candidate.heldout_has_power = not test(without).is_noise
+    candidate.heldout_has_power = not bool(test(without).is_noise)
 
 
 def identifiability(candidate: Candidate, jac: np.ndarray) -> None:

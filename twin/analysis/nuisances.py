@@ -37,7 +37,7 @@ lies in the span of the nuisances' signatures (`confounded`).
 from __future__ import annotations
 
 from collections.abc import Callable
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 
 import numpy as np
 
@@ -306,10 +306,7 @@ def fit_nuisances(
 def _shifted(base: Base, model: TwinModel, predictor: Predictor, values: NuisanceValues) -> np.ndarray:
     """Profiled change of the whitened prediction from `base` to the model with `values` (NaN where the
     fe replay failed)."""
-    moved = Base(
-        base.trajectories, base.sigma, base.residual, base.masks, base.prediction, base.nuisance, values.model_for
-    )
-    return moved.shifted(predictor, model)
+    return replace(base, model_for=values.model_for).shifted(predictor, model)
 
 
 def _jacobian(base: Base, model: TwinModel, predictor: Predictor, values: NuisanceValues) -> np.ndarray:
@@ -450,9 +447,11 @@ def _onset_start(
 ) -> NuisanceValues:
     """`fitted` moved, arm by arm, to what the contact onsets about it say (`twin.analysis.onset`, from the fit's
     replays): the registration offset alone where the arm has no joint offsets; else the registration offset
-    and the joint offsets together, the Gaussian-prior (`PRIORS`) least squares of each path's shift s_k =
-    row_k . (dt + J_k dq) (`tip_sensitivity`), since each pose is off by its own amount."""
+    and the joint offsets together, the bounded least squares (`twin.analysis.fit.linear_step`) of each path's
+    shift s_k = row_k . (dt + J_k dq) (`tip_sensitivity`) with a Gaussian prior (`PRIORS`) on the step about
+    the fit, since each pose is off by its own amount."""
     offsets, moved = {}, np.array(fitted.values)
+    everything = fitted.parameters
     for arm in arms:
         mine = [t for t in nominal.trajectories if (t.sensor_id, t.arm) == arm]
         estimate = onset_estimate(predictor, [fitted.model_for(model, t) for t in mine], mine, nominal.sigma)
@@ -460,11 +459,11 @@ def _onset_start(
         offsets[arm] = _arm_offset(fitted, arm) + estimate.offset
         used = [(t, shift) for t, shift in zip(mine, estimate.shifts, strict=True) if np.isfinite(shift.std)]
         if joints and used:
+            registration = [i for i, s in enumerate(fitted.slots) if _is_arm(s, arm)]  # dx, dy, dz
+            at = everything.subset(registration + joints)
             rows = np.array([np.r_[s.row, s.row @ tip_sensitivity(t)] / s.std for t, s in used])
-            prior = np.r_[[PRIORS[REGISTRATION]] * 3, [PRIORS[JOINT_OFFSET]] * len(joints)]
-            system = np.vstack([rows, np.diag(1.0 / prior)])
-            target = np.r_[[s.shift / s.std for _, s in used], np.zeros(len(prior))]
-            step = np.linalg.lstsq(system, target, rcond=None)[0]
+            sigma = np.r_[[PRIORS[REGISTRATION]] * len(registration), [PRIORS[JOINT_OFFSET]] * len(joints)]
+            step = linear_step(rows, np.array([s.shift / s.std for _, s in used]), at, Prior(at.values, sigma))
             offsets[arm] = _arm_offset(fitted, arm) + step[:3]
             moved[joints] = moved[joints] + step[3:]
     bounds = fitted.parameters

@@ -102,7 +102,7 @@ class OnsetEstimate:
         return registration_values(registration_vector(current) + self.offset)
 
     def start(self, current: dict[str, float]) -> dict[str, float] | None:
-        """`values` when the estimate is `large` (the effect's data-driven start, `Effect.data_start`), else
+        """`values` when the estimate is `large` (the effect's data-driven start, `sensitivity.DATA_STARTS`), else
         None."""
         return self.values(current) if self.large else None
 
@@ -214,7 +214,7 @@ def onset_estimate(
 
 
 def onset_start(predictor: Predictor, model: TwinModel, base: Base) -> OnsetEstimate:
-    """The data-driven start of `registration_offset` (`Effect.data_start`): the estimate on `base`'s
+    """The data-driven start of `registration_offset` (`sensitivity.DATA_STARTS`): the estimate on `base`'s
     trajectories, each about its own model (`Base.model_for`: the nuisances' values where they were fitted)."""
     models = [base.model_for(model, t) for t in base.trajectories]
     return onset_estimate(predictor, models, base.trajectories, base.sigma)

@@ -72,7 +72,8 @@ def refit(
 
 @dataclass(frozen=True)
 class EffectFit:
-    """An effect fitted to data: its values, and whitened RMS (1 = noise) before, after and held out."""
+    """An effect fitted to data: its values, and whitened RMS (1 = noise) before, after and held out, with
+    the held-out test's figures as diagnosis reports them (`twin.analysis.heldout.record_heldout`)."""
 
     name: str
     values: dict[str, float]
@@ -82,6 +83,9 @@ class EffectFit:
     model: TwinModel
     heldout_is_noise: bool | None = None  # the held-out residual passes the noise test
     at_bound: list[str] = field(default_factory=list)  # fitted parameters at a bound of their range
+    heldout_rms_threshold: float | None = None  # the held-out RMS that test allows
+    heldout_base_rms: float | None = None  # the residual without the effect on the same left-out samples
+    heldout_has_power: bool | None = None  # that base residual fails the same test (the power rule)
 
 
 def fit_effect(
@@ -109,4 +113,7 @@ def fit_effect(
         improved,
         candidate.heldout_is_noise,
         candidate.at_bound,
+        candidate.heldout_rms_threshold,
+        candidate.heldout_base_rms,
+        candidate.heldout_has_power,
     )

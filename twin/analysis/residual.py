@@ -181,8 +181,8 @@ def whitened(predicted: list[np.ndarray], masks: list[np.ndarray], sigma: np.nda
 @dataclass(frozen=True)
 class Base:
     """Everything the base model's residual needs: trajectories, noise, residual, masks, whitened base
-    prediction, the PDC-gain nuisance projector, the model of each trajectory and how many nuisance
-    parameters were fitted to reach it (they reduce the noise test's degrees of freedom)."""
+    prediction, the PDC-gain nuisance projector, the whitened data, the model of each trajectory and how many
+    nuisance parameters were fitted to reach it (they reduce the noise test's degrees of freedom)."""
 
     trajectories: list[TrajectoryRecord]
     sigma: np.ndarray
@@ -190,8 +190,25 @@ class Base:
     masks: list[np.ndarray]
     prediction: np.ndarray
     nuisance: GainNuisance
+    data: np.ndarray  # (N,) the measurements, whitened and offset-projected like `prediction`
     model_for: ModelFor = same_model
     fitted: int = 0
+
+    def with_prediction(self, prediction: np.ndarray) -> Base:
+        """This residual about another model whose whitened, offset-projected prediction on these samples is
+        `prediction` (N,; NaN where its replay failed): the data less it, each sensor's PDC gain profiled about
+        that model's own PDC. A read-out gain error scales the pressure the sensor reads, which is the model's
+        with its effects, not the base's: profiled about the base's PDC, a gain of a few per cent leaves that
+        fraction of a large effect's PDC change in the residual, along the effect's own signature (measured on
+        the hidden registration offsets, docs/analysis.md)."""
+        nuisance = GainNuisance(prediction, self.residual.covariates["axis"], self.residual.covariates["sensor"])
+        residual = replace(self.residual, values=nuisance.project(self.data - prediction))
+        return replace(self, residual=residual, prediction=prediction, nuisance=nuisance)
+
+    def about(self, predictor: Predictor, model: TwinModel) -> Base:
+        """This residual about `model` (each trajectory by `model_for`) on the same samples (`with_prediction`)."""
+        predicted = fullrate_prediction(predictor, model, self.trajectories, self.model_for)
+        return self.with_prediction(whitened(predicted, self.masks, self.sigma))
 
     def shifted(self, predictor: Predictor, model: TwinModel) -> np.ndarray:
         """Profiled change of the whitened prediction from the base to `model` (NaN where it failed)."""
@@ -240,7 +257,8 @@ def base_residual(
     base = whitened(predicted, masks, sigma)
     nuisance = GainNuisance(base, residual.covariates["axis"], residual.covariates["sensor"])
     residual = replace(residual, values=nuisance.project(residual.values))
-    return Base(trajectories, sigma, residual, masks, base, nuisance, model_for, fitted)
+    data = whitened([measured(t) for t in trajectories], masks, sigma)
+    return Base(trajectories, sigma, residual, masks, base, nuisance, data, model_for, fitted)
 
 
 def noise_sigma(trajectories: list[TrajectoryRecord]) -> np.ndarray:

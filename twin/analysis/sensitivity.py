@@ -4,14 +4,37 @@ of a residual on them (`twin.analysis.fit`)."""
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from dataclasses import dataclass, replace
+from typing import Protocol
 
 import numpy as np
 
 from twin.analysis.fit import Parameters, linear_step
+from twin.analysis.onset import onset_start
 from twin.analysis.predict import Predictor, TwinModel
 from twin.analysis.residual import Base
-from twin.effects import Effect, StartEstimate
+from twin.effects import REGISTRATION, Effect
+
+
+class StartEstimate(Protocol):
+    """What an effect's data-driven start (`DATA_STARTS`) found in the data."""
+
+    def start(self, current: dict[str, float]) -> dict[str, float] | None:
+        """The effect's values to try, about its `current` values (None: nothing worth trying)."""
+        ...
+
+    def to_dict(self) -> dict:
+        """A JSON-ready summary (what diagnosis reports beside the candidate)."""
+        ...
+
+
+DataStart = Callable[[Predictor, TwinModel, Base], StartEstimate]
+"""An effect's start estimated from the data (predictor, the model, the base residual): no linearisation."""
+DATA_STARTS: dict[str, DataStart] = {REGISTRATION: onset_start}
+"""Effect name -> its start from the data, tried first among the effect's declared starts while it is off (a
+registration offset from the contact onsets, `twin.analysis.onset`); effects not listed have the declared
+starts only. Kept here, not in the effect library: the library knows nothing of the analysis."""
 
 
 @dataclass(frozen=True)
@@ -22,7 +45,7 @@ class Linearisation:
     point: dict[str, float]
     offset: np.ndarray  # (N,) profiled change of the prediction from the base model to `point`
     jac: np.ndarray  # (N, k) finite-difference sensitivity at `point`
-    data_start: StartEstimate | None = None  # the effect's start from the data (`Effect.data_start`), if any
+    data_start: StartEstimate | None = None  # the effect's start from the data (`DATA_STARTS`), if any
 
 
 def linearise(
@@ -70,8 +93,8 @@ def sensitivities(effects: list[Effect], model: TwinModel, predictor: Predictor,
     off and declares starts (values across its range, or one from the data), at the start or the first
     linearisation's fit, whichever leaves the least profiled chi-square when predicted nonlinearly (one
     prediction each), so an effect far from its off value is fitted about a point near it; an effect with a
-    data-driven start (`Effect.data_start`: a registration offset's contact onsets, `twin.analysis.onset`, no
-    fe replay) tries what that gives (when it gives one) before its declared starts; its Linearisation keeps
+    data-driven start (`DATA_STARTS`: a registration offset's contact onsets, `twin.analysis.onset`, no fe
+    replay) tries what that gives (when it gives one) before its declared starts; its Linearisation keeps
     the estimate either way. Each stage's replays, over all the effects (the first linearisations, the
     trials, the second linearisations), are solved as one batch."""
     points = []
@@ -85,14 +108,15 @@ def sensitivities(effects: list[Effect], model: TwinModel, predictor: Predictor,
     r = base.residual.values
     trials: list[list[dict[str, float]]] = []
     for i, (effect, lin) in enumerate(zip(effects, lins, strict=True)):
-        if not (effect.is_off(effect.values(model.effects.get(effect.name))) and (effect.starts or effect.data_start)):
+        data_start = DATA_STARTS.get(effect.name)
+        if not (effect.is_off(effect.values(model.effects.get(effect.name))) and (effect.starts or data_start)):
             trials.append([])
             continue
         at = effect_parameters(effect, lin.point)
         fitted = at.moved(linear_step(lin.jac, r - lin.offset, at)).as_dict()
         first = []
-        if effect.data_start is not None:
-            lins[i] = replace(lin, data_start=effect.data_start(predictor, model, base))
+        if data_start is not None:
+            lins[i] = replace(lin, data_start=data_start(predictor, model, base))
             first = [start] if (start := lins[i].data_start.start(lin.point)) is not None else []
         trials.append([fitted, *first, *(effect.values({**lin.point, **start}) for start in effect.starts)])
     tried = [model.with_effects({e.name: t}) for e, ts in zip(effects, trials, strict=True) for t in ts]

@@ -61,7 +61,7 @@ class Candidate:
     heldout_rms_threshold: float | None = None  # the RMS its held-out test allows (None: not judged)
     heldout_base_rms: float | None = None  # the base residual's RMS on the same left-out samples (None: not judged)
     heldout_has_power: bool | None = None  # that base residual fails the same held-out test (None: not judged)
-    onset: dict | None = None  # its data-driven start (`Effect.data_start`; registration_offset: the contact onsets)
+    onset: dict | None = None  # its start from the data (`sensitivity.DATA_STARTS`; registration: the contact onsets)
 
     @property
     def refitted(self) -> bool:

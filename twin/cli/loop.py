@@ -2,7 +2,7 @@
 
 import json
 from pathlib import Path
-from typing import Annotated
+from typing import TYPE_CHECKING, Annotated
 
 import typer
 from rich.table import Table
@@ -16,6 +16,9 @@ from twin.cli.common import (
     replay_progress,
     warn_nonfinite_forces,
 )
+
+if TYPE_CHECKING:
+    from twin.analysis.refit import EffectFit
 
 loop_app = typer.Typer()
 
@@ -122,9 +125,13 @@ def improve(
     history: HistoryOption = None,
     out: Annotated[Path | None, typer.Option(help="Also write the new model JSON here.")] = None,
     device: DeviceOption = "cpu",
+    as_json: Annotated[
+        bool, typer.Option("--json", help="Print the history entry as JSON (strict: NaN as null) instead of tables.")
+    ] = False,
 ) -> None:
     """Fit an effect's parameters, show the error before and after, save the model in the history (beside
     the model or the dataset unless --history names one)."""
+    from twin.analysis.diagnose import strict_json
     from twin.analysis.history import append_entry, history_beside
     from twin.analysis.refit import fit_effect
 
@@ -133,18 +140,6 @@ def improve(
     history = history if history is not None else history_beside(datasets, model)
     with replay_progress(predictor):
         fit = guarded(lambda: fit_effect(data, twin_model, add, predictor))
-    table = Table("", "RMS / noise")
-    table.add_row("before", f"{fit.rms_before:.2f}")
-    table.add_row(f"after adding {add}", f"{fit.rms_after:.2f}")
-    held = "-" if fit.heldout_rms is None else f"{fit.heldout_rms:.2f}"
-    if fit.heldout_is_noise is not None:
-        held += " (passes the noise test)" if fit.heldout_is_noise else " (fails the noise test)"
-    table.add_row("held out (leave one indenter out)", held)
-    out_console.print(table)
-    bound = set(fit.at_bound)
-    out_console.print(
-        "fitted: " + ", ".join(f"{k}={v:.5g}{' (at its bound)' if k in bound else ''}" for k, v in fit.values.items())
-    )
     entry = append_entry(
         history,
         {
@@ -156,11 +151,40 @@ def improve(
             "heldout_rms": fit.heldout_rms,
             "heldout_is_noise": fit.heldout_is_noise,
             "at_bound": fit.at_bound,
+            "heldout_rms_threshold": fit.heldout_rms_threshold,
+            "heldout_base_rms": fit.heldout_base_rms,
+            "heldout_has_power": fit.heldout_has_power,
         },
     )
     if out is not None:
         out.write_text(json.dumps(fit.model.to_dict(), indent=2))
-    out_console.print(f"saved as step {entry['step']} in {history}")
+    if as_json:
+        print(json.dumps(strict_json(entry), allow_nan=False))
+    else:
+        _print_fit(fit, add)
+    (err_console if as_json else out_console).print(f"saved as step {entry['step']} in {history}")
+
+
+def _print_fit(fit: "EffectFit", add: str) -> None:
+    """`twin improve`'s tables: the RMS before, after and held out, with the held-out test's figures (the RMS
+    it allows and, by the power rule, whether the residual without the effect fails it too), and the values."""
+    table = Table("", "RMS / noise")
+    table.add_row("before", f"{fit.rms_before:.2f}")
+    table.add_row(f"after adding {add}", f"{fit.rms_after:.2f}")
+    held = "-" if fit.heldout_rms is None else f"{fit.heldout_rms:.2f}"
+    if fit.heldout_is_noise is not None:
+        held += " (passes the noise test)" if fit.heldout_is_noise else " (fails the noise test)"
+    if fit.heldout_rms_threshold is not None:
+        held += f", its test allows {fit.heldout_rms_threshold:.3f}"
+    table.add_row("held out (leave one indenter out)", held)
+    if fit.heldout_base_rms is not None:
+        power = "fails it: the test has power" if fit.heldout_has_power else "passes it too: the test has no power"
+        table.add_row("held out without the effect (same samples)", f"{fit.heldout_base_rms:.2f} ({power})")
+    out_console.print(table)
+    bound = set(fit.at_bound)
+    out_console.print(
+        "fitted: " + ", ".join(f"{k}={v:.5g}{' (at its bound)' if k in bound else ''}" for k, v in fit.values.items())
+    )
 
 
 @loop_app.command("history")
