@@ -21,6 +21,7 @@ from twin.analysis.refit import EffectFit, refit
 from twin.analysis.sensitivity import Linearisation, sensitivity
 from twin.analysis.verdict import Candidate
 from twin.cli import app
+from twin.cli.common import out_console
 from twin.effects import EFFECTS
 
 runner = CliRunner()
@@ -141,7 +142,8 @@ def test_improve_reports_the_held_out_tests_power_in_its_table_and_json(
     fitted = TwinModel().with_effects({"time_delay": {"seconds": 0.05}})
     fit = EffectFit("time_delay", {"seconds": 0.05}, 2.0, 1.0, 1.01, fitted, True, [], 1.027, 1.02, False)
     monkeypatch.setattr(refit_module, "fit_effect", lambda data, model, name, predictor=None: fit)
-    shown = runner.invoke(app, ["improve", str(fake_inputs), "--add", "time_delay"], env={"COLUMNS": "300"})
+    monkeypatch.setattr(out_console, "_width", 300)  # whatever COLUMNS was when the console was made
+    shown = runner.invoke(app, ["improve", str(fake_inputs), "--add", "time_delay"])
     assert shown.exit_code == 0, shown.output
     assert "1.027" in shown.stdout and "1.02 (passes it too: the test has no power)" in shown.stdout
     result = runner.invoke(app, ["improve", str(fake_inputs), "--add", "time_delay", "--json"])
