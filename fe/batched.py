@@ -261,7 +261,8 @@ class BatchedShell:
     """`batch` copies of an `InflatedSkin` on a warp `device`; indenter i of the batch is `indenters[i]`,
     given as (kind, dims) of `fe.indenter_sdf` (any mix: the contact kernels read each system's own).
     `forcing`: one of `FORCING`, how tightly the CG solves each Newton step (the converged states do not
-    depend on it, only the work); `linear`: one of `LINEAR_SOLVERS`."""
+    depend on it, only the work); `linear`: one of `LINEAR_SOLVERS`; `later`: skins systems may take later
+    (`set_skin`), whose bending and relaxation the batch is built for too."""
 
     def __init__(
         self,
@@ -271,6 +272,7 @@ class BatchedShell:
         cg_max_iterations: int = 20000,
         forcing: str = "adaptive",
         linear: str = "auto",
+        later: Sequence[InflatedSkin] = (),
     ) -> None:
         if forcing not in FORCING:
             raise ValueError(f"forcing must be one of {FORCING}, got {forcing!r}")
@@ -280,7 +282,7 @@ class BatchedShell:
         """The model of each system (`per_system`): one mesh, parameters and starting state per system."""
         skin = self.skins[0]
         self.skin, self.device, self.batch = skin, device, len(indenters)
-        params = [s.params for s in self.skins]
+        params = [s.params for s in [*self.skins, *later]]
         self.cg_max_iterations, self.forcing = cg_max_iterations, forcing
         B, V = self.batch, len(skin.vertices)
         self.n_vertices = V
@@ -462,7 +464,7 @@ class BatchedShell:
 
     def set_skin(self, system: int, skin: InflatedSkin) -> None:
         """Give one system another skin of the batch's mesh (`per_system`), whose bending and relaxation the
-        batch was built for (its starting state is the stepper's to install)."""
+        batch was built for (`later`; its starting state is the stepper's to install)."""
         per_system([self.skin, skin], 2)
         if (skin.params.bending and not self.n_bending) or (skin.params.relaxation_fraction > 0.0 and not self.relaxes):
             raise ValueError("a batch built without bending or relaxation cannot take a skin that has them")

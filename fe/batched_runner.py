@@ -124,8 +124,9 @@ def run_trajectories(
     if isinstance(skin, InflatedSkin):  # one skin: the longest first
         order.sort(key=lambda k: -len(trajectories[k].rotations))
     skins = per_system(skin, len(trajectories))
-    initial = _initial_skins(skins, order[:slots])
-    stepper = BatchedStepper(initial, [trajectories[k].indenter for k in order[:slots]], device, forcing, linear)
+    initial, indenters = [skins[k] for k in order[:slots]], [trajectories[k].indenter for k in order[:slots]]
+    later = list({id(s): s for s in skins}.values())
+    stepper = BatchedStepper(initial, indenters, device, forcing, linear, later)
     schedule = _Schedule(trajectories, skins, order, force_limit, on_trajectory, stepper, max_cuts)
     round_end_s: list[float] = []
     round_systems: list[int] = []
@@ -156,26 +157,6 @@ def run_trajectories(
         np.array(round_end_s),
         np.array(round_systems, dtype=int),
     )
-
-
-def _initial_skins(skins: list[InflatedSkin], first: list[int]) -> list[InflatedSkin]:
-    """The skins a batch starts with, one per slot: those of the `first` trajectories, except that a batch built
-    without bending or relaxation cannot take a skin that has them later, so for each such feature of the run
-    the first skin with it takes a slot whose features other slots also have."""
-    initial = [skins[k] for k in first]
-    features = (lambda s: s.params.bending, lambda s: s.params.relaxation_fraction > 0.0)
-    for needs in features:
-        if not any(map(needs, skins)) or any(map(needs, initial)):
-            continue
-        spare = [
-            i
-            for i, skin in enumerate(initial)
-            if all(not has(skin) or any(has(o) for o in initial[:i] + initial[i + 1 :]) for has in features)
-        ]
-        if not spare:
-            raise ValueError(f"{len(initial)} slot(s) cannot hold both a bending and a relaxing skin: use more slots")
-        initial[spare[-1]] = next(s for s in skins if needs(s))
-    return initial
 
 
 class _Schedule:

@@ -126,8 +126,9 @@ class BatchedStepper:
     """B independent indentation trajectories, stepped together on `device`.
 
     `skin`: the inflated model of every system, or one per system (`fe.batched.per_system`: one mesh, each
-    with its own parameters and starting state); `indenters`: one indenter (or name) per system; `forcing`
-    and `linear`: the CG tolerance rule and the linear algebra of `fe.batched.BatchedShell`.
+    with its own parameters and starting state); `indenters`: one indenter (or name) per system; `forcing`,
+    `linear` and `later`: the CG tolerance rule, the linear algebra and the skins systems may take later
+    (`set_skin`) of `fe.batched.BatchedShell`.
     """
 
     def __init__(
@@ -137,13 +138,15 @@ class BatchedStepper:
         device: str = "cpu",
         forcing: str = "adaptive",
         linear: str = "auto",
+        later: Sequence[InflatedSkin] = (),
     ) -> None:
         shapes = [get_indenter(name) if isinstance(name, str) else name for name in indenters]
         if not shapes:
             raise ValueError("a batch needs at least one trajectory")
         self.batch = len(shapes)
         self.indenters = [shape.name for shape in shapes]
-        self.shell = BatchedShell(skin, [(s.kind, s.dims) for s in shapes], device, forcing=forcing, linear=linear)
+        indenters = [(s.kind, s.dims) for s in shapes]
+        self.shell = BatchedShell(skin, indenters, device, forcing=forcing, linear=linear, later=later)
         self.skins, self.skin = self.shell.skins, self.shell.skin
         skin = self.skin
         B, V = self.batch, len(skin.vertices)
