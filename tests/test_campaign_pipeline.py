@@ -42,12 +42,13 @@ class InThisProcess(Executor):
 
 class FakeStages:
     """Records what each stage was asked to do, in order; the schedules of the last sensor in fe order wait for
-    the first fe batch to start."""
+    the first fe batch to start, and the batch's second trajectory waits for the first one's part to be synthesised."""
 
     def __init__(self, failing: tuple[int, int] | None = None) -> None:
         self.events: list[tuple] = []
-        self.first_batch = threading.Event()
+        self.first_batch, self.first_part = threading.Event(), threading.Event()
         self.overlapped: list[bool] = []
+        self.synthesis_overlapped: list[bool] = []
         self.failing = failing
         self.last_sensor = fe_order(_tasks(Path(".")))[-1]
 
@@ -63,14 +64,18 @@ class FakeStages:
         self.first_batch.set()
         for index in range(len(poses)):
             assert len(poses[index].rotations) == 1  # read as the runner reads it: waits for its schedule
-            self.events.append(("fe", skins[index]))
+            if index == 1:  # the first sensor's second trajectory: the first one is solved, not its sensor
+                self.synthesis_overlapped.append(self.first_part.wait(WAIT_S))
+            job = poses.task(index)[0]
+            self.events.append(("fe", (job.sensor_id, job.spec.trajectory_id)))
             on_trajectory(index, [])
 
     def synthesise_part(self, job: Any, slot: int, registration: np.ndarray, parts_dir: str) -> tuple:
         key = (job.sensor_id, job.spec.trajectory_id)
         if key == self.failing:
             raise ValueError(f"sensor {key[0]} trajectory {key[1]}: the worker's own message")
-        self.events.append(("synthesis", job.sensor_id))
+        self.events.append(("synthesis", key))
+        self.first_part.set()
         return key, True
 
 
@@ -120,9 +125,12 @@ def test_the_sensors_are_solved_largest_first_while_the_others_are_still_planned
     assert fake.overlapped == [True]  # sensor 1's schedule was recorded after the fe had started
     started = next(k for k, e in enumerate(fake.events) if e[0] == "fe batch")
     assert ("schedule", 1) in fake.events[started:]
-    for sid in SENSOR_SIZES:  # a sensor's parts are synthesised after its fe
-        fe_at = max(k for k, e in enumerate(fake.events) if e == ("fe", sid))
-        assert all(k > fe_at for k, e in enumerate(fake.events) if e == ("synthesis", sid))
+    assert fake.synthesis_overlapped == [True]  # a trajectory's part is synthesised while its sensor's fe still runs
+    solved = [e[1] for e in fake.events if e[0] == "fe"]
+    assert [key[0] for key in solved] == [2, 2, 2, 3, 3, 1]
+    for key in solved:  # each trajectory is synthesised once, after its fe
+        assert [e for e in fake.events if e[0] == "synthesis"].count(("synthesis", key)) == 1
+        assert fake.events.index(("synthesis", key)) > fake.events.index(("fe", key))
     expected = sorted((t[0].sensor_id, t[0].spec.trajectory_id, True) for t in _tasks(tmp_path))
     assert sorted(finished) == expected
 

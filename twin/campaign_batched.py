@@ -22,9 +22,9 @@ before anything is solved. `BatchedRunner` works in three passes:
 
 The passes overlap by sensor (`fe_order`: most trajectories first): every schedule is submitted to the workers at
 once, the fe batch starts as soon as it has a schedule for every slot (`_Arriving`: the others are read as the
-batch reaches them), a sensor's synthesis runs on the workers as soon as its last trajectory is solved while the
-batch goes on with the others, and `twin.campaign.run_campaign` writes a sensor's file as soon as its last part
-is written. One batch for all sensors pays the nearly empty rounds at its end once, not once per sensor.
+batch reaches them), each trajectory's synthesis runs on the workers soon after it is solved (`_Solved`)
+while the batch goes on with the others, and `twin.campaign.run_campaign` writes a sensor's file as soon as
+its last part is written. One batch for all sensors pays the nearly empty rounds at its end once, not once per sensor.
 
 A trajectory whose controller goes on past where the batch stopped it (a measurement effect that hides more
 than a third of the force) is solved again, without a force limit, in a second batch.
@@ -34,6 +34,7 @@ from __future__ import annotations
 
 import itertools
 import queue
+import threading
 from collections import Counter
 from collections.abc import Callable, Iterator, Sequence
 from dataclasses import dataclass, fields
@@ -275,8 +276,8 @@ class BatchedRunner:
     ) -> None:
         # Pipelined by sensor (`fe_order`): the workers record every schedule (all jobs submitted at once) while
         # this process solves the fe of all sensors as one batch, sensor after sensor, starting as soon as it has
-        # a schedule for every slot (`_Arriving`), and each sensor's synthesis runs on the workers as soon
-        # as its last trajectory is solved, while the batch goes on with the others. The executor's maps are
+        # a schedule for every slot (`_Arriving`), and the trajectories solved are synthesised on the workers
+        # meanwhile, in maps of whatever was solved since the last one (`_Solved`). The executor's maps are
         # consumed on one lane (in order, so that an executor running tasks in this process never runs two at
         # once); `finished` is called from it.
         # Every task's schedule is recorded again, and a resume keeps a solved one only where the schedule is the
@@ -287,9 +288,8 @@ class BatchedRunner:
         host = Lane("campaign host stages", FirstFailure())
         arrived: queue.Queue[tuple[tuple[int, int], SolveSchedule]] = queue.Queue()
         exhausted: list[TrajectoryTask] = []
-        solved = itertools.count(1)
-        synthesised = itertools.count(1)
-        left = Counter(task[0].sensor_id for task in tasks)
+        solved, synthesised, total = itertools.count(1), itertools.count(1), len(tasks)
+        ready = _Solved()
 
         def record_schedules() -> None:
             jobs = executor.map_unordered(plan_schedule, tasks, init_worker, (config, plant))
@@ -297,16 +297,15 @@ class BatchedRunner:
                 arrived.put(result)
                 self._stage("schedules", done, len(tasks))
 
-        def synthesise_sensor(mine: list[TrajectoryTask]) -> None:
-            exhausted.extend(self._synthesise(mine, config, plant, executor, finished, synthesised, len(tasks)))
+        def synthesise_solved() -> None:
+            while solved_tasks := ready.take_all():
+                exhausted.extend(self._synthesise(solved_tasks, config, plant, executor, finished, synthesised, total))
 
         def ended(task: TrajectoryTask) -> None:
             host.failure.raise_if_any()  # a worker's failure ends the campaign now, not after the batch
             self._stage("fe", next(solved), len(tasks))
-            left[task[0].sensor_id] -= 1
-            if left[task[0].sensor_id] == 0:  # the sensor's fe is all in: its synthesis goes to the workers
-                mine = [t for t in tasks if t[0].sensor_id == task[0].sensor_id]
-                host.submit(lambda: synthesise_sensor(mine))
+            if ready.add(task):  # no synthesis is waiting on the lane: one takes this and all solved after it
+                host.submit(synthesise_solved)
 
         try:
             host.submit(record_schedules)
@@ -370,6 +369,31 @@ class BatchedRunner:
     def _stage(self, name: str, done: int, total: int) -> None:
         if self.on_stage is not None:
             self.on_stage(name, done, total)
+
+
+class _Solved:
+    """Trajectories whose fe is in and whose synthesis is not yet asked for, shared by the fe loop (`add`) and the
+    host lane (`take_all`), so that the workers synthesise each trajectory soon after it is solved, in maps of
+    whatever has been solved meanwhile."""
+
+    def __init__(self) -> None:
+        self._tasks: list[TrajectoryTask] = []
+        self._lock = threading.Lock()
+        self._taking = False
+
+    def add(self, task: TrajectoryTask) -> bool:
+        """Note a solved task; True when no taker is pending (the caller submits one)."""
+        with self._lock:
+            self._tasks.append(task)
+            submit, self._taking = not self._taking, True
+            return submit
+
+    def take_all(self) -> list[TrajectoryTask]:
+        """Every task noted and not yet taken; empty (and the taker ends) when there is none."""
+        with self._lock:
+            tasks, self._tasks = self._tasks, []
+            self._taking = bool(tasks)
+            return tasks
 
 
 class _Arriving(Sequence[PoseTrajectory]):
