@@ -873,15 +873,25 @@ _TOTALS = ("volume", "membrane_energy", "bending_energy", "core_energy", "indent
 _POSE = ("rotation", "translation", "rotation_start", "translation_start")
 
 
+def _runs(rows: np.ndarray) -> list[tuple[int, int, int]]:
+    """(position in `rows`, first row, end row) of each run of consecutive system indices in `rows`."""
+    rows = np.asarray(rows, dtype=np.int64)
+    starts = np.flatnonzero(np.diff(rows, prepend=rows[:1] - 2) != 1)
+    ends = np.append(starts[1:], len(rows))
+    return [(int(a), int(rows[a]), int(rows[b - 1]) + 1) for a, b in zip(starts, ends, strict=True)]
+
+
 def put_rows(array: wp.array, rows: np.ndarray, values: np.ndarray) -> None:
-    """array[i] = values[k] for the k-th system index i of `rows` (host -> device, one copy per row)."""
-    for k, i in enumerate(rows):
-        array[int(i) : int(i) + 1].assign(values[k : k + 1])
+    """array[i] = values[k] for the k-th system index i of `rows` (host -> device, one copy per run of
+    consecutive rows)."""
+    for k, first, end in _runs(rows):
+        array[first:end].assign(values[k : k + end - first])
 
 
 def get_rows(array: wp.array, rows: np.ndarray) -> np.ndarray:
-    """array[rows] on the host (device -> host, one copy per row), shape (len(rows), ...); rows not empty."""
-    return np.stack([array[int(i)].numpy().copy() for i in rows])
+    """array[rows] on the host (device -> host, one copy per run of consecutive rows), shape (len(rows), ...);
+    rows not empty."""
+    return np.concatenate([array[first:end].numpy() for _, first, end in _runs(rows)])
 
 
 def _backtrack(state: NewtonBatch, phi: np.ndarray, rejected: np.ndarray) -> np.ndarray:

@@ -213,7 +213,7 @@ class BatchedStepper:
         air = shell.air.volume(p_rest)
         self.rest_volumes[rows] = (rest.volume + air)[rows]
         self._rest_residual[rows] = rest.residual_inf[rows]
-        self._rest_balance[rows] = [self._force_balance(int(i), p_rest[i])[1] for i in rows]
+        self._rest_balance[rows] = self._force_balance(rows, p_rest[rows])[1]
         self.newton.target[rows] = np.array([s.target_volume for s in skins]) - air[rows]
         if self.relaxation is not None:
             fractions = np.array([s.params.relaxation_fraction for s in skins])
@@ -510,16 +510,17 @@ class BatchedStepper:
         x += np.maximum(depth - gap, 0.0)[:, :, None] * normal
         return np.where(self.shell.fixed, self.x[rows], x)
 
-    def _force_balance(self, i: int, pressure: float) -> tuple[np.ndarray, float]:
-        """System i's indenter force (3,) N and relative force-balance error of the last evaluation."""
-        g = np.stack([self.shell.gradients[k][i].numpy() for k in range(3)])
-        gv = self.shell.buf["volume_gradient"][i].numpy()
-        residual = g.sum(axis=0) - pressure * gv
-        anchors = np.where(self.shell.fixed, residual, 0.0).sum(axis=0)
-        f_indenter, f_core, f_pressure = -g[2].sum(axis=0), -g[1].sum(axis=0), pressure * gv.sum(axis=0)
-        imbalance = np.linalg.norm(f_indenter + f_core + f_pressure + anchors)
-        scale = max(np.linalg.norm(f_indenter), np.linalg.norm(f_pressure), 1e-300)
-        return f_indenter, float(imbalance / scale)
+    def _force_balance(self, rows: np.ndarray, pressure: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """The `rows` systems' indenter forces (R, 3) N and relative force-balance errors (R,) of the last
+        evaluation, at their pressures (R,) Pa."""
+        g = np.stack([get_rows(self.shell.gradients[k], rows) for k in range(3)], axis=1)
+        gv, pressure = get_rows(self.shell.buf["volume_gradient"], rows), np.asarray(pressure)[:, None, None]
+        residual = g.sum(axis=1) - pressure * gv
+        anchors = np.where(self.shell.fixed, residual, 0.0).sum(axis=1)
+        f_indenter, f_core, f_pressure = -g[:, 2].sum(axis=1), -g[:, 1].sum(axis=1), pressure[:, 0] * gv.sum(axis=1)
+        imbalance = np.linalg.norm(f_indenter + f_core + f_pressure + anchors, axis=1)
+        scale = np.maximum(np.linalg.norm(f_indenter, axis=1), np.linalg.norm(f_pressure, axis=1))
+        return f_indenter, imbalance / np.maximum(scale, 1e-300)
 
     def _finish(self, rows: np.ndarray) -> dict[int, IncrementResult]:
         """Accept the converged systems among `rows` as their new states (record the failures) and report
@@ -535,10 +536,10 @@ class BatchedStepper:
         if self._core_parts is not None:
             clearance = shell.indenter_clearance(self._core_parts, self._core_floor, finished)
         reach = shell.indenter_skin_clearance(shell.x, self._skin_spacing, self._skin_floor, finished)
+        forces, balances = self._force_balance(rows, state.pressure[rows])
         results = {}
         for k, i in enumerate(int(r) for r in rows):
-            x, gap = x_rows[k], gap_rows[k]
-            force, balance = self._force_balance(i, state.pressure[i])
+            x, gap, force, balance = x_rows[k], gap_rows[k], forces[k], float(balances[k])
             in_contact = gap < 0.0
             refused = (
                 self._inadmissible(i, gap, core_gap_rows[k], (clearance[i], reach[i]), force, balance)

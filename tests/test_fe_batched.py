@@ -17,7 +17,7 @@ import warp as wp
 from conftest import inflated_biotac
 
 from assets.indenters import get_indenter
-from fe.batched import BatchLinearization, InflatedSkin, NewtonBatch
+from fe.batched import BatchLinearization, InflatedSkin, NewtonBatch, get_rows, put_rows
 from fe.batched_runner import PoseTrajectory, run_trajectories
 from fe.batched_stepper import BatchedStepper
 from fe.device_solver import CG_CONVERGED, CG_NEGATIVE_CURVATURE, BatchedBlockMatrix, BatchedCG, BlockPattern
@@ -507,3 +507,22 @@ def test_a_slot_changing_skin_on_the_gpu_algebra(frictionless_biotac: BioTacMode
         alone = run_trajectories(skin, [trajectory], "cpu", slots=1, linear="cg").results[0]
         _assert_agree(alone, together, 1e-5, 1e-8, 1e-5)
     assert np.linalg.norm(run.results[1][1].force) > np.linalg.norm(run.results[0][1].force)
+
+
+def test_rows_move_between_host_and_device_in_any_order() -> None:
+    """`get_rows` / `put_rows` (one copy per run of consecutive systems) read and write exactly the rows asked
+    for, in the order asked for, whatever runs they form (unsorted, repeated, single)."""
+    values = np.arange(10 * 4 * 3, dtype=np.float64).reshape(10, 4, 3)
+    array = wp.array(values, dtype=wp.vec3d, device="cpu")
+    for rows in ([0, 1, 2, 5, 3, 4, 9], [7], [9, 8, 7], [2, 2, 3], list(range(10))):
+        rows = np.array(rows)
+        np.testing.assert_array_equal(get_rows(array, rows), values[rows])
+    rows = np.array([4, 5, 6, 0, 8, 9])
+    new = -np.arange(len(rows) * 4 * 3, dtype=np.float64).reshape(len(rows), 4, 3)
+    put_rows(array, rows, new)
+    expected = values.copy()
+    expected[rows] = new
+    np.testing.assert_array_equal(array.numpy(), expected)
+    got = get_rows(array, np.array([4]))
+    got[:] = 0.0  # a copy, not a view of the device array
+    np.testing.assert_array_equal(array.numpy(), expected)
