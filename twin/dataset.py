@@ -15,7 +15,10 @@ import os
 import re
 import secrets
 import shutil
+import zlib
+from collections import deque
 from collections.abc import Iterator
+from concurrent.futures import Future, ThreadPoolExecutor
 from contextlib import contextmanager
 from dataclasses import dataclass
 from datetime import UTC, datetime
@@ -197,7 +200,7 @@ def _write_sensor_file(
     first_row = 0
     meta: dict[str, list] = {name: [] for name in TRAJECTORY_FIELDS}
     features: dict[str, list[np.ndarray]] = {}
-    with h5py.File(tmp, "w") as f:
+    with h5py.File(tmp, "w") as f, _GzipChunks() as chunks:
         f.attrs["schema_version"] = SCHEMA_VERSION
         f.attrs["sensor_id"] = sensor_id
         f.attrs["producer"] = f"biotac-twin {_version()}"
@@ -218,14 +221,12 @@ def _write_sensor_file(
                     meta[name].append(part[f"meta_{name}"])
             raw = f.create_group(f"raw/{int(part['meta_trajectory_id'])}")
             for name in RAW_FIELDS:
-                raw.create_dataset(name, data=part[f"raw_{name}"], compression="gzip", compression_opts=1)
+                chunks.create(raw, name, part[f"raw_{name}"])
             raw.attrs["message"] = str(part["meta_message"])
             first_row += n
-        for name, chunks in features.items():
+        for name, parts in features.items():
             units, frame = FEATURE_UNITS[name]
-            dataset = f.create_dataset(
-                f"{name}/data", data=np.concatenate(chunks), compression="gzip", compression_opts=1
-            )
+            dataset = chunks.create(f, f"{name}/data", np.concatenate(parts))
             dataset.attrs["units"] = units
             if frame is not None:
                 dataset.attrs["frame"] = frame
@@ -242,6 +243,64 @@ def _write_sensor_file(
                 f.create_dataset("mesh/ventral", data=np.asarray(ventral, dtype=bool))
         f.flush()
     return first_row
+
+
+CHUNK_BYTES = 1 << 20
+"""Uncompressed size (bytes, about) of a chunk of a dataset written by `_GzipChunks`: whole rows."""
+
+
+class _GzipChunks:
+    """Writes gzip (level 1) datasets whose chunks are compressed on threads: zlib releases the GIL, where h5py's
+    own deflate filter compresses one chunk at a time under its library lock. The chunks are written in order as
+    they are ready (`finish`, or leaving the context); the file reads back as any gzip dataset does."""
+
+    def __init__(self, workers: int | None = None) -> None:
+        self._workers = workers or min(8, os.cpu_count() or 1)
+        self._pool = ThreadPoolExecutor(self._workers)
+        self._pending: deque[tuple[h5py.Dataset, int, Future[bytes]]] = deque()
+
+    def create(self, parent: h5py.Group, name: str, data: np.ndarray) -> h5py.Dataset:
+        """Dataset `name` under `parent` holding `data`, compressed (scalars and empty arrays stored plainly)."""
+        data = np.ascontiguousarray(data)
+        if data.ndim == 0 or data.size == 0 or data.dtype.kind not in "biuf":
+            return parent.create_dataset(name, data=data)
+        rows = min(len(data), max(1, CHUNK_BYTES // data[0].nbytes))
+        dataset = parent.create_dataset(
+            name, data.shape, data.dtype, chunks=(rows, *data.shape[1:]), compression="gzip", compression_opts=1
+        )
+        for start in range(0, len(data), rows):
+            self._pending.append((dataset, start, self._pool.submit(_deflate, data, start, rows)))
+        while len(self._pending) > 4 * self._workers:  # bounded: the written chunks' memory is freed
+            self._write_next()
+        return dataset
+
+    def finish(self) -> None:
+        """Write every chunk still pending."""
+        while self._pending:
+            self._write_next()
+
+    def _write_next(self) -> None:
+        dataset, start, payload = self._pending.popleft()
+        dataset.id.write_direct_chunk((start,) + (0,) * (dataset.ndim - 1), payload.result())
+
+    def __enter__(self) -> _GzipChunks:
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        try:
+            if exc[0] is None:
+                self.finish()
+        finally:
+            self._pool.shutdown(wait=True, cancel_futures=True)
+
+
+def _deflate(data: np.ndarray, start: int, rows: int) -> bytes:
+    """The chunk of `rows` rows of `data` from `start` (zero-padded past the end, as HDF5 stores edge chunks),
+    deflated at level 1 in the zlib format HDF5's gzip filter reads."""
+    block = data[start : start + rows]
+    if len(block) < rows:
+        block = np.concatenate([block, np.zeros((rows - len(block), *data.shape[1:]), data.dtype)])
+    return zlib.compress(block.tobytes(), 1)
 
 
 def _version() -> str:
