@@ -130,6 +130,36 @@ def test_a_local_pool_serves_every_map_with_the_same_setup_until_closed() -> Non
         os.kill(other[0], 0)
 
 
+def _count_setup(tag: float) -> None:
+    """A worker setup that counts its runs in this process (in the environment: Ray pickles this function)."""
+    os.environ["TWIN_TEST_SETUPS"] = str(int(os.environ.get("TWIN_TEST_SETUPS", "0")) + 1)
+
+
+def _setups_here() -> tuple[int, int]:
+    return os.getpid(), int(os.environ["TWIN_TEST_SETUPS"])
+
+
+def test_ray_runs_a_setup_once_per_worker_however_many_maps_use_it() -> None:
+    """The batched campaign synthesises in many small maps with one setup: a Ray worker must not set up again
+    for each (that would rebuild the sensor models every map); another setup object is run anew."""
+    ray = pytest.importorskip("ray")
+    from ray import cloudpickle
+
+    from twin.executors import RayExecutor
+
+    cloudpickle.register_pickle_by_value(sys.modules[__name__])
+    executor = RayExecutor(num_cpus=1, object_store_memory=80 * 2**20)
+    setup_args, other_args = (float(0),), (float(0),)  # two equal objects
+    try:
+        maps = [list(executor.map_unordered(_setups_here, [()] * 3, _count_setup, setup_args)) for _ in range(4)]
+        other = list(executor.map_unordered(_setups_here, [()], _count_setup, other_args))
+    finally:
+        ray.shutdown()
+    runs = {pid: count for results in maps for pid, count in results}
+    assert set(runs.values()) == {1}, f"setups per worker over four maps: {runs}"
+    assert other[0][1] == runs.get(other[0][0], 0) + 1
+
+
 def test_executor_choice_is_checked() -> None:
     with pytest.raises(ValueError, match="unknown executor"):
         make_executor("dask")

@@ -116,14 +116,18 @@ class LocalExecutor(Executor):
 
     def _pool_for(self, setup: Callable[..., None], setup_args: tuple) -> ProcessPoolExecutor:
         """The kept pool when it was set up by `setup` with these very argument objects, else a new one."""
-        key = (setup, *setup_args)
-        same = len(key) == len(self._setup) and all(a is b for a, b in zip(key, self._setup, strict=True))
-        if self._pool is None or not same:
+        if self._pool is None or not _same_setup(self._setup, setup, setup_args):
             self.close()
             initargs = (os.getpid(), setup, setup_args)
             self._pool = ProcessPoolExecutor(self.workers, get_context("spawn"), _local_setup, initargs)
-            self._setup = key
+            self._setup = (setup, *setup_args)
         return self._pool
+
+
+def _same_setup(kept: tuple, setup: Callable[..., None], setup_args: tuple) -> bool:
+    """Whether `kept` (a setup function and its argument objects) is `setup` with these very argument objects."""
+    key = (setup, *setup_args)
+    return len(key) == len(kept) and all(a is b for a, b in zip(key, kept, strict=True))
 
 
 def _terminate(pool: ProcessPoolExecutor) -> None:
@@ -198,6 +202,9 @@ class RayExecutor(Executor):
             ) from error
         self._ray = ray
         self.max_retries = max_retries
+        self._setup_ref: Any = None
+        self._setup: tuple = ()
+        """The last map's setup function and argument objects (held, so that their ids stay theirs)."""
         if not ray.is_initialized():
             options: dict[str, Any] = {"address": address, "include_dashboard": False, "log_to_driver": False}
             if address is None and num_cpus is not None:
@@ -217,10 +224,12 @@ class RayExecutor(Executor):
         if not jobs:
             return
         remote = ray.remote(num_cpus=1, max_retries=self.max_retries, retry_exceptions=False)(_ray_task)
-        setup_ref = ray.put(setup_args)
+        if self._setup_ref is None or not _same_setup(self._setup, setup, setup_args):
+            # one object and key per setup: a worker runs it once, however many maps use it
+            self._setup_ref, self._setup = ray.put(setup_args), (setup, *setup_args)
         # Ray resolves top-level ObjectRef arguments only; pass the setup arguments that way.
-        key = f"{id(self)}-{setup_ref.hex()}"
-        pending = [remote.remote(key, setup, setup_ref, task, job) for job in jobs]
+        key = f"{id(self)}-{self._setup_ref.hex()}"
+        pending = [remote.remote(key, setup, self._setup_ref, task, job) for job in jobs]
         while pending:
             ready, pending = ray.wait(pending, num_returns=1)
             yield ray.get(ready[0])
