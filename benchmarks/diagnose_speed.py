@@ -13,7 +13,11 @@ iterates on its own). Part 2 (`--diagnose`) runs the whole `twin diagnose` (nomi
 both ways: wall per stage, ratio, and whether the two diagnoses agree (verdict, ranking, largest relative
 difference of any number).
 
-    python benchmarks/diagnose_speed.py CAMPAIGN.hdf5 [--diagnose] [--device cpu] [--threads N]
+Part 3 (`--diagnose --rank-per-stratum K`) runs it once more (threads as now) with the candidates ranked on at
+most K trajectories per sensor x indenter x path kind (`twin.analysis.subset`): wall, verdict, and whether the
+first candidate's name, refit and held-out figures are those of the diagnosis on every trajectory.
+
+    python benchmarks/diagnose_speed.py CAMPAIGN.hdf5 [--diagnose] [--device cpu] [--threads N] [--rank-per-stratum K]
 
 The demo campaign: `twin demo` writes it (runs/demo/campaign/biotac2.hdf5).
 """
@@ -48,9 +52,11 @@ def probe_replays(data: CampaignData, device: str, threads: int) -> tuple[tuple[
     return seconds, np.concatenate([predictor.predict(model, t).increment_force for t in data.trajectories])
 
 
-def diagnosis(data: CampaignData, device: str, threads: int) -> tuple[dict[str, float], dict]:
+def diagnosis(
+    data: CampaignData, device: str, threads: int, rank_per_stratum: int | None = None
+) -> tuple[dict[str, float], dict]:
     """Wall seconds of `twin diagnose`'s stages on the file with replays on `threads` threads (and its CPU
-    seconds) and its JSON form."""
+    seconds) and its JSON form; candidates ranked on a stratified subset with `rank_per_stratum`."""
     start, cpu = time.perf_counter(), time.process_time()
     stamps: dict[str, float] = {}
     result = diagnose(
@@ -58,6 +64,7 @@ def diagnosis(data: CampaignData, device: str, threads: int) -> tuple[dict[str, 
         TwinModel(mesh_max_edge=data.mesh_max_edge),
         Predictor(device, threads=threads),
         on_progress=lambda stage, _: stamps.setdefault(stage, time.perf_counter() - start),
+        rank_per_stratum=rank_per_stratum,
     )
     total = time.perf_counter() - start
     evidence, refit = stamps.get("evidence", total), stamps.get("refit", total)
@@ -83,6 +90,7 @@ def main() -> None:
     parser.add_argument("--diagnose", action="store_true", help="also run the whole diagnosis both ways")
     parser.add_argument("--device", default="cpu")
     parser.add_argument("--threads", type=int, default=usable_cpus(), help="threads now (default: usable CPUs)")
+    parser.add_argument("--rank-per-stratum", type=int, default=None, help="with --diagnose: also rank on a subset")
     args = parser.parse_args()
     data = load_campaign(args.campaign)
     ways = {"one thread (before)": 1, f"{args.threads} threads (now)": args.threads}
@@ -111,6 +119,12 @@ def main() -> None:
     print(f"verdicts {old['verdict']!r} / {new['verdict']!r}; same ranking: {same_ranking}; largest relative")
     print(f"difference of any number: {largest_relative_difference(old, new):.1e}; load {os.getloadavg()[0]:.2f}")
     print(json.dumps({"before_s": old_total, "now_s": new_total}))
+    if args.rank_per_stratum is not None:
+        subset_stages, subset = diagnosis(data, args.device, args.threads, args.rank_per_stratum)
+        used, named = len(subset["ranked_on"]["trajectories"]), subset["candidates"][0]
+        same = {k: named[k] == new["candidates"][0][k] for k in ("name", "refit_rms", "heldout_rms")}
+        print(f"\nranked on {used} of {len(data.trajectories)} trajectories: {subset_stages['total']:.1f} s wall")
+        print(f"verdict {subset['verdict']!r} (all: {new['verdict']!r}); first candidate as all's: {same}")
 
 
 if __name__ == "__main__":
