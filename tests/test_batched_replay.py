@@ -167,6 +167,8 @@ def test_a_prefetch_split_over_threads_replays_bit_for_bit_like_one_run(data: Ca
     requests = [(m, data.trajectories) for m in models]
     one_run, threaded = Predictor("cpu", threads=1), Predictor("cpu", threads=3)
     assert one_run.threads == 1 and threaded.threads == 3
+    with pytest.raises(ValueError, match="CPU device only"):
+        Predictor("cuda", threads=2)
     done: list[tuple[int, int]] = []
     n = len(models) * len(data.trajectories)
     assert one_run.prefetch_many(requests) == threaded.prefetch_many(requests, lambda *d: done.append(d)) == n

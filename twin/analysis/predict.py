@@ -178,6 +178,8 @@ class Predictor:
         self.device = device
         self.on_replays = on_replays
         """Told (done, total) as each replay of a `prefetch_many` without its own `progress` is solved."""
+        if threads is not None and threads > 1 and device != "cpu":
+            raise ValueError(f"replays are split over threads on warp's CPU device only, not {device!r}")
         self.threads = max(1, threads if threads is not None else usable_cpus() if device == "cpu" else 1)
         """Batched runs solved at once, each a share of a batch in its own thread (see the class docstring)."""
         self._readouts: dict[int, SensorReadout] = {}
