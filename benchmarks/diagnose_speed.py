@@ -1,18 +1,23 @@
-"""Speed of `twin diagnose` on a campaign file: the warm start of held poses before and now, in one process.
+"""Speed of `twin diagnose` on a campaign file: its batched replays in one thread (before) and split over the
+usable CPUs (now), in one process.
 
-The skin_relaxation candidate is linearised at its probe (a relaxing fraction of 0.15): its replays are timed
-(the skin re-solved every `RELAXATION_SOLVE_INTERVAL_S` while a pose is held), about 7 times the solves of an
-untimed replay, and were a third of the whole diagnosis on the demo campaign (2026-11-27). Since then a pose
-held after a held one starts its Newton solve from the creep's extrapolation (`BatchedStepper.creep_start`);
-the baseline sets `creep_start=False` on every stepper built (the last state, the warm start before).
+On warp's CPU device `Predictor` splits each batch of replays into shares of about equal work, one batched run per
+share, each in its own thread (`Predictor.threads`, default one per usable CPU): the fe kernels and the sparse
+factorisations run outside Python's lock. The baseline is `threads=1` (one run per batch, as before). (Session 15
+compared the creep warm start of held poses here; its figures are in docs/scale.md.)
 
-Part 1 replays every trajectory of the file under the probe's skin (`Predictor.prefetch`, one batched run, as
-diagnose does) both ways and prints wall and CPU seconds, their ratios and the largest difference of the predicted
-increment forces (N; both solves converge to the same tolerances). Part 2 (`--diagnose`) runs the whole
-`twin diagnose` (nominal model, 3 refits, as the CLI) both ways: wall per stage, ratio, and whether the two
-diagnoses agree (verdict, ranking, largest relative difference of any number).
+Part 1 replays every trajectory of the file under the `skin_relaxation` probe's skin (timed replays, the largest
+batch of the diagnosis; `Predictor.prefetch`, one batch, as diagnose does) both ways and prints wall and CPU
+seconds, their ratios and the largest difference of the predicted increment forces (N; 0 expected: each system
+iterates on its own). Part 2 (`--diagnose`) runs the whole `twin diagnose` (nominal model, 3 refits, as the CLI)
+both ways: wall per stage, ratio, and whether the two diagnoses agree (verdict, ranking, largest relative
+difference of any number).
 
-    python benchmarks/diagnose_speed.py CAMPAIGN.hdf5 [--diagnose] [--device cpu]
+Part 3 (`--diagnose --rank-per-stratum K`) runs it once more (threads as now) with the candidates ranked on at
+most K trajectories per sensor x indenter x path kind (`twin.analysis.subset`): wall, verdict, and whether the
+first candidate's name, refit and held-out figures are those of the diagnosis on every trajectory.
+
+    python benchmarks/diagnose_speed.py CAMPAIGN.hdf5 [--diagnose] [--device cpu] [--threads N] [--rank-per-stratum K]
 
 The demo campaign: `twin demo` writes it (runs/demo/campaign/biotac2.hdf5).
 """
@@ -23,42 +28,23 @@ import argparse
 import json
 import os
 import time
-from collections.abc import Iterator
-from contextlib import contextmanager, nullcontext
 from pathlib import Path
 
 import numpy as np
 
-from fe.batched_stepper import BatchedStepper
 from twin.analysis.data import CampaignData, load_campaign
 from twin.analysis.diagnose import diagnose, strict_json
-from twin.analysis.predict import Predictor, TwinModel
+from twin.analysis.predict import Predictor, TwinModel, usable_cpus
 from twin.effects import EFFECTS, apply_skin
 
 RELAXATION = "skin_relaxation"
 
 
-@contextmanager
-def last_state_warm_start() -> Iterator[None]:
-    """Inside, every `BatchedStepper` built starts held poses from the last state (`creep_start=False`)."""
-    init = BatchedStepper.__init__
-
-    def baseline(self: BatchedStepper, *args: object, **kwargs: object) -> None:
-        init(self, *args, **kwargs)
-        self.creep_start = False
-
-    BatchedStepper.__init__ = baseline
-    try:
-        yield
-    finally:
-        BatchedStepper.__init__ = init
-
-
-def probe_replays(data: CampaignData, device: str) -> tuple[tuple[float, float], np.ndarray]:
-    """(wall, CPU) seconds of the relaxation probe's replays of every trajectory (one batched prefetch,
-    inflation excluded) and their increment forces (N, all trajectories stacked)."""
+def probe_replays(data: CampaignData, device: str, threads: int) -> tuple[tuple[float, float], np.ndarray]:
+    """(wall, CPU) seconds of the relaxation probe's replays of every trajectory (one batched prefetch on
+    `threads` threads, inflation excluded) and their increment forces (N, all trajectories stacked)."""
     model = TwinModel(mesh_max_edge=data.mesh_max_edge).with_effects({RELAXATION: EFFECTS[RELAXATION].probe})
-    predictor = Predictor(device)
+    predictor = Predictor(device, threads=threads)
     predictor.fe_model(apply_skin(model.skin, model.effects), model.mesh_max_edge, model.inflation)  # kernels loaded
     start, cpu = time.perf_counter(), time.process_time()
     predictor.prefetch(model, data.trajectories)
@@ -66,15 +52,19 @@ def probe_replays(data: CampaignData, device: str) -> tuple[tuple[float, float],
     return seconds, np.concatenate([predictor.predict(model, t).increment_force for t in data.trajectories])
 
 
-def diagnosis(data: CampaignData, device: str) -> tuple[dict[str, float], dict]:
-    """Wall seconds of `twin diagnose`'s stages on the file (and its CPU seconds) and its JSON form."""
+def diagnosis(
+    data: CampaignData, device: str, threads: int, rank_per_stratum: int | None = None
+) -> tuple[dict[str, float], dict]:
+    """Wall seconds of `twin diagnose`'s stages on the file with replays on `threads` threads (and its CPU
+    seconds) and its JSON form; candidates ranked on a stratified subset with `rank_per_stratum`."""
     start, cpu = time.perf_counter(), time.process_time()
     stamps: dict[str, float] = {}
     result = diagnose(
         [data],
         TwinModel(mesh_max_edge=data.mesh_max_edge),
-        Predictor(device),
+        Predictor(device, threads=threads),
         on_progress=lambda stage, _: stamps.setdefault(stage, time.perf_counter() - start),
+        rank_per_stratum=rank_per_stratum,
     )
     total = time.perf_counter() - start
     evidence, refit = stamps.get("evidence", total), stamps.get("refit", total)
@@ -99,17 +89,16 @@ def main() -> None:
     parser.add_argument("campaign", type=Path, help="a campaign file (e.g. the demo's)")
     parser.add_argument("--diagnose", action="store_true", help="also run the whole diagnosis both ways")
     parser.add_argument("--device", default="cpu")
+    parser.add_argument("--threads", type=int, default=usable_cpus(), help="threads now (default: usable CPUs)")
+    parser.add_argument("--rank-per-stratum", type=int, default=None, help="with --diagnose: also rank on a subset")
     args = parser.parse_args()
     data = load_campaign(args.campaign)
-    ways = (("last state (before)", last_state_warm_start), ("creep extrapolated (now)", nullcontext))
+    ways = {"one thread (before)": 1, f"{args.threads} threads (now)": args.threads}
     print(f"{len(data.trajectories)} trajectories; load average at start {os.getloadavg()[0]:.2f}")
-    replays = {}
-    for name, way in ways:
-        with way():
-            replays[name] = probe_replays(data, args.device)
+    replays = {name: probe_replays(data, args.device, threads) for name, threads in ways.items()}
     (before, f0), (now, f1) = replays.values()
-    print("\nthe relaxation probe's timed replays (one batched run)")
-    print(f"{'warm start of a held pose':28} {'wall s':>8} {'CPU s':>8}")
+    print("\nthe relaxation probe's timed replays (one batch)")
+    print(f"{'replays solved on':28} {'wall s':>8} {'CPU s':>8}")
     for name, ((wall, cpu), _) in replays.items():
         print(f"{name:28} {wall:8.1f} {cpu:8.1f}")
     ratios = f"wall {before[0] / now[0]:.2f}, CPU {before[1] / now[1]:.2f}"
@@ -117,10 +106,7 @@ def main() -> None:
     print(f"load average now {os.getloadavg()[0]:.2f}")
     if not args.diagnose:
         return
-    runs = {}
-    for name, way in ways:
-        with way():
-            runs[name] = diagnosis(data, args.device)
+    runs = {name: diagnosis(data, args.device, threads) for name, threads in ways.items()}
     print("\n`twin diagnose` (s)")
     print(f"{'stage':28}" + "".join(f" {name:>26}" for name in runs))
     for stage in next(iter(runs.values()))[0]:
@@ -133,6 +119,12 @@ def main() -> None:
     print(f"verdicts {old['verdict']!r} / {new['verdict']!r}; same ranking: {same_ranking}; largest relative")
     print(f"difference of any number: {largest_relative_difference(old, new):.1e}; load {os.getloadavg()[0]:.2f}")
     print(json.dumps({"before_s": old_total, "now_s": new_total}))
+    if args.rank_per_stratum is not None:
+        subset_stages, subset = diagnosis(data, args.device, args.threads, args.rank_per_stratum)
+        used, named = len(subset["ranked_on"]["trajectories"]), subset["candidates"][0]
+        same = {k: named[k] == new["candidates"][0][k] for k in ("name", "refit_rms", "heldout_rms")}
+        print(f"\nranked on {used} of {len(data.trajectories)} trajectories: {subset_stages['total']:.1f} s wall")
+        print(f"verdict {subset['verdict']!r} (all: {new['verdict']!r}); first candidate as all's: {same}")
 
 
 if __name__ == "__main__":

@@ -155,3 +155,26 @@ def test_a_prefetch_of_many_models_replays_like_one_model_at_a_time(data: Campai
         forces.append(np.concatenate([p.increment_force for p in single]))
     # the models' replays differ: each system solved its own skin, not its neighbour's
     assert np.nanmax(np.abs(forces[1] - forces[0])) > 1e-3 and np.nanmax(np.abs(forces[2] - forces[0])) > 1e-3
+
+
+def test_a_prefetch_split_over_threads_replays_bit_for_bit_like_one_run(data: CampaignData) -> None:
+    nominal = TwinModel(mesh_max_edge=data.mesh_max_edge)
+    models = [
+        nominal,
+        nominal.with_effects({"skin_modulus": {"scale": 1.2}}),
+        nominal.with_effects({"skin_relaxation": {"fraction": 0.4, "time_s": 0.5}}),  # timed: a run of its own
+    ]
+    requests = [(m, data.trajectories) for m in models]
+    one_run, threaded = Predictor("cpu", threads=1), Predictor("cpu", threads=3)
+    assert one_run.threads == 1 and threaded.threads == 3
+    with pytest.raises(ValueError, match="CPU device only"):
+        Predictor("cuda", threads=2)
+    done: list[tuple[int, int]] = []
+    n = len(models) * len(data.trajectories)
+    assert one_run.prefetch_many(requests) == threaded.prefetch_many(requests, lambda *d: done.append(d)) == n
+    assert sorted(done) == [(k, n) for k in range(1, n + 1)]  # each replay told once, from whichever thread
+    for model in models:
+        for t in data.trajectories:
+            one, split = one_run.predict(model, t), threaded.predict(model, t)
+            np.testing.assert_array_equal(split.increment_force, one.increment_force)
+            np.testing.assert_array_equal(split.pdc_fullrate, one.pdc_fullrate)

@@ -89,8 +89,8 @@ def test_diagnose_json_strict_refit_count_and_progress_per_candidate(
 ) -> None:
     calls: dict = {}
 
-    def fake_diagnose(data, model, predictor=None, top=3, on_progress=None, nuisances=False):
-        calls["top"] = top
+    def fake_diagnose(data, model, predictor=None, top=3, on_progress=None, nuisances=False, rank_per_stratum=None):
+        calls["top"], calls["rank_per_stratum"] = top, rank_per_stratum
         for name in ("skin_modulus", "time_delay", "ft_gain"):
             on_progress("evidence", name)
         for name in ("skin_modulus", "time_delay")[:top]:
@@ -101,10 +101,14 @@ def test_diagnose_json_strict_refit_count_and_progress_per_candidate(
     monkeypatch.setattr(diagnose_module, "diagnose", fake_diagnose)
     result = runner.invoke(app, ["diagnose", str(fake_inputs), "--json", "--refit-top", "1"])
     assert result.exit_code == 0, result.output
-    assert calls == {"top": 1, "refits": ["skin_modulus"]}
+    assert calls == {"top": 1, "rank_per_stratum": None, "refits": ["skin_modulus"]}
     parsed = json.loads(result.stdout, parse_constant=_raise_on_constant)
-    assert parsed["verdict"] == "unexplained"
+    assert parsed["verdict"] == "unexplained" and parsed["ranked_on"] is None
     bad = runner.invoke(app, ["diagnose", str(fake_inputs), "--refit-top", "-1"])
+    assert bad.exit_code == 2 and "Traceback" not in bad.output
+    subset = runner.invoke(app, ["diagnose", str(fake_inputs), "--json", "--rank-per-stratum", "2"])
+    assert subset.exit_code == 0 and calls["rank_per_stratum"] == 2, subset.output
+    bad = runner.invoke(app, ["diagnose", str(fake_inputs), "--rank-per-stratum", "0"])
     assert bad.exit_code == 2 and "Traceback" not in bad.output
 
 

@@ -44,7 +44,8 @@ from twin.analysis.nuisances import NUISANCE_EFFECTS, fit_nuisances
 from twin.analysis.predict import Predictor, TwinModel
 from twin.analysis.refit import refit
 from twin.analysis.residual import CHANNELS, Residual, base_residual
-from twin.analysis.sensitivity import Linearisation, linear_fit, linearisation_models, sensitivities
+from twin.analysis.sensitivity import Linearisation, linear_fit, linearisation_models, linearise, sensitivities
+from twin.analysis.subset import ranking_base
 from twin.analysis.verdict import Candidate, order_candidates, verdict
 from twin.effects import EFFECTS
 
@@ -61,6 +62,7 @@ class Diagnosis:
     tied: list[str] = field(default_factory=list)  # with "ambiguous": the effects that explain it equally
     rms_threshold: float = float("nan")  # the noise test's whitened RMS threshold on these data
     nuisances: dict | None = None  # the nuisance stage's summary (`NuisanceFit.to_dict`) when it ran
+    ranked_on: dict | None = None  # the trajectories that ranked the candidates (`subset.RankedOn`); None: all
 
     def to_dict(self) -> dict:
         """JSON-ready form (the `twin diagnose --json` shape)."""
@@ -73,6 +75,7 @@ class Diagnosis:
             "signatures": self.signatures,
             "candidates": [dict(c.__dict__) for c in self.candidates],
             "nuisances": self.nuisances,
+            "ranked_on": self.ranked_on,
         }
 
     def to_json(self) -> str:
@@ -123,6 +126,7 @@ def diagnose(
     top: int = 3,
     on_progress: Callable[[str, str], None] | None = None,
     nuisances: bool = False,
+    rank_per_stratum: int | None = None,
 ) -> Diagnosis:
     """Rank the library's effects (off in `model`) by how well each explains the residual; the first
     `top` of the ranking are refitted and judged held out about their refit (`twin.analysis.verdict`).
@@ -131,9 +135,14 @@ def diagnose(
     less what the nuisances can absorb) and are never the nuisance effects themselves.
     on_progress(stage, effect) is called before each candidate is scored ("evidence"; every candidate's
     sensitivity is solved first, their replays batched, `sensitivities`) and refitted
-    ("refit"), and with ("nuisances", what) during the nuisance fit."""
+    ("refit"), and with ("nuisances", what) during the nuisance fit.
+    With `rank_per_stratum`, candidates are linearised and ranked on at most that many trajectories of each
+    sensor x indenter x path kind (`twin.analysis.subset`; not with `nuisances`); the top ones are linearised
+    again, refitted and judged held out on every trajectory, and `ranked_on` says which trajectories ranked."""
     if top < 0:
         raise ValueError(f"the number of candidates to refit must be >= 0, got {top}")
+    if rank_per_stratum is not None and nuisances:
+        raise ValueError("ranking on a subset of the trajectories is not combined with the nuisance fit")
     if nuisances and set(candidates or ()) & set(NUISANCE_EFFECTS):
         raise ValueError(f"with the nuisances fitted, {sorted(NUISANCE_EFFECTS)} cannot be candidates")
     report = on_progress or (lambda stage, name: None)
@@ -141,15 +150,18 @@ def diagnose(
     fitted = fit_nuisances(datasets, model, predictor, lambda text: report("nuisances", text)) if nuisances else None
     base = fitted.base if fitted is not None else base_residual(datasets, model, predictor)
     residual = base.residual
-    r = residual.values
-    n = len(r)
-    chi2 = base.nuisance.chi2(r)
-    excess = chi2 - n
-    base_rms = float(np.sqrt(chi2 / n))
+    base_rms = float(np.sqrt(base.nuisance.chi2(residual.values) / len(residual.values)))
     excluded = set(model.effects) | (set(NUISANCE_EFFECTS) if fitted is not None else set())
     names = candidates if candidates is not None else [k for k in EFFECTS if k not in excluded]
     ranked: list[tuple[Candidate, Linearisation]] = []
-    lins = sensitivities([EFFECTS[name] for name in names], model, predictor, base)
+    ranking, ranked_on = base, None
+    if rank_per_stratum is not None:
+        ranking, ranked_on = ranking_base(datasets, model, predictor, base, rank_per_stratum)
+    lins = sensitivities([EFFECTS[name] for name in names], model, predictor, ranking)
+    r = ranking.residual.values  # the candidates are scored on the ranking trajectories (all, by default)
+    n = len(r)
+    chi2 = ranking.nuisance.chi2(r)
+    excess = chi2 - n
     for name, lin in zip(names, lins, strict=True):
         effect = EFFECTS[name]
         report("evidence", name)
@@ -158,7 +170,7 @@ def diagnose(
             fitted.confounding(name, lin.jac)
             scored = replace(lin, offset=fitted.project(lin.offset), jac=fitted.project(lin.jac))
         delta = linear_fit(effect, scored.point, scored.jac, r - scored.offset)
-        drop = chi2 - base.nuisance.chi2(r - scored.offset - scored.jac @ delta)
+        drop = chi2 - ranking.nuisance.chi2(r - scored.offset - scored.jac @ delta)
         candidate = Candidate(
             name=name,
             kind=effect.kind,
@@ -168,11 +180,17 @@ def diagnose(
             explained_fraction=drop / excess if excess > 0 else 0.0,
             onset=lin.data_start.to_dict() if lin.data_start is not None else None,
         )
-        candidate.heldout_rms = heldout(effect, scored, r, residual.indenter)[0]
+        candidate.heldout_rms = heldout(effect, scored, r, ranking.residual.indenter)[0]
         ranked.append((candidate, lin))
     # Evidence can be fooled by a flexible effect that fits every indenter its own way: those that
     # also predict left-out indenters to within the tolerance rank ahead of those that do not.
     ranked.sort(key=lambda item: (not generalises(item[0]), -item[0].evidence))
+    if ranked_on is not None:  # the top ones linearised again on every trajectory, their replays in one batch
+        top_models = [linearisation_models(EFFECTS[c.name], model, lin.point) for c, lin in ranked[:top]]
+        base.prefetch(predictor, [m for models in top_models for m in models])
+        for k, (c, lin) in enumerate(ranked[:top]):
+            full = linearise(EFFECTS[c.name], model, lin.point, predictor, base)
+            ranked[k] = (c, replace(full, data_start=lin.data_start))
     for candidate, lin in ranked[:top]:
         report("refit", candidate.name)
         identifiability(candidate, lin.jac)
@@ -185,11 +203,21 @@ def diagnose(
     for candidate in refitted:
         judge_heldout(candidate, model, predictor, base)
     ordered = order_candidates([c for c, _ in ranked])
-    base_test = base.noise_test(r)
+    base_test = base.noise_test(residual.values)
     threshold = base_test.rms_threshold
     is_noise = base_test.is_noise and (fitted is None or fitted.heldout_is_noise)
     outcome, reason, tied = verdict(base_rms, is_noise, threshold, ordered, fitted is not None)
     if fitted is not None and fitted.cannot_tell_apart():
         reason += f"; these data cannot tell {', '.join(fitted.cannot_tell_apart())} from the nuisances"
     summary = fitted.to_dict() if fitted is not None else None
-    return Diagnosis(base_rms, signatures(residual), ordered, outcome, reason, tied, threshold, summary)
+    return Diagnosis(
+        base_rms,
+        signatures(residual),
+        ordered,
+        outcome,
+        reason,
+        tied,
+        threshold,
+        summary,
+        ranked_on.to_dict() if ranked_on is not None else None,
+    )

@@ -12,10 +12,14 @@ from __future__ import annotations
 
 import hashlib
 import json
+import os
+import threading
 from collections.abc import Callable, Iterable, Sequence
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import asdict, dataclass, field, replace
 
 import numpy as np
+import warp as wp
 
 from fe.batched_runner import PoseTrajectory, can_share_batch, run_trajectories
 from fe.indentation import step_through
@@ -35,6 +39,11 @@ MODEL_CACHE_SIZE = 24
 PREFETCH_SLOTS = 256
 """Systems of one batched prefetch run at most (with one skin, more trajectories queue for the slots that
 free up; with several, more replays make more runs)."""
+
+
+def usable_cpus() -> int:
+    """How many CPUs this process may run on (its affinity where the OS tells it, else the machine's count)."""
+    return len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else os.cpu_count() or 1
 
 
 @dataclass(frozen=True)
@@ -135,6 +144,18 @@ def _batches(work: list[_PendingReplay]) -> list[list[_PendingReplay]]:
     return groups
 
 
+def _shares(batch: list[_PendingReplay], parts: int) -> list[list[_PendingReplay]]:
+    """The replays split into at most `parts` non-empty shares of about equal solves (events): each, the
+    longest first, goes to the share with the fewest events so far; each share keeps the longest first."""
+    shares: list[list[_PendingReplay]] = [[] for _ in range(min(parts, len(batch)))]
+    events = [0] * len(shares)
+    for item in sorted(batch, key=lambda item: -len(item.plan.events[1])):
+        least = events.index(min(events))
+        shares[least].append(item)
+        events[least] += len(item.plan.events[1])
+    return shares
+
+
 class Predictor:
     """Replays trajectories on a warp `device` ("cpu", "cuda", ...); inflated fe models and fe replays are
     cached.
@@ -144,12 +165,23 @@ class Predictor:
     is not cached; `prefetch` solves the missing replays of many trajectories of one model, and
     `prefetch_many` those of many models, as the systems of one batched run (`fe.batched_runner`), which is
     how a GPU is kept busy and the per-round overhead of a run is paid once for them all.
+
+    On warp's CPU device a batch is split into `threads` shares of about equal work, each share one batched run
+    in its own thread (default: one per usable CPU): the fe kernels and the sparse factorisations run outside
+    Python's lock, and every system iterates on its own, so the replays are the same (bit for bit) whatever the
+    split. A GPU device runs one batch (one thread).
     """
 
-    def __init__(self, device: str = "cpu", on_replays: Callable[[int, int], None] | None = None) -> None:
+    def __init__(
+        self, device: str = "cpu", on_replays: Callable[[int, int], None] | None = None, threads: int | None = None
+    ) -> None:
         self.device = device
         self.on_replays = on_replays
         """Told (done, total) as each replay of a `prefetch_many` without its own `progress` is solved."""
+        if threads is not None and threads > 1 and device != "cpu":
+            raise ValueError(f"replays are split over threads on warp's CPU device only, not {device!r}")
+        self.threads = max(1, threads if threads is not None else usable_cpus() if device == "cpu" else 1)
+        """Batched runs solved at once, each a share of a batch in its own thread (see the class docstring)."""
         self._readouts: dict[int, SensorReadout] = {}
         self._models = ModelCache(MODEL_CACHE_SIZE, on_drop=lambda model: self._readouts.pop(id(model), None))
         self._replays: dict[tuple, Replay] = {}
@@ -235,8 +267,25 @@ class Predictor:
         return len(work)
 
     def _solve(self, batch: list[_PendingReplay], done: Callable[[], None]) -> None:
-        """Solve one batch of pending replays in one batched run and cache them; done() after each."""
-        batch = sorted(batch, key=lambda item: -len(item.plan.events[1]))  # the longest first
+        """Solve one batch of pending replays and cache them, done() after each: one batched run per share
+        of the batch (`_shares`, `threads` of them), each in its own thread when there are several."""
+        shares = _shares(batch, self.threads)
+        if len(shares) == 1:
+            self._run(shares[0], done)
+            return
+        wp.force_load(device=self.device)  # every kernel module loaded before the threads launch any (not thread-safe)
+        lock = threading.Lock()
+
+        def locked() -> None:
+            with lock:
+                done()
+
+        with ThreadPoolExecutor(len(shares)) as pool:
+            for future in [pool.submit(self._run, share, locked) for share in shares]:
+                future.result()
+
+    def _run(self, batch: list[_PendingReplay], done: Callable[[], None]) -> None:
+        """Solve pending replays (the longest first) in one batched run and cache them; done() after each."""
         skins = [item.fe.inflated_skin() for item in batch]
         one_skin = all(item.fe is batch[0].fe for item in batch)
 

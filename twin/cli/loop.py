@@ -61,6 +61,15 @@ def diagnose(
             "bias; docs/analysis.md) and rank candidates on what remains.",
         ),
     ] = False,
+    rank_per_stratum: Annotated[
+        int | None,
+        typer.Option(
+            "--rank-per-stratum",
+            min=1,
+            help="Rank the candidates on at most this many trajectories of each sensor x indenter x path kind "
+            "(large campaigns); the top ones are refitted and judged held out on all (JSON: ranked_on).",
+        ),
+    ] = None,
 ) -> None:
     """Rank candidate effects by how much of the model-vs-measurement residual each explains."""
     from twin.analysis.diagnose import diagnose as run_diagnosis
@@ -77,7 +86,15 @@ def diagnose(
             progress.update(task, description=f"{stage} {name}", advance=0 if stage == "nuisances" else 1)
 
         result = guarded(
-            lambda: run_diagnosis(data, twin_model, predictor, top=refit_top, on_progress=report, nuisances=nuisances)
+            lambda: run_diagnosis(
+                data,
+                twin_model,
+                predictor,
+                top=refit_top,
+                on_progress=report,
+                nuisances=nuisances,
+                rank_per_stratum=rank_per_stratum,
+            )
         )
     if as_json:
         print(result.to_json())
@@ -100,6 +117,11 @@ def diagnose(
     )
     if result.nuisances is not None:
         _print_nuisances(result.nuisances)
+    if (on := result.ranked_on) is not None:
+        out_console.print(
+            f"candidates ranked on {len(on['trajectories'])} of {on['of']} trajectories (at most {on['per_stratum']} "
+            "per sensor x indenter x path kind); the refits and held-out judgements on all of them"
+        )
     out_console.print(table)
     out_console.print(f"verdict: [bold]{result.verdict}[/bold] - {result.reason}")
 

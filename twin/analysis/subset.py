@@ -1,0 +1,81 @@
+"""Ranking a large campaign's candidates on a stratified subset of its trajectories (issue 18).
+
+A diagnosis linearises every candidate effect by replaying every trajectory once per parameter; on a paper-size
+campaign (hundreds of trajectories) that is most of its time. The candidates' ranking (their linearised
+evidence and screening held-out figures) needs far fewer: each kind of press (sensor x indenter x path kind,
+normal or angled) a few times. `ranking_base` picks at most `per_stratum` trajectories of each such stratum,
+spread evenly over the stratum in campaign order (drifts over a campaign are sampled across it), and builds the
+residual of the model on them alone (the noise estimated on every trajectory). Diagnosis then refits the top
+candidates and judges them held out (each indenter left out in turn) on every trajectory, so the verdict rests
+on all the data; which trajectories ranked is reported (`RankedOn.to_dict`, the `ranked_on` key of
+`twin diagnose --json`).
+"""
+
+from __future__ import annotations
+
+from collections import defaultdict
+from dataclasses import dataclass, replace
+
+import numpy as np
+
+from twin.analysis.data import CampaignData, TrajectoryRecord
+from twin.analysis.predict import Predictor, TwinModel
+from twin.analysis.residual import Base, base_residual
+
+
+def stratum(trajectory: TrajectoryRecord) -> tuple[int, str, bool]:
+    """The kind of press a trajectory is: (sensor id, indenter, normal path)."""
+    return trajectory.sensor_id, trajectory.indenter, trajectory.normal
+
+
+def stratified(trajectories: list[TrajectoryRecord], per_stratum: int) -> list[TrajectoryRecord]:
+    """At most `per_stratum` (>= 1) trajectories of each stratum (`stratum`), evenly spread over the stratum's
+    trajectories in the given order (its first and last among them when two or more are taken); given order."""
+    if per_stratum < 1:
+        raise ValueError(f"per_stratum must be at least 1, got {per_stratum}")
+    members: dict[tuple, list[int]] = defaultdict(list)
+    for i, t in enumerate(trajectories):
+        members[stratum(t)].append(i)
+    chosen = set()
+    for indices in members.values():
+        spread = np.linspace(0, len(indices) - 1, min(per_stratum, len(indices))).round().astype(int)
+        chosen.update(indices[k] for k in spread)
+    return [t for i, t in enumerate(trajectories) if i in chosen]
+
+
+@dataclass(frozen=True)
+class RankedOn:
+    """Which trajectories ranked the candidates: (sensor id, trajectory id) of each, of how many, how many per
+    stratum at most and how many strata."""
+
+    trajectories: list[tuple[int, int]]
+    of: int
+    per_stratum: int
+    strata: int
+
+    def to_dict(self) -> dict:
+        """JSON-ready form (`twin diagnose --json`'s `ranked_on`)."""
+        return {
+            "trajectories": [{"sensor": s, "trajectory": t} for s, t in self.trajectories],
+            "of": self.of,
+            "per_stratum": self.per_stratum,
+            "strata": self.strata,
+        }
+
+
+def ranking_base(
+    datasets: list[CampaignData], model: TwinModel, predictor: Predictor, base: Base, per_stratum: int
+) -> tuple[Base, RankedOn]:
+    """The residual of `model` on the stratified subset (`stratified`) of `datasets`' trajectories, with the
+    noise of `base` (the residual on all of them), and which trajectories those are."""
+    chosen = stratified(base.trajectories, per_stratum)
+    keep = {id(t) for t in chosen}
+    subsets = [replace(d, trajectories=[t for t in d.trajectories if id(t) in keep]) for d in datasets]
+    ranking = base_residual([d for d in subsets if d.trajectories], model, predictor, sigma=base.sigma)
+    ranked_on = RankedOn(
+        [(t.sensor_id, t.trajectory_id) for t in chosen],
+        len(base.trajectories),
+        per_stratum,
+        len({stratum(t) for t in base.trajectories}),
+    )
+    return ranking, ranked_on
