@@ -115,9 +115,7 @@ def _validate_dimensions(d: BioTacDimensions) -> None:
         _require(np.isfinite(value), f"{f.name} must be finite, got {value!r}")
     for name in ("core_radius", "skin_outer_radius", "skin_thickness", "anchor_band"):
         _require(getattr(d, name) > 0.0, f"{name} must be > 0 (metres), got {getattr(d, name)!r}")
-    _require(
-        d.skin_outer_radius < 0.1, f"skin_outer_radius {d.skin_outer_radius!r} m is not a BioTac (metres?)"
-    )
+    _require(d.skin_outer_radius < 0.1, f"skin_outer_radius {d.skin_outer_radius!r} m is not a BioTac (metres?)")
     _require(d.skin_thickness < d.skin_outer_radius, "skin_thickness must be smaller than skin_outer_radius")
     _require(d.core_radius < d.skin_outer_radius, "core_radius must be smaller than skin_outer_radius")
     _require(
@@ -227,9 +225,7 @@ def _strip_triangles(row_a: np.ndarray, s_a: np.ndarray, row_b: np.ndarray, s_b:
     tris = []
     i = j = 0
     while i < len(row_a) - 1 or j < len(row_b) - 1:
-        advance_a = j == len(row_b) - 1 or (
-            i < len(row_a) - 1 and abs(s_a[i + 1] - s_b[j]) <= abs(s_b[j + 1] - s_a[i])
-        )
+        advance_a = j == len(row_b) - 1 or (i < len(row_a) - 1 and abs(s_a[i + 1] - s_b[j]) <= abs(s_b[j + 1] - s_a[i]))
         if advance_a:
             tris.append((row_a[i], row_a[i + 1], row_b[j]))
             i += 1
@@ -288,9 +284,7 @@ def _cap_interior_seed(d: BioTacDimensions, h: float, boundary: np.ndarray) -> n
         theta = 0.5 * np.pi * k / n_rings
         m = max(3, int(round(2.0 * np.pi * r * np.sin(theta) / h)))
         psi = 2.0 * np.pi * (np.arange(m) + 0.5 * (k % 2)) / m
-        ring = np.column_stack(
-            [np.full(m, np.cos(theta)), np.sin(theta) * np.sin(psi), -np.sin(theta) * np.cos(psi)]
-        )
+        ring = np.column_stack([np.full(m, np.cos(theta)), np.sin(theta) * np.sin(psi), -np.sin(theta) * np.cos(psi)])
         pts.append(c + r * ring)
     pts = np.vstack(pts)
     pts = pts[pts[:, 2] < z_cut]
@@ -337,9 +331,7 @@ def _cap_part(d: BioTacDimensions, h: float, seam: np.ndarray) -> tuple[np.ndarr
 _MAX_REFINE = 40
 
 
-def _smooth_on_sphere(
-    pts: np.ndarray, n_b: int, n_seam: int, c: np.ndarray, r: float, n_iter: int
-) -> np.ndarray:
+def _smooth_on_sphere(pts: np.ndarray, n_b: int, n_seam: int, c: np.ndarray, r: float, n_iter: int) -> np.ndarray:
     """Smooth the interior points pts[n_b:] in place on the sphere (c, r); return the final triangles."""
     on_seam = np.zeros(len(pts), dtype=bool)
     on_seam[:n_seam] = True
@@ -398,9 +390,7 @@ def boundary_vertices(triangles: np.ndarray, n_vertices: int) -> np.ndarray:
     return flags
 
 
-def region_flags(
-    vertices: np.ndarray, triangles: np.ndarray, d: BioTacDimensions
-) -> tuple[np.ndarray, np.ndarray]:
+def region_flags(vertices: np.ndarray, triangles: np.ndarray, d: BioTacDimensions) -> tuple[np.ndarray, np.ndarray]:
     """Anchored and ventral flags of skin vertices (m, biotac frame) by the rules of ``d``.
 
     anchored: x <= proximal_x, or z >= dorsal_anchor_z, or on the mesh boundary.
@@ -408,9 +398,7 @@ def region_flags(
     """
     tol = 1e-9
     x, z = vertices[:, 0], vertices[:, 2]
-    anchored = (
-        (x <= d.proximal_x + tol) | (z >= d.dorsal_anchor_z - tol) | boundary_vertices(triangles, len(x))
-    )
+    anchored = (x <= d.proximal_x + tol) | (z >= d.dorsal_anchor_z - tol) | boundary_vertices(triangles, len(x))
     ventral = ~anchored & (x >= d.proximal_x + d.anchor_band) & (z <= d.dorsal_anchor_z - d.anchor_band)
     return anchored, ventral
 
@@ -467,9 +455,7 @@ def _capsule_points(radius: float, x0: float, x1: float, h: float) -> np.ndarray
 
 def _core_centre(d: BioTacDimensions) -> np.ndarray:
     """A point (m) well inside the core, the centre of the radial map onto its boundary."""
-    return np.array(
-        [0.5 * (d.core_proximal_x + d.core_tip_center_x), 0.0, 0.5 * (d.core_top_z - d.core_radius)]
-    )
+    return np.array([0.5 * (d.core_proximal_x + d.core_tip_center_x), 0.0, 0.5 * (d.core_top_z - d.core_radius)])
 
 
 def _largest_root(a: np.ndarray, b: np.ndarray, c: np.ndarray) -> np.ndarray:
@@ -574,9 +560,7 @@ def vertex_normals(vertices: np.ndarray, triangles: np.ndarray) -> np.ndarray:
 def outer_surface(skin: SkinMesh, thickness: float) -> np.ndarray:
     """(V, 3) m: the mid-surface vertices offset by thickness/2 (m) along area-weighted vertex normals."""
     if not np.isfinite(thickness) or thickness < 0.0:
-        raise ValueError(
-            f"outer_surface: thickness must be a finite non-negative length in m, got {thickness!r}"
-        )
+        raise ValueError(f"outer_surface: thickness must be a finite non-negative length in m, got {thickness!r}")
     return skin.vertices + 0.5 * thickness * vertex_normals(skin.vertices, skin.triangles)
 
 
@@ -601,9 +585,7 @@ def make_biotac(max_edge: float = 0.5e-3, dims: BioTacDimensions = DEFAULT_DIMEN
     )
 
 
-def sample_ventral_points(
-    geometry: BioTacGeometry, n: int, rng: np.random.Generator
-) -> tuple[np.ndarray, np.ndarray]:
+def sample_ventral_points(geometry: BioTacGeometry, n: int, rng: np.random.Generator) -> tuple[np.ndarray, np.ndarray]:
     """Area-uniform random points on the OUTER unpressurised skin surface over the ventral region.
 
     The outer surface is the mid-surface offset by ``core_gap`` (half the skin thickness). Returns

@@ -412,9 +412,7 @@ def _project(field, verts: np.ndarray, h: float, steps: int = 3) -> np.ndarray:
     """Move vertices onto the zero level set by Newton steps along a central-difference gradient."""
     eps = 1e-3 * h
     for _ in range(steps):
-        grad = np.stack(
-            [(field(verts + eps * e) - field(verts - eps * e)) / (2.0 * eps) for e in np.eye(3)], axis=1
-        )
+        grad = np.stack([(field(verts + eps * e) - field(verts - eps * e)) / (2.0 * eps) for e in np.eye(3)], axis=1)
         norm2 = np.maximum((grad * grad).sum(axis=1), 1e-12)
         step = (field(verts) / norm2)[:, None] * grad
         verts = verts - np.clip(step, -0.5 * h, 0.5 * h)
@@ -459,8 +457,7 @@ INDENTERS: dict[str, Indenter] = {
             "cylinder_long",
             KIND_CYLINDER_SIDE,
             (3.5 * _MM, 28.0 * _MM, 1.0 * _MM, 0.0),
-            "cylinder of 7 mm diameter, 28 mm long, pressed on its side: a table edge "
-            "(public cylinder_long_7mm)",
+            "cylinder of 7 mm diameter, 28 mm long, pressed on its side: a table edge (public cylinder_long_7mm)",
         ),
         Indenter(
             "cube",

@@ -108,9 +108,7 @@ def split_components(vertices: np.ndarray, triangles: np.ndarray) -> list[tuple[
     return sorted(parts, key=lambda part: -len(part[0]))
 
 
-def point_mesh_distance(
-    points: np.ndarray, vertices: np.ndarray, triangles: np.ndarray, k: int = 12
-) -> np.ndarray:
+def point_mesh_distance(points: np.ndarray, vertices: np.ndarray, triangles: np.ndarray, k: int = 12) -> np.ndarray:
     """(N,) unsigned distance (m) from points to a triangle surface.
 
     Candidate triangles are those incident to the k nearest mesh vertices (exact for a reasonably
@@ -178,9 +176,7 @@ def _oriented_closed(vertices: np.ndarray, triangles: np.ndarray) -> CoreMesh:
     """A closed surface as a CoreMesh with outward normals (flipped if its signed volume is negative)."""
     if signed_volume(vertices, triangles, vertices.mean(axis=0)) < 0.0:
         triangles = triangles[:, ::-1]
-    return CoreMesh(
-        vertices=np.ascontiguousarray(vertices), triangles=np.ascontiguousarray(triangles, np.int32)
-    )
+    return CoreMesh(vertices=np.ascontiguousarray(vertices), triangles=np.ascontiguousarray(triangles, np.int32))
 
 
 def load_reference_core(core_obj_path: str | PathLike) -> CoreMesh:
@@ -194,9 +190,7 @@ def load_reference_core(core_obj_path: str | PathLike) -> CoreMesh:
     return _oriented_closed(to_biotac_frame(body_v), body_t)
 
 
-def _clip_to_region(
-    vertices: np.ndarray, triangles: np.ndarray, d: BioTacDimensions
-) -> tuple[np.ndarray, np.ndarray]:
+def _clip_to_region(vertices: np.ndarray, triangles: np.ndarray, d: BioTacDimensions) -> tuple[np.ndarray, np.ndarray]:
     """Keep the largest connected piece of triangles inside x >= proximal_x - band, z <= skin_cut_z."""
     keep_v = (vertices[:, 0] >= d.proximal_x - d.anchor_band) & (vertices[:, 2] <= skin_cut_z(d))
     tris = triangles[keep_v[triangles].all(axis=1)]
@@ -231,9 +225,7 @@ def load_reference_biotac(
     mid_v, mid_t = _clip_to_region(mid, outer[1], dims)
     if max_edge is not None:
         if not np.isfinite(max_edge) or max_edge <= 0.0:
-            raise ValueError(
-                f"load_reference_biotac: max_edge must be a positive length in m, got {max_edge!r}"
-            )
+            raise ValueError(f"load_reference_biotac: max_edge must be a positive length in m, got {max_edge!r}")
         mid_v, mid_t = trimesh.remesh.subdivide_to_size(mid_v, mid_t, max_edge, max_iter=20)
     mid_t = np.asarray(mid_t, dtype=np.int32)
     anchored, ventral = region_flags(mid_v, mid_t, dims)

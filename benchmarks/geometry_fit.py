@@ -39,9 +39,7 @@ from assets.reference_mesh import (
 )
 
 MM = 1e-3
-DEFAULT_REFERENCE = (
-    Path(__file__).resolve().parents[2] / "shared" / "reference" / "biotac_sim" / "meshes" / "biotac"
-)
+DEFAULT_REFERENCE = Path(__file__).resolve().parents[2] / "shared" / "reference" / "biotac_sim" / "meshes" / "biotac"
 
 
 def skin_radial_residual(points: np.ndarray, axis_z: float, radius: float, tip_x: float) -> np.ndarray:
@@ -60,9 +58,7 @@ def fit_skin(outer: np.ndarray, inner: np.ndarray, d: BioTacDimensions) -> dict[
     po, pi = free(outer), free(inner)
 
     def residual(c: np.ndarray) -> np.ndarray:
-        return np.concatenate(
-            [skin_radial_residual(po, c[0], c[2], c[1]), skin_radial_residual(pi, c[0], c[3], c[1])]
-        )
+        return np.concatenate([skin_radial_residual(po, c[0], c[2], c[1]), skin_radial_residual(pi, c[0], c[3], c[1])])
 
     fit = least_squares(residual, [d.axis_z, d.tip_center_x, d.skin_outer_radius, d.skin_inner_radius])
     axis_z, tip_x, r_out, r_in = fit.x
@@ -125,14 +121,11 @@ def main() -> None:
     geo = make_biotac(args.max_edge, d)
     mine = outer_surface(geo.skin, 2.0 * geo.core_gap)
     ventral_ref = outer[0][
-        (outer[0][:, 0] >= d.proximal_x + d.anchor_band)
-        & (outer[0][:, 2] <= d.dorsal_anchor_z - d.anchor_band)
+        (outer[0][:, 0] >= d.proximal_x + d.anchor_band) & (outer[0][:, 2] <= d.dorsal_anchor_z - d.anchor_band)
     ]
     ref_to_mine = point_mesh_distance(ventral_ref, mine, geo.skin.triangles)
     mine_to_ref = point_mesh_distance(mine[geo.skin.ventral], *outer)
-    print(
-        f"outer skin distance over the ventral region, parametric mesh max_edge {args.max_edge / MM:.2f} mm:"
-    )
+    print(f"outer skin distance over the ventral region, parametric mesh max_edge {args.max_edge / MM:.2f} mm:")
     print("  reference -> parametric:", rms_max(ref_to_mine))
     print("  parametric -> reference:", rms_max(mine_to_ref))
 

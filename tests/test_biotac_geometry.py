@@ -38,9 +38,7 @@ def edge_lengths_and_min_angles(vertices, triangles):
     e = p[:, [1, 2, 0]] - p
     length = np.linalg.norm(e, axis=2)
     angles = [
-        np.arccos(
-            np.clip(np.einsum("ij,ij->i", e[:, k], -e[:, k - 1]) / (length[:, k] * length[:, k - 1]), -1, 1)
-        )
+        np.arccos(np.clip(np.einsum("ij,ij->i", e[:, k], -e[:, k - 1]) / (length[:, k] * length[:, k - 1]), -1, 1))
         for k in range(3)
     ]
     return length, np.degrees(np.min(angles, axis=0))
@@ -112,10 +110,7 @@ def test_orientation_points_away_from_core(geo):
     pushed = v + delta * (~g.skin.anchored)[:, None] * vertex_normals(v, t)
     area = 0.5 * np.linalg.norm(normal, axis=1)
     free_tris = ~g.skin.anchored[t]
-    gains = [
-        signed_volume(pushed, t, a) - signed_volume(v, t, a)
-        for a in (apex, np.array([2 * MM, 1 * MM, -2 * MM]))
-    ]
+    gains = [signed_volume(pushed, t, a) - signed_volume(v, t, a) for a in (apex, np.array([2 * MM, 1 * MM, -2 * MM]))]
     assert gains[0] == pytest.approx(gains[1], rel=1e-9)
     assert area[free_tris.all(axis=1)].sum() < gains[0] / delta < area[free_tris.any(axis=1)].sum()
 

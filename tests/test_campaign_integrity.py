@@ -135,6 +135,7 @@ def test_a_killed_writers_temporary_files_are_removed_by_the_next_run(tmp_path: 
     other = out / "notes.tmp"
     for path in [*stale, alive, other]:
         path.write_bytes(b"half-written")
+
     def stop(*_: object) -> None:  # stopped at planning, right after the start-up checks
         raise KeyboardInterrupt
 

@@ -161,8 +161,11 @@ def test_urdf_meshes_load_and_sit_in_the_biotac_frame(exported) -> None:
     path = exported["urdf", False]
     root = ET.parse(path).getroot()
     (biotac,) = [link for link in root.findall("link") if link.get("name") == "biotac"]
-    files = {v.get("name"): v.find("geometry/mesh").get("filename") for v in biotac.findall("visual")
-             if v.find("geometry/mesh") is not None}
+    files = {
+        v.get("name"): v.find("geometry/mesh").get("filename")
+        for v in biotac.findall("visual")
+        if v.find("geometry/mesh") is not None
+    }
     assert set(files) == {"biotac_skin", "biotac_core"}
     d = DEFAULT_DIMENSIONS
     skin = trimesh.load(path.parent / files["biotac_skin"])  # merges the STL corners into vertices

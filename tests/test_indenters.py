@@ -127,9 +127,7 @@ def test_warp_matches_numpy(ind: Indenter, meshes: dict[str, trimesh.Trimesh]) -
 
 
 @pytest.mark.parametrize("ind", ALL, ids=IDS)
-def test_gradient_is_unit_and_matches_finite_differences(
-    ind: Indenter, meshes: dict[str, trimesh.Trimesh]
-) -> None:
+def test_gradient_is_unit_and_matches_finite_differences(ind: Indenter, meshes: dict[str, trimesh.Trimesh]) -> None:
     rng = np.random.default_rng(2)
     p, _ = near_surface_points(ind, meshes[ind.name], rng)
     g = ind.sdf_gradient(p)

@@ -137,8 +137,6 @@ print(float(a.numpy().sum()))
 
 def test_modules_walked_are_the_ones_on_disk() -> None:
     """The import check walks real packages: each has modules, and the learn-extra list names real ones."""
-    on_disk = {
-        info.name for p in CORE_PACKAGES for info in pkgutil.walk_packages([str(ROOT / p)], p + ".")
-    }
+    on_disk = {info.name for p in CORE_PACKAGES for info in pkgutil.walk_packages([str(ROOT / p)], p + ".")}
     assert LEARN_EXTRA_MODULES <= on_disk
     assert len(on_disk - LEARN_EXTRA_MODULES) > 50

@@ -22,9 +22,7 @@ from assets.reference_mesh import (
 
 MM = 1e-3
 D = DEFAULT_DIMENSIONS
-MESHES = (
-    Path(__file__).resolve().parents[1] / ".." / "shared" / "reference" / "biotac_sim" / "meshes" / "biotac"
-)
+MESHES = Path(__file__).resolve().parents[1] / ".." / "shared" / "reference" / "biotac_sim" / "meshes" / "biotac"
 TET = MESHES / "int_ext_skin" / "int_ext_skin_combined_ftw.tet"
 CORE = MESHES / "bc" / "top_side_core_bc.obj"
 
