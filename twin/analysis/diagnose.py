@@ -22,12 +22,13 @@ slope at zero. The bounded linear least-squares fit of the residual on J gives t
 effect can explain (a score test, evaluated to second order); candidates are ranked by it minus a BIC
 penalty.
 
-The top few are then refitted with chord iterations (the same J, re-predicting nonlinearly after
-each step) and judged held out about their refit: each indenter in turn is left out of the fit
-(linearised at the refitted values) and predicted. The verdict (`twin.analysis.verdict`) names an
-effect only when that held-out residual passes the noise test (`twin.analysis.significance`, a
-chi-square test whose threshold shrinks as the data grow), its parameters are identifiable and no
-other comes close; "nothing" when the base residual passes the test; "unexplained" otherwise.
+The top few, and those whose linearised fits come close to the best's, are then refitted with chord
+iterations (the same J, re-predicting nonlinearly after each step) and judged held out about their
+refit: each indenter in turn is left out of the fit (linearised at the refitted values) and predicted.
+The verdict (`twin.analysis.verdict`) names an effect only when that held-out residual passes the noise
+test (`twin.analysis.significance`, a chi-square test whose threshold shrinks as the data grow), its
+parameters are identifiable and no other comes close; "nothing" when the base residual passes the test;
+"unexplained" otherwise.
 """
 
 from __future__ import annotations
@@ -45,7 +46,7 @@ from twin.analysis.predict import Predictor, TwinModel
 from twin.analysis.refit import refit
 from twin.analysis.residual import CHANNELS, Residual, base_residual
 from twin.analysis.sensitivity import Linearisation, linear_fit, linearisation_models, sensitivities
-from twin.analysis.verdict import Candidate, order_candidates, verdict
+from twin.analysis.verdict import Candidate, order_candidates, to_refit, verdict
 from twin.effects import EFFECTS
 
 
@@ -125,7 +126,9 @@ def diagnose(
     nuisances: bool = False,
 ) -> Diagnosis:
     """Rank the library's effects (off in `model`) by how well each explains the residual; the first
-    `top` of the ranking are refitted and judged held out about their refit (`twin.analysis.verdict`).
+    `top` of the ranking, and the next ones whose linearised fits come close to the best's
+    (`twin.analysis.verdict.to_refit`) unless the base residual is noise, are refitted and judged held out about
+    their refit (`twin.analysis.verdict`).
     With `nuisances`, the standard unknowns of a real campaign (`twin.analysis.nuisances`: registration
     per arm, skin per sensor) are fitted first, candidates are ranked on what remains (their signatures
     less what the nuisances can absorb) and are never the nuisance effects themselves.
@@ -173,21 +176,24 @@ def diagnose(
     # Evidence can be fooled by a flexible effect that fits every indenter its own way: those that
     # also predict left-out indenters to within the tolerance rank ahead of those that do not.
     ranked.sort(key=lambda item: (not generalises(item[0]), -item[0].evidence))
-    for candidate, lin in ranked[:top]:
+    base_test = base.noise_test(r)
+    is_noise = base_test.is_noise and (fitted is None or fitted.heldout_is_noise)
+    # Candidates whose linearised fits come close to the best's are refitted too (`verdict.to_refit`); not when the
+    # base residual is noise already (the verdict is "nothing" whatever they give).
+    count = top if is_noise else to_refit([c for c, _ in ranked], top, chi2)
+    for candidate, lin in ranked[:count]:
         report("refit", candidate.name)
         identifiability(candidate, lin.jac)
         if fitted is not None and candidate.name in fitted.cannot_tell_apart():
             candidate.identifiable = False  # never named: the nuisances could be what it fits
         refit(candidate, model, predictor, base, lin)
-    refitted = [candidate for candidate, _ in ranked[:top]]
+    refitted = [candidate for candidate, _ in ranked[:count]]
     at_fits = [linearisation_models(EFFECTS[c.name], model, c.refit_parameters) for c in refitted]
     base.prefetch(predictor, [m for models in at_fits for m in models])  # every held-out judgement in one batch
     for candidate in refitted:
         judge_heldout(candidate, model, predictor, base)
     ordered = order_candidates([c for c, _ in ranked])
-    base_test = base.noise_test(r)
     threshold = base_test.rms_threshold
-    is_noise = base_test.is_noise and (fitted is None or fitted.heldout_is_noise)
     outcome, reason, tied = verdict(base_rms, is_noise, threshold, ordered, fitted is not None)
     if fitted is not None and fitted.cannot_tell_apart():
         reason += f"; these data cannot tell {', '.join(fitted.cannot_tell_apart())} from the nuisances"
