@@ -1,14 +1,20 @@
-"""Which candidates diagnosis refits, and the residual about a model whose replay failed part of the way
-(issue 20, session 17).
+"""Which candidates diagnosis refits, a refit caught in a basin, and the residual about a model whose replay
+failed part of the way (issue 20, session 17).
 
 No fe work: candidates with given figures, and residuals built from simulated loading curves and noise.
 """
 
+from types import SimpleNamespace
+
 import numpy as np
 import pytest
 
+from twin.analysis.predict import TwinModel
+from twin.analysis.refit import refit, starts_across
 from twin.analysis.residual import Base, GainNuisance, Residual, recentred, whitened
+from twin.analysis.sensitivity import sensitivity
 from twin.analysis.verdict import CLOSE_FIT, MOST_REFITS, Candidate, to_refit
+from twin.effects import EFFECTS
 
 CHANNELS = 4
 
@@ -92,3 +98,40 @@ def test_a_replay_that_fails_part_way_leaves_only_the_noise_on_the_samples_it_re
     assert np.sqrt(np.nanmean((base.data - prediction) ** 2)) > 2.0
     about = base.with_prediction(prediction)
     assert np.sqrt(np.nanmean(about.residual.values**2)) < 1.05
+
+
+class _TwoBasins:
+    """Data made with a skin modulus of 1.6 whose signature (a fixed pattern) the model reaches fully only near
+    1.6 and partly near 0.9: linearised at the off value 1, a refit walks into the basin at 0.9."""
+
+    def __init__(self, n: int = 600) -> None:
+        rng = np.random.default_rng(4)
+        self.pattern = 4.0 * np.sin(np.arange(n) / 9.0)
+        self.residual = type("R", (), {"values": self.pattern + rng.standard_normal(n)})()
+
+    def prefetch(self, predictor: object, models: list[TwinModel]) -> int:
+        return 0  # no replays: `shifted` is analytic
+
+    def shifted(self, predictor: object, model: TwinModel) -> np.ndarray:
+        scale = model.effects.get("skin_modulus", {}).get("scale", 1.0)
+        reach = np.exp(-(((scale - 1.6) / 0.08) ** 2)) + 0.4 * np.exp(-(((scale - 0.9) / 0.08) ** 2))
+        return self.pattern * reach
+
+    def noise_test(self, values: np.ndarray) -> SimpleNamespace:
+        return SimpleNamespace(is_noise=bool(np.nanmean(values**2) < 1.2))
+
+
+def test_a_refit_caught_in_a_basin_is_tried_again_from_across_the_range() -> None:
+    base = _TwoBasins()
+    effect = EFFECTS["skin_modulus"]
+    lin = sensitivity(effect, TwinModel(), None, base)
+    assert lin.point["scale"] == 1.0
+    candidate = Candidate("skin_modulus", "physics", {}, 0.0, 0.0, 0.0)
+    refit(candidate, TwinModel(), None, base, lin)
+    assert candidate.refit_parameters["scale"] == pytest.approx(1.6, abs=0.02)
+    assert candidate.refit_rms < 1.1
+    # the starts: five across the search range of one parameter, a 3 x 3 grid for two
+    # (times log-spaced: 0.05 s x 200^(1/6, 3/6, 5/6))
+    assert [round(s["scale"], 2) for s in starts_across(effect, {"scale": 1.0})] == [0.65, 0.95, 1.25, 1.55, 1.85]
+    relaxation = starts_across(EFFECTS["skin_relaxation"], {"fraction": 0.0, "time_s": 1.0})
+    assert len(relaxation) == 9 and sorted({round(s["time_s"], 3) for s in relaxation}) == [0.121, 0.707, 4.135]
