@@ -13,7 +13,7 @@ from twin.analysis.predict import TwinModel
 from twin.analysis.refit import refit, starts_across
 from twin.analysis.residual import Base, GainNuisance, Residual, recentred, whitened
 from twin.analysis.sensitivity import sensitivity
-from twin.analysis.verdict import CLOSE_FIT, MOST_REFITS, Candidate, to_refit
+from twin.analysis.verdict import CLOSE_FIT, MOST_REFITS, Candidate, order_candidates, to_refit, verdict
 from twin.effects import EFFECTS
 
 CHANNELS = 4
@@ -135,3 +135,31 @@ def test_a_refit_caught_in_a_basin_is_tried_again_from_across_the_range() -> Non
     assert [round(s["scale"], 2) for s in starts_across(effect, {"scale": 1.0})] == [0.65, 0.95, 1.25, 1.55, 1.85]
     relaxation = starts_across(EFFECTS["skin_relaxation"], {"fraction": 0.0, "time_s": 1.0})
     assert len(relaxation) == 9 and sorted({round(s["time_s"], 3) for s in relaxation}) == [0.121, 0.707, 4.135]
+
+
+def test_a_named_effect_says_which_others_also_pass_held_out_further_behind() -> None:
+    """Seed 6's skin modulus (measured): an F/T gain scales the force alike and passes held out too; only the PDC
+    gain's prior (a 29 % read-out gain) puts it 36 behind. The verdict names the first and says so."""
+    modulus = _judged("skin_modulus", 236_646.5)
+    gain = _judged("ft_gain", 236_610.1)
+    outcome, reason, tied = verdict(3.56, False, 1.023, order_candidates([gain, modulus]))
+    assert outcome == "skin_modulus" and tied == []
+    assert reason.endswith("also held out within theirs, further behind in evidence: ft_gain (36.4 behind)")
+
+
+def _judged(name: str, evidence: float) -> Candidate:
+    """A refitted candidate whose held-out residual passes its test, a test with power."""
+    return Candidate(
+        name,
+        "physics",
+        {},
+        evidence,
+        evidence,
+        1.0,
+        heldout_rms=1.003,
+        refit_rms=1.003,
+        heldout_is_noise=True,
+        heldout_rms_threshold=1.023,
+        heldout_base_rms=3.6,
+        heldout_has_power=True,
+    )

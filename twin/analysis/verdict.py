@@ -177,10 +177,12 @@ def verdict(
             f"{EVIDENCE_MARGIN:g} is needed); {_figures(best)} ranks first",
             tied,
         )
+    also = ", ".join(f"{c.name} ({best.evidence - c.evidence:.1f} behind)" for c in named[1:])
     return (
         best.name,
         f"{best.name} explains {best.explained_fraction:.0%} of the excess residual (noise test {rms_threshold:.3f}x); "
         f"{_figures(best)}: held out within its noise test, which the base residual fails "
-        f"({best.heldout_base_rms:.2f}x on the same samples)",
+        f"({best.heldout_base_rms:.2f}x on the same samples)"
+        + (f"; also held out within theirs, further behind in evidence: {also}" if also else ""),
         [],
     )
