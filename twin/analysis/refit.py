@@ -120,7 +120,9 @@ def _from_starts(
     the best of them when it fits better than `fitted`; whichever of the two fits better."""
     starts = starts_across(effect, fitted.parameters.as_dict())
     prefetch([model.with_effects({effect.name: start}) for start in starts])
-    costs = [hooks.cost(misfit(start), None) for start in starts]
+    costs = np.array([hooks.cost(misfit(start), None) for start in starts])
+    if not np.isfinite(costs).any():  # no start's replays reached a sample
+        return fitted
     best = int(np.nanargmin(costs))
     if not costs[best] < fitted.cost:
         return fitted
