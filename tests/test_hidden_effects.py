@@ -44,14 +44,11 @@ def _loop(tmp_path: Path, hidden: str | None, predictor: Predictor) -> LoopResul
     )
 
 
-CONFOUNDED = {
-    "skin_relaxation": "on seed 5's points (2026-11-26, run alone at commits 1a5094d and 9424c0b) the 3x3 "
-    "ft_calibration map ranks first in sample (evidence 771244 against 769451) and is the only candidate refitted "
-    "here (top=1): 1.24x refitted, 2.19x held out, so the verdict is 'unexplained'; the hidden relaxation (fraction "
-    "0.34, 0.34 s) is linearised at its probe (0.15, 1 s), far from its size",
-}
+CONFOUNDED: dict[str, str] = {}
 """Library effects this small campaign does not find (measured; seen in benchmarks/diagnose_bench.py): their
-cases run every time and report as expected failures with the reason; a fix shows as XPASS."""
+cases run every time and report as expected failures with the reason; a fix shows as XPASS. None at present:
+seed 5's skin_relaxation, listed until session 17 (ft_calibration ranked first and was the only one refitted),
+passes with session 17's changes (XPASS on the whole file at 52d8581, 2026-11-27; docs/analysis.md)."""
 
 
 @pytest.mark.parametrize(

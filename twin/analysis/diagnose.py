@@ -22,12 +22,13 @@ slope at zero. The bounded linear least-squares fit of the residual on J gives t
 effect can explain (a score test, evaluated to second order); candidates are ranked by it minus a BIC
 penalty.
 
-The top few are then refitted with chord iterations (the same J, re-predicting nonlinearly after
-each step) and judged held out about their refit: each indenter in turn is left out of the fit
-(linearised at the refitted values) and predicted. The verdict (`twin.analysis.verdict`) names an
-effect only when that held-out residual passes the noise test (`twin.analysis.significance`, a
-chi-square test whose threshold shrinks as the data grow), its parameters are identifiable and no
-other comes close; "nothing" when the base residual passes the test; "unexplained" otherwise.
+The top few (and, when none of them holds held out, those whose linearised fits come close to the
+best's) are then refitted with chord iterations (the same J, re-predicting nonlinearly after each step)
+and judged held out about their refit: each indenter in turn is left out of the fit (linearised at the
+refitted values) and predicted. The verdict (`twin.analysis.verdict`) names an effect only when that
+held-out residual passes the noise test (`twin.analysis.significance`, a chi-square test whose threshold
+shrinks as the data grow), its parameters are identifiable and no other comes close; "nothing" when the
+base residual passes the test; "unexplained" otherwise.
 """
 
 from __future__ import annotations
@@ -46,7 +47,7 @@ from twin.analysis.refit import refit
 from twin.analysis.residual import CHANNELS, Residual, base_residual
 from twin.analysis.sensitivity import Linearisation, linear_fit, linearisation_models, linearise, sensitivities
 from twin.analysis.subset import ranking_base
-from twin.analysis.verdict import Candidate, order_candidates, verdict
+from twin.analysis.verdict import Candidate, order_candidates, to_refit, verdict
 from twin.effects import EFFECTS
 
 
@@ -129,7 +130,9 @@ def diagnose(
     rank_per_stratum: int | None = None,
 ) -> Diagnosis:
     """Rank the library's effects (off in `model`) by how well each explains the residual; the first
-    `top` of the ranking are refitted and judged held out about their refit (`twin.analysis.verdict`).
+    `top` of the ranking are refitted and judged held out about their refit (`twin.analysis.verdict`); when none
+    of them is supported held out and the base residual is not noise, so are the next ones whose linearised fits
+    come close to the best's (`twin.analysis.verdict.to_refit`).
     With `nuisances`, the standard unknowns of a real campaign (`twin.analysis.nuisances`: registration
     per arm, skin per sensor) are fitted first, candidates are ranked on what remains (their signatures
     less what the nuisances can absorb) and are never the nuisance effects themselves.
@@ -185,29 +188,38 @@ def diagnose(
     # Evidence can be fooled by a flexible effect that fits every indenter its own way: those that
     # also predict left-out indenters to within the tolerance rank ahead of those that do not.
     ranked.sort(key=lambda item: (not generalises(item[0]), -item[0].evidence))
-    if ranked_on is not None:  # the top ones linearised again on every trajectory, their replays in one batch
-        top_models = [linearisation_models(EFFECTS[c.name], model, lin.point) for c, lin in ranked[:top]]
-        base.prefetch(predictor, [m for models in top_models for m in models])
-        for k, (c, lin) in enumerate(ranked[:top]):
-            full = linearise(EFFECTS[c.name], model, lin.point, predictor, base)
-            ranked[k] = (c, replace(full, data_start=lin.data_start))
-    for candidate, lin in ranked[:top]:
-        report("refit", candidate.name)
-        identifiability(candidate, lin.jac)
-        if fitted is not None and candidate.name in fitted.cannot_tell_apart():
-            candidate.identifiable = False  # never named: the nuisances could be what it fits
-        refit(candidate, model, predictor, base, lin)
-    refitted = [candidate for candidate, _ in ranked[:top]]
-    at_fits = [linearisation_models(EFFECTS[c.name], model, c.refit_parameters) for c in refitted]
-    base.prefetch(predictor, [m for models in at_fits for m in models])  # every held-out judgement in one batch
-    for candidate in refitted:
-        judge_heldout(candidate, model, predictor, base)
-    ordered = order_candidates([c for c, _ in ranked])
     base_test = base.noise_test(residual.values)
-    threshold = base_test.rms_threshold
     is_noise = base_test.is_noise and (fitted is None or fitted.heldout_is_noise)
+    cannot_tell = set(fitted.cannot_tell_apart()) if fitted is not None else set()
+
+    def refit_and_judge(chosen: list[tuple[Candidate, Linearisation]]) -> None:
+        if ranked_on is not None:  # ranked on a subset: linearised again on every trajectory, replays in one batch
+            again = [linearisation_models(EFFECTS[c.name], model, lin.point) for c, lin in chosen]
+            base.prefetch(predictor, [m for models in again for m in models])
+            chosen = [
+                (c, replace(linearise(EFFECTS[c.name], model, lin.point, predictor, base), data_start=lin.data_start))
+                for c, lin in chosen
+            ]
+        for candidate, lin in chosen:
+            report("refit", candidate.name)
+            identifiability(candidate, lin.jac)
+            if candidate.name in cannot_tell:
+                candidate.identifiable = False  # never named: the nuisances could be what it fits
+            refit(candidate, model, predictor, base, lin)
+        at_fits = [linearisation_models(EFFECTS[c.name], model, c.refit_parameters) for c, _ in chosen]
+        base.prefetch(predictor, [m for models in at_fits for m in models])  # the held-out judgements in one batch
+        for candidate, _ in chosen:
+            judge_heldout(candidate, model, predictor, base)
+
+    refit_and_judge(ranked[:top])
+    # When none of those is supported held out, the next ones whose linearised fits come close to the best's are
+    # refitted too (`verdict.to_refit`); not when the base residual is noise (the verdict is "nothing" whatever).
+    if not is_noise and not any(c.supported_heldout and c.identifiable for c, _ in ranked[:top]):
+        refit_and_judge(ranked[top : to_refit([c for c, _ in ranked], top, chi2)])
+    ordered = order_candidates([c for c, _ in ranked])
+    threshold = base_test.rms_threshold
     outcome, reason, tied = verdict(base_rms, is_noise, threshold, ordered, fitted is not None)
-    if fitted is not None and fitted.cannot_tell_apart():
+    if cannot_tell:
         reason += f"; these data cannot tell {', '.join(fitted.cannot_tell_apart())} from the nuisances"
     summary = fitted.to_dict() if fitted is not None else None
     return Diagnosis(

@@ -3,24 +3,31 @@ and `fit_effect`, what `twin improve` runs: one effect fitted and judged held ou
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from dataclasses import dataclass, field
+from itertools import product
 
 import numpy as np
 
 from twin.analysis.data import CampaignData
-from twin.analysis.fit import GaussNewtonHooks, GaussNewtonSettings, Parameters, gauss_newton, polish
+from twin.analysis.fit import Fit, GaussNewtonHooks, GaussNewtonSettings, Parameters, gauss_newton, polish
 from twin.analysis.heldout import judge_heldout, whitened_rms
 from twin.analysis.predict import Predictor, TwinModel
 from twin.analysis.residual import Base, base_residual
 from twin.analysis.sensitivity import Linearisation, effect_parameters, linearise, sensitivity
 from twin.analysis.verdict import Candidate
-from twin.effects import EFFECTS
+from twin.effects import EFFECTS, Effect, EffectParameter
 
 BACKTRACKS = 2
 """Halvings of a refit step that does not lower the misfit before the refit stops there."""
 STEP_TOLERANCE = 0.05
 """A refit stops once a step moves every parameter by less than this fraction of its scale (its
 finite-difference step): smaller steps change the fit by far less than the noise, at an fe replay set each."""
+STARTS_ALONE = 5
+"""Starts across its range for an effect of one parameter (`starts_across`); 3 a parameter for more."""
+DECADE_SPACED = 10.0
+"""A positive range whose bounds differ by this factor or more is spaced geometrically (a relaxation time of
+0.05-10 s), otherwise evenly."""
 
 
 def refit(
@@ -32,8 +39,9 @@ def refit(
     `STEP_TOLERANCE`; a physics effect stops once its residual passes the noise test, and otherwise is
     linearised again where it stands (one fe replay per parameter); a measurement effect keeps J (its
     predictions reuse cached fe replays) and, unless linear in its parameters, ends with a nonlinear
-    least-squares polish (`twin.analysis.fit.polish`). When the result fits worse than the model's own
-    values of the effect (the starting point), those are kept."""
+    least-squares polish (`twin.analysis.fit.polish`). A physics effect whose fit still fails the noise test is
+    tried again from starts across its range (`_from_starts`: a cost can have several basins). When the result
+    fits worse than the model's own values of the effect (the starting point), those are kept."""
     effect = EFFECTS[candidate.name]
 
     def misfit(trial: dict[str, float]) -> np.ndarray:
@@ -49,14 +57,19 @@ def refit(
         at_noise=lambda r: base.noise_test(r).is_noise,
         cost=lambda r, _: whitened_rms(r),
     )
+    settings = GaussNewtonSettings(iterations, BACKTRACKS, STEP_TOLERANCE)
     fitted = gauss_newton(
         lambda at: misfit(at.as_dict()),
         effect_parameters(effect, lin.point),
         hooks,
-        GaussNewtonSettings(iterations, BACKTRACKS, STEP_TOLERANCE),
+        settings,
         start_residual=base.residual.values - lin.offset,
         start_jacobian=lin.jac,
     )
+    if effect.kind == "physics" and not base.noise_test(fitted.residual).is_noise:
+        fitted = _from_starts(
+            effect, fitted, misfit, lambda models: base.prefetch(predictor, models), model, hooks, settings
+        )
     values, rms = fitted.parameters, fitted.cost
     if effect.kind == "measurement" and not effect.linear:
         names = values.names
@@ -68,6 +81,53 @@ def refit(
         rms = whitened_rms(misfit(values.as_dict()))
     # Never end above the starting point (the model as given): a step the linearisation misjudged is undone.
     candidate.refit_rms, candidate.refit_parameters = min(best, (rms, values.as_dict()), key=lambda b: b[0])
+
+
+def starts_across(effect: Effect, at: dict[str, float]) -> list[dict[str, float]]:
+    """Values of the effect across its parameters' bounds (`_across`): `STARTS_ALONE` of its one parameter; for two,
+    every pair of 3 each; for more, each parameter through its 3 with the others at `at`; then the effect's own
+    declared starts (over `at`)."""
+    names = [p.name for p in effect.parameters]
+    count = STARTS_ALONE if len(names) == 1 else 3
+    grids = [_across(p, count) for p in effect.parameters]
+    if len(names) <= 2:
+        points = [dict(zip(names, map(float, values), strict=True)) for values in product(*grids)]
+    else:
+        points = [{**at, name: float(v)} for name, grid in zip(names, grids, strict=True) for v in grid]
+    return points + [effect.values({**at, **start}) for start in effect.starts]
+
+
+def _across(parameter: EffectParameter, count: int) -> np.ndarray:
+    """`count` values inside the parameter's bounds, at the centres of equal parts (geometric parts for a positive
+    range of `DECADE_SPACED` or more)."""
+    lower, upper = parameter.lower, parameter.upper
+    if lower > 0 and upper >= DECADE_SPACED * lower:
+        return np.geomspace(lower, upper, 2 * count + 1)[1::2]
+    return np.linspace(lower, upper, 2 * count + 1)[1::2]
+
+
+def _from_starts(
+    effect: Effect,
+    fitted: Fit,
+    misfit: Callable[[dict[str, float]], np.ndarray],
+    prefetch: Callable[[list[TwinModel]], int],
+    model: TwinModel,
+    hooks: GaussNewtonHooks,
+    settings: GaussNewtonSettings,
+) -> Fit:
+    """A refit that ended above the noise, tried again from across the effect's range (a cost can have several
+    basins): the misfit at each of `starts_across` (their replays solved as one batch), then damped Gauss-Newton from
+    the best of them when it fits better than `fitted`; whichever of the two fits better."""
+    starts = starts_across(effect, fitted.parameters.as_dict())
+    prefetch([model.with_effects({effect.name: start}) for start in starts])
+    costs = np.array([hooks.cost(misfit(start), None) for start in starts])
+    if not np.isfinite(costs).any():  # no start's replays reached a sample
+        return fitted
+    best = int(np.nanargmin(costs))
+    if not costs[best] < fitted.cost:
+        return fitted
+    again = gauss_newton(lambda at: misfit(at.as_dict()), effect_parameters(effect, starts[best]), hooks, settings)
+    return again if again.cost < fitted.cost else fitted
 
 
 @dataclass(frozen=True)

@@ -166,6 +166,15 @@ def build_residual(
     return residual, masks
 
 
+def recentred(values: np.ndarray, group: np.ndarray) -> np.ndarray:
+    """`values` (N,) less, in each group (non-negative integer labels, N,), the mean of its finite entries; NaN
+    entries stay NaN (a no-op, to round-off, on groups whose finite entries already have zero mean)."""
+    finite = np.isfinite(values)
+    sums = np.bincount(group[finite], weights=values[finite], minlength=int(group.max()) + 1)
+    counts = np.bincount(group[finite], minlength=len(sums))
+    return values - np.divide(sums, counts, out=np.zeros_like(sums), where=counts > 0)[group]
+
+
 def whitened(predicted: list[np.ndarray], masks: list[np.ndarray], sigma: np.ndarray) -> np.ndarray:
     """Whitened, offset-projected predictions on the base model's sample set (for differences).
 
@@ -202,8 +211,17 @@ class Base:
         fraction of a large effect's PDC change in the residual, along the effect's own signature (measured on
         the hidden registration offsets, docs/analysis.md)."""
         nuisance = GainNuisance(prediction, self.residual.covariates["axis"], self.residual.covariates["sensor"])
-        residual = replace(self.residual, values=nuisance.project(self.data - prediction))
+        residual = replace(self.residual, values=nuisance.project(self.misfit(prediction)))
         return replace(self, residual=residual, prediction=prediction, nuisance=nuisance)
+
+    def misfit(self, prediction: np.ndarray) -> np.ndarray:
+        """The whitened data less a whitened, offset-projected `prediction` (N,) on these samples, each trajectory's
+        channel offsets projected again over the samples the prediction reached (`recentred`): a replay that failed
+        part of the way (its later samples NaN) centred its prediction over the samples it reached and the data
+        over all of them, and the difference of those two means, one constant over the rest of the trajectory,
+        passed for misfit (measured on a skin modulus of 0.709, docs/analysis.md, session 17)."""
+        group = self.residual.trajectory_index * len(CHANNELS) + self.residual.covariates["axis"]
+        return recentred(self.data - prediction, group)
 
     def about(self, predictor: Predictor, model: TwinModel) -> Base:
         """This residual about `model` (each trajectory by `model_for`) on the same samples (`with_prediction`)."""
@@ -211,9 +229,11 @@ class Base:
         return self.with_prediction(whitened(predicted, self.masks, self.sigma))
 
     def shifted(self, predictor: Predictor, model: TwinModel) -> np.ndarray:
-        """Profiled change of the whitened prediction from the base to `model` (NaN where it failed)."""
+        """Profiled change of the whitened prediction from the base to `model` (NaN where it failed): the residual
+        less `model`'s `misfit`, so each trajectory's offsets are projected over the samples `model` reached."""
         predicted = fullrate_prediction(predictor, model, self.trajectories, self.model_for)
-        return self.nuisance.project(whitened(predicted, self.masks, self.sigma) - self.prediction)
+        changed = whitened(predicted, self.masks, self.sigma)
+        return self.nuisance.project(self.misfit(self.prediction) - self.misfit(changed))
 
     def prefetch(self, predictor: Predictor, models: Sequence[TwinModel]) -> int:
         """Solve the replays that `shifted` needs for every model of `models` as one batch (those not cached

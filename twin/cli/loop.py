@@ -50,7 +50,13 @@ def diagnose(
     model: ModelOption = None,
     as_json: Annotated[bool, typer.Option("--json", help="Print JSON (strict: NaN as null).")] = False,
     refit_top: Annotated[
-        int, typer.Option("--refit-top", min=0, help="How many of the best-ranked candidates are refitted.")
+        int,
+        typer.Option(
+            "--refit-top",
+            min=0,
+            help="How many of the best-ranked candidates are refitted (when none holds held out, close ones too, "
+            "up to 4 in all).",
+        ),
     ] = 3,
     device: DeviceOption = "cpu",
     nuisances: Annotated[
