@@ -97,11 +97,12 @@ class CutBack:
 _BALANCE_TOLERANCE = 1e-4
 """Largest relative force-balance error of an admissible increment (converged ones show 1e-12 ... 1e-8)."""
 _LOAD_FLOOR = 1e-3
-"""Indenter force (N) below which the force balance is not judged (its relative error has no scale: a
-closed balloon's pressure forces sum to zero)."""
+"""Indenter force (N) below which neither the force balance nor the force's direction is judged: the balance's
+relative error has no scale (a closed balloon's pressure forces sum to zero), and a skin leaving the indenter
+ends an unloading at a force of Newton's tolerance (nN) whose direction is noise."""
 _PULL_TOLERANCE = 0.1
-"""An increment whose indenter force along the press is below -0.1 |F| pulls the indenter in: inadmissible
-(friction tilts a pressing force, but never turns it around)."""
+"""An increment whose indenter force (above `_LOAD_FLOOR`) along the press is below -0.1 |F| pulls the indenter in:
+inadmissible (friction tilts a pressing force, but never turns it around)."""
 
 
 def _check_poses(
@@ -624,7 +625,7 @@ class BatchedStepper:
         if np.linalg.norm(force) > _LOAD_FLOOR and not balance <= _BALANCE_TOLERANCE:
             return f"forces out of balance by {balance:.1e} of the load"
         push = float(force @ -self.pose_rotation[i, :, 2])
-        if push < -_PULL_TOLERANCE * np.linalg.norm(force):
+        if np.linalg.norm(force) > _LOAD_FLOOR and push < -_PULL_TOLERANCE * np.linalg.norm(force):
             return f"the indenter force pulls into the skin ({push:.3g} N along the press)"
         return ""
 

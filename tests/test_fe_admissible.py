@@ -49,3 +49,22 @@ def test_the_rim_presses_are_refused_where_the_skin_is_squeezed_onto_the_rigid_b
     assert loaded and all(np.linalg.norm(r.force) < 5.0 for r in loaded)
     assert not rows[-1].converged
     assert "inadmissible" in rows[-1].message and "clamped vertex" in rows[-1].message, rows[-1].message
+
+
+def test_a_skin_leaving_the_indenter_is_not_refused_for_the_direction_of_a_nanonewton(
+    frictional_biotac: BioTacModel,
+) -> None:
+    """At the end of an unloading the indenter force is Newton's tolerance (seen: -6.9 nN along the press, on a
+    replay of a 30-degree sphere_small press); its direction is noise and the increment is admissible. A force
+    that pulls the indenter in with a load (0.5 N) is still refused."""
+    engine = frictional_biotac.stepper("sphere_small").engine
+    engine.pose_rotation[0] = np.eye(3)  # pressing along -z: a force with +z on the skin pulls the indenter in
+    vertices, triangles = len(engine.reference[0]), len(frictional_biotac.geometry.skin.triangles)
+    clear = (np.full(vertices, 1.0), np.full(vertices, 1.0), (np.inf, np.full(triangles, np.inf)))
+
+    def refusal(force_z: float) -> str:
+        return engine._inadmissible(0, *clear, np.array([0.0, 0.0, force_z]), 0.0)
+
+    assert refusal(6.9e-9) == ""
+    assert refusal(-0.5) == ""  # pressing
+    assert "pulls into the skin" in refusal(0.5)
