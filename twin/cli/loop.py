@@ -86,10 +86,14 @@ def diagnose(
     err_console.print("diagnosing (replaying every trajectory per candidate parameter) ...")
     steps = sum(1 for k in EFFECTS if k not in twin_model.effects)
     with replay_progress(predictor) as progress:
-        task = progress.add_task("diagnosing", total=steps + min(refit_top, steps))
+        total, done = steps + min(refit_top, steps), 0
+        task = progress.add_task("diagnosing", total=total)
 
         def report(stage: str, name: str) -> None:
-            progress.update(task, description=f"{stage} {name}", advance=0 if stage == "nuisances" else 1)
+            nonlocal total, done
+            done += stage != "nuisances"
+            total = max(total, done)  # close candidates refitted after the first ones (`verdict.to_refit`)
+            progress.update(task, description=f"{stage} {name}", completed=done, total=total)
 
         result = guarded(
             lambda: run_diagnosis(
