@@ -34,8 +34,9 @@ import numpy as np
 
 from twin.analysis.data import CampaignData, load_campaign
 from twin.analysis.diagnose import diagnose, strict_json
-from twin.analysis.predict import Predictor, TwinModel, usable_cpus
+from twin.analysis.predict import Predictor, TwinModel
 from twin.effects import EFFECTS, apply_skin
+from twin.lanes import usable_cpus
 
 RELAXATION = "skin_relaxation"
 

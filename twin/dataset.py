@@ -28,6 +28,7 @@ import h5py
 import numpy as np
 
 from assets.indenters import INDENTERS
+from twin.lanes import usable_cpus
 
 SCHEMA_VERSION = 1
 
@@ -255,7 +256,7 @@ class _GzipChunks:
     they are ready (`finish`, or leaving the context); the file reads back as any gzip dataset does."""
 
     def __init__(self, workers: int | None = None) -> None:
-        self._workers = workers or min(8, os.cpu_count() or 1)
+        self._workers = workers or min(8, usable_cpus())
         self._pool = ThreadPoolExecutor(self._workers)
         self._pending: deque[tuple[h5py.Dataset, int, Future[bytes]]] = deque()
 

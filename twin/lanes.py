@@ -9,6 +9,7 @@ dropped, and a lane runs no further job once a failure is recorded.
 
 from __future__ import annotations
 
+import os
 import queue
 import threading
 from collections.abc import Callable
@@ -78,3 +79,8 @@ class Lane:
                 job()
             except BaseException as error:  # noqa: BLE001 (handed to the waiting thread, which raises it)
                 self.failure.record(error)
+
+
+def usable_cpus() -> int:
+    """How many CPUs this process may run on (its affinity where the OS tells it, else the machine's count)."""
+    return len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else os.cpu_count() or 1

@@ -12,7 +12,6 @@ from __future__ import annotations
 
 import hashlib
 import json
-import os
 import threading
 from collections.abc import Callable, Iterable, Sequence
 from concurrent.futures import ThreadPoolExecutor
@@ -30,6 +29,7 @@ from twin.analysis.data import TrajectoryRecord
 from twin.controller import Recording
 from twin.effects import EffectValues, apply_path, apply_skin, check_values, measure_wrench
 from twin.fe_models import INFLATION_RULES, ModelCache
+from twin.lanes import usable_cpus
 from twin.processing import ProcessedRows, lowpass, process
 from twin.readout import SensorReadout, ft_load
 from twin.sim_backend import RELAXATION_SOLVE_INTERVAL_S
@@ -39,11 +39,6 @@ MODEL_CACHE_SIZE = 24
 PREFETCH_SLOTS = 256
 """Systems of one batched prefetch run at most (with one skin, more trajectories queue for the slots that
 free up; with several, more replays make more runs)."""
-
-
-def usable_cpus() -> int:
-    """How many CPUs this process may run on (its affinity where the OS tells it, else the machine's count)."""
-    return len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else os.cpu_count() or 1
 
 
 @dataclass(frozen=True)
