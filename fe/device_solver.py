@@ -406,6 +406,20 @@ class BatchedBlockMatrix:
         wp.launch(_multiply, x.shape, [self.values, self.offsets, self.columns, system_of, x, y], device=self.device)
 
 
+def _columns_of(system_of: np.ndarray, batch: int) -> np.ndarray:
+    """(batch, 2) the columns of each system, in column order (-1: none), from each column's system (C,)."""
+    order = np.argsort(system_of, kind="stable")
+    systems = system_of[order]
+    position = np.arange(len(systems))
+    first = np.maximum.accumulate(np.where(np.r_[True, systems[1:] != systems[:-1]], position, 0))
+    rank = position - first  # 0 for a system's first column, 1 for its second
+    if np.any(rank > 1):
+        raise ValueError("at most two right-hand sides per system")
+    columns_of = np.full((batch, 2), -1, dtype=np.int32)
+    columns_of[systems, rank] = order
+    return columns_of
+
+
 class BatchedCG:
     """Preconditioned CG for `columns` right-hand sides of a `BatchedBlockMatrix`, buffers kept between solves.
 
@@ -473,14 +487,8 @@ class BatchedCG:
         iterations and x = 0)."""
         device = self.matrix.device
         system_of = np.asarray(system_of, dtype=np.int32)
-        columns_of = np.full((self.matrix.batch, 2), -1, dtype=np.int32)
-        for c, system in enumerate(system_of):
-            free = np.flatnonzero(columns_of[system] < 0)
-            if not free.size:
-                raise ValueError("at most two right-hand sides per system")
-            columns_of[system, free[0]] = c
         self.system_of.assign(system_of)
-        self.columns_of.assign(columns_of)
+        self.columns_of.assign(_columns_of(system_of, self.matrix.batch))
         self.state.assign(np.where(active, CG_RUNNING, CG_CONVERGED).astype(np.int32))
         self.tolerance.assign(np.asarray(tolerance, dtype=np.float64))
         for a in (self.iterations, self.rz, self.pap, self.rz_new, self.rr_new, self.bb, self.rr, self.x):

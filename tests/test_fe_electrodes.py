@@ -189,3 +189,24 @@ def test_vectorised_impedance_matches_a_direct_evaluation(geometry: BioTacGeomet
         w = vertex_area * np.clip(1.0 - (lateral / radius) ** 2, 0.0, None) ** 2 * in_front
         expected.append((w / np.maximum(along, floor)).sum() / w.sum())
     np.testing.assert_allclose(model.impedance(v), expected, rtol=1e-9)
+
+
+def test_many_skins_at_once_equal_one_at_a_time(geometry: BioTacGeometry, model: ElectrodeModel) -> None:
+    """`impedances` (chunked, vectorised over skins) gives each skin exactly what `impedance` gives it alone,
+    chunk boundaries included; a non-finite skin anywhere is refused."""
+    skins = np.array(
+        [
+            gaussian_dent(geometry, geometry.skin.vertices, skin_point_over(geometry, e), depth, shear=[2e-4, 0, 0])
+            for e in range(N_ELECTRODES)
+            for depth in (0.3e-3, 0.9e-3)
+        ]
+    )
+    chunk = model.CHUNK_TRIANGLES // len(model._near_triangles)
+    assert 1 <= chunk < len(skins)  # more than one chunk
+    many = model.impedances(skins)
+    assert many.shape == (len(skins), N_ELECTRODES)
+    np.testing.assert_array_equal(many, [model.impedance(v) for v in skins])
+    np.testing.assert_array_equal(model.relative_impedances(skins[:2]), [model.relative_impedance(v) for v in skins[:2]])
+    skins[-1, 0, 0] = np.nan
+    with pytest.raises(ValueError, match="finite"):
+        model.impedances(skins)

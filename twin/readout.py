@@ -67,6 +67,11 @@ class SensorReadout:
             self._held = (displacement, self.electrodes.relative_impedance(vertices))
         return self._held[1]
 
+    def relative_impedances(self, displacements: np.ndarray) -> np.ndarray:
+        """(N, 19) relative electrode impedances of N skin displacements (N, V, 3) m, evaluated together (the
+        same as one at a time, bit for bit; the held one is left as it was)."""
+        return self.electrodes.relative_impedances(self.reference + np.asarray(displacements))
+
     def electrode_counts(
         self, displacement: np.ndarray | None, time_s: float = 0.0, rng: np.random.Generator | None = None
     ) -> np.ndarray:

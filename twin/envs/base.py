@@ -39,23 +39,26 @@ FORCE_BOUND_N = 50.0
 
 @dataclass(frozen=True)
 class SlotIncrement:
-    """One slot's FE answer (SI units, biotac frame): force (3,) N, pressure Pa, displacement (V, 3) m."""
+    """One slot's FE answer (SI units, biotac frame): force (3,) N, pressure Pa, displacement (V, 3) m; and the
+    skin's relative electrode impedances (19,) when the vector env evaluated every slot's at once (else None)."""
 
     force: np.ndarray
     pressure: float
     displacement: np.ndarray
     contact_area: float
     converged: bool
+    impedance: np.ndarray | None = None
 
 
-def slot_increment(batch: BatchIncrement, k: int) -> SlotIncrement:
-    """Slot `k` of a batched FE answer."""
+def slot_increment(batch: BatchIncrement, k: int, impedance: np.ndarray | None = None) -> SlotIncrement:
+    """Slot `k` of a batched FE answer (with its relative electrode impedances (19,) when evaluated)."""
     return SlotIncrement(
         batch.force[k],
         float(batch.pressure[k]),
         batch.displacement[k],
         float(batch.contact_area[k]),
         bool(batch.converged[k]),
+        impedance,
     )
 
 
@@ -262,7 +265,9 @@ class TactileEnv(gym.Env[dict[str, np.ndarray], np.ndarray]):
 
     # -- sensing ---------------------------------------------------------------------------------
     def _read(self, increment: SlotIncrement) -> Reading:
-        return self.readout.read(increment.displacement, increment.pressure, increment.force, self.np_random)
+        return self.readout.read(
+            increment.displacement, increment.pressure, increment.force, self.np_random, increment.impedance
+        )
 
     def _observe(self, reading: Reading, increment: SlotIncrement) -> dict[str, np.ndarray]:
         """The observation dict (float32, clipped to its space) of a reading; logs the state when rendering."""

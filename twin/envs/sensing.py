@@ -39,9 +39,20 @@ class TactileReadout:
         """(19, 3) electrode centres on the core (m, biotac frame)."""
         self.force_noise_n = float(force_noise_n)
 
-    def read(self, displacement: np.ndarray, pressure: float, force: np.ndarray, rng: np.random.Generator) -> Reading:
-        """Noisy sensor readings for a skin displacement (V, 3) m, fluid pressure (Pa) and indenter force (3,) N."""
-        electrodes = self.sensor.electrode_counts(displacement, 0.0, rng)
+    def read(
+        self,
+        displacement: np.ndarray,
+        pressure: float,
+        force: np.ndarray,
+        rng: np.random.Generator,
+        impedance: np.ndarray | None = None,
+    ) -> Reading:
+        """Noisy sensor readings for a skin displacement (V, 3) m, fluid pressure (Pa) and indenter force (3,) N;
+        `impedance`: that skin's relative electrode impedances (19,) when already evaluated (with other skins':
+        `SensorReadout.relative_impedances`)."""
+        if impedance is None:
+            impedance = self.sensor.relative_impedance(displacement)
+        electrodes = self.sensor.electrodes.impedance_counts(impedance, 0.0, rng)
         pdc = self.sensor.pdc(pressure, rng)
         noisy_force = np.asarray(force, dtype=float) + self.force_noise_n * rng.standard_normal(3)
         return Reading(electrodes, pdc, noisy_force)

@@ -18,7 +18,7 @@ from gymnasium.vector.utils import batch_space, concatenate, create_empty_array
 
 from twin.envs.base import TactileEnv, slot_increment
 from twin.envs.edge import EdgeFollowEnv
-from twin.envs.fe_batch import COARSE_MESH_MM, IndentationBatch
+from twin.envs.fe_batch import COARSE_MESH_MM, BatchIncrement, IndentationBatch
 from twin.envs.press import PressEnv
 from twin.envs.sensing import TactileReadout
 from twin.fe_models import shared_model
@@ -51,13 +51,13 @@ class TactileVectorEnv(VectorEnv):
             raise ValueError(f"the vector env's render_mode must be None or one of {self.metadata['render_modes']}")
         indenter = env_kwargs.pop("indenter", env_class.default_indenter)
         self.fe = IndentationBatch(shared_model(mesh_mm), [indenter] * num_envs, device)
-        readout = TactileReadout(self.fe, env_kwargs.get("sensor_params"), env_kwargs.get("force_noise_n", 0.01))
+        self.readout = TactileReadout(self.fe, env_kwargs.get("sensor_params"), env_kwargs.get("force_noise_n", 0.01))
         self.envs = [
             env_class(
                 indenter,
                 fe=self.fe,
                 slot=k,
-                readout=readout,
+                readout=self.readout,
                 render_mode=render_mode if k == 0 else None,
                 rerun_save=rerun_save if k == 0 else None,
                 **env_kwargs,
@@ -85,10 +85,10 @@ class TactileVectorEnv(VectorEnv):
                 raise ValueError(f"need {self.num_envs} seeds, got {len(seeds)}")
         poses = [env.begin_episode(s, options) for env, s in zip(self.envs, seeds, strict=True)]
         self.fe.reset()
-        batch = self._step_fe(poses)
+        batch, impedances = self._step_fe(poses)
         observations, infos = [], {}
         for k, env in enumerate(self.envs):
-            obs, info = env.first_observation(slot_increment(batch, k))
+            obs, info = env.first_observation(slot_increment(batch, k, impedances[k]))
             observations.append(obs)
             infos = self._add_info(infos, info, k)
         self._autoreset[:] = False
@@ -105,13 +105,13 @@ class TactileVectorEnv(VectorEnv):
         poses = [env.begin_episode() if resetting[k] else env.command(actions[k]) for k, env in enumerate(self.envs)]
         if resetting.any():
             self.fe.reset(np.flatnonzero(resetting))
-        batch = self._step_fe(poses)
+        batch, impedances = self._step_fe(poses)
         observations, infos = [], {}
         rewards = np.zeros(self.num_envs)
         terminated = np.zeros(self.num_envs, dtype=bool)
         truncated = np.zeros(self.num_envs, dtype=bool)
         for k, env in enumerate(self.envs):
-            increment = slot_increment(batch, k)
+            increment = slot_increment(batch, k, impedances[k])
             if resetting[k]:
                 obs, info = env.first_observation(increment)
             else:
@@ -126,8 +126,17 @@ class TactileVectorEnv(VectorEnv):
         for env in self.envs:
             env.close()
 
-    def _step_fe(self, poses: list[tuple[np.ndarray, np.ndarray]]):
-        return self.fe.step_batch(np.array([p[0] for p in poses]), np.array([p[1] for p in poses]))
+    def _step_fe(self, poses: list[tuple[np.ndarray, np.ndarray]]) -> tuple[BatchIncrement, list[np.ndarray | None]]:
+        """Every slot's FE answer at its pose, and the relative electrode impedances (19,) of each converged
+        slot's skin (None where it failed), evaluated for all of them at once."""
+        batch = self.fe.step_batch(np.array([p[0] for p in poses]), np.array([p[1] for p in poses]))
+        impedances: list[np.ndarray | None] = [None] * self.num_envs
+        converged = np.flatnonzero(batch.converged)
+        if converged.size:
+            evaluated = self.readout.sensor.relative_impedances(batch.displacement[converged])
+            for k, z in zip(converged, evaluated, strict=True):
+                impedances[k] = z
+        return batch, impedances
 
     def _batch(self, observations: list[dict[str, np.ndarray]]) -> dict[str, np.ndarray]:
         self._observations = concatenate(self.single_observation_space, observations, self._observations)
