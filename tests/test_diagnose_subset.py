@@ -71,3 +71,21 @@ def test_ranking_on_one_trajectory_per_stratum_names_the_hidden_effect_as_the_fu
     assert named.refit_rms == pytest.approx(full_named.refit_rms, rel=1e-6)
     assert named.heldout_rms == pytest.approx(full_named.heldout_rms, rel=1e-6)
     assert subset.base_rms == full.base_rms
+
+
+def test_diagnosing_one_trajectory_per_stratum_names_the_hidden_effect_and_says_which(campaign: Path) -> None:
+    """`per_stratum`: every stage on the sample alone (4 of the campaign's trajectories), the hidden effect named,
+    and the same diagnosis as of a campaign that held only those trajectories."""
+    data = load_campaign(campaign)
+    model = TwinModel(mesh_max_edge=data.mesh_max_edge)
+    predictor = Predictor()
+    sample = diagnose([data], model, predictor, top=1, per_stratum=1)
+    assert sample.verdict == HIDDEN, sample.reason
+    on = sample.sampled
+    assert on["of"] == len(data.trajectories) and on["strata"] == 4 and on["per_stratum"] == 1
+    chosen = {(t.sensor_id, t.trajectory_id) for t in stratified(data.trajectories, 1)}
+    assert {(t["sensor"], t["trajectory"]) for t in on["trajectories"]} == chosen and len(chosen) == 4
+    alone = replace(data, trajectories=[t for t in data.trajectories if (t.sensor_id, t.trajectory_id) in chosen])
+    direct = diagnose([alone], model, predictor, top=1)
+    assert direct.base_rms == sample.base_rms and direct.verdict == sample.verdict
+    assert sample.candidates[0].refit_parameters == direct.candidates[0].refit_parameters

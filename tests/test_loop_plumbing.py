@@ -89,8 +89,11 @@ def test_diagnose_json_strict_refit_count_and_progress_per_candidate(
 ) -> None:
     calls: dict = {}
 
-    def fake_diagnose(data, model, predictor=None, top=3, on_progress=None, nuisances=False, rank_per_stratum=None):
+    def fake_diagnose(
+        data, model, predictor=None, top=3, on_progress=None, nuisances=False, rank_per_stratum=None, per_stratum=None
+    ):
         calls["top"], calls["rank_per_stratum"] = top, rank_per_stratum
+        calls["per_stratum"] = per_stratum
         for name in ("skin_modulus", "time_delay", "ft_gain"):
             on_progress("evidence", name)
         for name in ("skin_modulus", "time_delay")[:top]:
@@ -101,14 +104,18 @@ def test_diagnose_json_strict_refit_count_and_progress_per_candidate(
     monkeypatch.setattr(diagnose_module, "diagnose", fake_diagnose)
     result = runner.invoke(app, ["diagnose", str(fake_inputs), "--json", "--refit-top", "1"])
     assert result.exit_code == 0, result.output
-    assert calls == {"top": 1, "rank_per_stratum": None, "refits": ["skin_modulus"]}
+    assert calls == {"top": 1, "rank_per_stratum": None, "per_stratum": None, "refits": ["skin_modulus"]}
     parsed = json.loads(result.stdout, parse_constant=_raise_on_constant)
-    assert parsed["verdict"] == "unexplained" and parsed["ranked_on"] is None
+    assert parsed["verdict"] == "unexplained" and parsed["ranked_on"] is None and parsed["sampled"] is None
     bad = runner.invoke(app, ["diagnose", str(fake_inputs), "--refit-top", "-1"])
     assert bad.exit_code == 2 and "Traceback" not in bad.output
     subset = runner.invoke(app, ["diagnose", str(fake_inputs), "--json", "--rank-per-stratum", "2"])
     assert subset.exit_code == 0 and calls["rank_per_stratum"] == 2, subset.output
     bad = runner.invoke(app, ["diagnose", str(fake_inputs), "--rank-per-stratum", "0"])
+    assert bad.exit_code == 2 and "Traceback" not in bad.output
+    sample = runner.invoke(app, ["diagnose", str(fake_inputs), "--json", "--per-stratum", "3"])
+    assert sample.exit_code == 0 and calls["per_stratum"] == 3, sample.output
+    bad = runner.invoke(app, ["diagnose", str(fake_inputs), "--per-stratum", "0"])
     assert bad.exit_code == 2 and "Traceback" not in bad.output
 
 

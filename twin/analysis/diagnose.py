@@ -46,7 +46,7 @@ from twin.analysis.predict import Predictor, TwinModel
 from twin.analysis.refit import refit
 from twin.analysis.residual import CHANNELS, Residual, base_residual
 from twin.analysis.sensitivity import Linearisation, linear_fit, linearisation_models, linearise, sensitivities
-from twin.analysis.subset import ranking_base
+from twin.analysis.subset import ranking_base, sampled
 from twin.analysis.verdict import Candidate, order_candidates, to_refit, verdict
 from twin.effects import EFFECTS
 
@@ -64,6 +64,7 @@ class Diagnosis:
     rms_threshold: float = float("nan")  # the noise test's whitened RMS threshold on these data
     nuisances: dict | None = None  # the nuisance stage's summary (`NuisanceFit.to_dict`) when it ran
     ranked_on: dict | None = None  # the trajectories that ranked the candidates (`subset.RankedOn`); None: all
+    sampled: dict | None = None  # the trajectories diagnosed (`subset.RankedOn`), every stage; None: all
 
     def to_dict(self) -> dict:
         """JSON-ready form (the `twin diagnose --json` shape)."""
@@ -77,6 +78,7 @@ class Diagnosis:
             "candidates": [dict(c.__dict__) for c in self.candidates],
             "nuisances": self.nuisances,
             "ranked_on": self.ranked_on,
+            "sampled": self.sampled,
         }
 
     def to_json(self) -> str:
@@ -128,6 +130,7 @@ def diagnose(
     on_progress: Callable[[str, str], None] | None = None,
     nuisances: bool = False,
     rank_per_stratum: int | None = None,
+    per_stratum: int | None = None,
 ) -> Diagnosis:
     """Rank the library's effects (off in `model`) by how well each explains the residual; the first
     `top` of the ranking are refitted and judged held out about their refit (`twin.analysis.verdict`); when none
@@ -141,7 +144,9 @@ def diagnose(
     ("refit"), and with ("nuisances", what) during the nuisance fit.
     With `rank_per_stratum`, candidates are linearised and ranked on at most that many trajectories of each
     sensor x indenter x path kind (`twin.analysis.subset`; not with `nuisances`); the top ones are linearised
-    again, refitted and judged held out on every trajectory, and `ranked_on` says which trajectories ranked."""
+    again, refitted and judged held out on every trajectory, and `ranked_on` says which trajectories ranked.
+    With `per_stratum`, the whole diagnosis runs on at most that many trajectories of each stratum
+    (`twin.analysis.subset.sampled`), and `sampled` says which."""
     if top < 0:
         raise ValueError(f"the number of candidates to refit must be >= 0, got {top}")
     if rank_per_stratum is not None and nuisances:
@@ -149,6 +154,9 @@ def diagnose(
     if nuisances and set(candidates or ()) & set(NUISANCE_EFFECTS):
         raise ValueError(f"with the nuisances fitted, {sorted(NUISANCE_EFFECTS)} cannot be candidates")
     report = on_progress or (lambda stage, name: None)
+    sampled_on = None
+    if per_stratum is not None:
+        datasets, sampled_on = sampled(datasets, per_stratum)
     predictor = predictor or Predictor()
     fitted = fit_nuisances(datasets, model, predictor, lambda text: report("nuisances", text)) if nuisances else None
     base = fitted.base if fitted is not None else base_residual(datasets, model, predictor)
@@ -232,4 +240,5 @@ def diagnose(
         threshold,
         summary,
         ranked_on.to_dict() if ranked_on is not None else None,
+        sampled_on.to_dict() if sampled_on is not None else None,
     )

@@ -1,4 +1,4 @@
-"""Ranking a large campaign's candidates on a stratified subset of its trajectories (issue 18).
+"""Ranking a large campaign's candidates, or diagnosing it, on a stratified subset of its trajectories (issue 18).
 
 A diagnosis linearises every candidate effect by replaying every trajectory once per parameter; on a paper-size
 campaign (hundreds of trajectories) that is most of its time. The candidates' ranking (their linearised
@@ -8,7 +8,9 @@ spread evenly over the stratum in campaign order (drifts over a campaign are sam
 residual of the model on them alone (the noise estimated on every trajectory). Diagnosis then refits the top
 candidates and judges them held out (each indenter left out in turn) on every trajectory, so the verdict rests
 on all the data; which trajectories ranked is reported (`RankedOn.to_dict`, the `ranked_on` key of
-`twin diagnose --json`).
+`twin diagnose --json`). `sampled` takes such a subset up front for a diagnosis that runs on it alone (every
+stage: noise, base, ranking, refits, held-out judgements; the `sampled` key), for a campaign too large to replay
+every trajectory many times.
 """
 
 from __future__ import annotations
@@ -63,19 +65,26 @@ class RankedOn:
         }
 
 
+def sampled(datasets: list[CampaignData], per_stratum: int) -> tuple[list[CampaignData], RankedOn]:
+    """`datasets` with only their stratified subset (`stratified`) of trajectories (a dataset left with none is
+    dropped), and which trajectories those are."""
+    trajectories = [t for d in datasets for t in d.trajectories]
+    keep = {id(t) for t in stratified(trajectories, per_stratum)}
+    subsets = [replace(d, trajectories=[t for t in d.trajectories if id(t) in keep]) for d in datasets]
+    chosen = [t for d in subsets for t in d.trajectories]
+    on = RankedOn(
+        [(t.sensor_id, t.trajectory_id) for t in chosen],
+        len(trajectories),
+        per_stratum,
+        len({stratum(t) for t in trajectories}),
+    )
+    return [d for d in subsets if d.trajectories], on
+
+
 def ranking_base(
     datasets: list[CampaignData], model: TwinModel, predictor: Predictor, base: Base, per_stratum: int
 ) -> tuple[Base, RankedOn]:
     """The residual of `model` on the stratified subset (`stratified`) of `datasets`' trajectories, with the
     noise of `base` (the residual on all of them), and which trajectories those are."""
-    chosen = stratified(base.trajectories, per_stratum)
-    keep = {id(t) for t in chosen}
-    subsets = [replace(d, trajectories=[t for t in d.trajectories if id(t) in keep]) for d in datasets]
-    ranking = base_residual([d for d in subsets if d.trajectories], model, predictor, sigma=base.sigma)
-    ranked_on = RankedOn(
-        [(t.sensor_id, t.trajectory_id) for t in chosen],
-        len(base.trajectories),
-        per_stratum,
-        len({stratum(t) for t in base.trajectories}),
-    )
-    return ranking, ranked_on
+    subsets, ranked_on = sampled(datasets, per_stratum)
+    return base_residual(subsets, model, predictor, sigma=base.sigma), ranked_on

@@ -76,6 +76,15 @@ def diagnose(
             "(large campaigns); the top ones are refitted and judged held out on all (JSON: ranked_on).",
         ),
     ] = None,
+    per_stratum: Annotated[
+        int | None,
+        typer.Option(
+            "--per-stratum",
+            min=1,
+            help="Diagnose only at most this many trajectories of each sensor x indenter x path kind, spread over "
+            "the campaign (every stage; large campaigns; JSON: sampled).",
+        ),
+    ] = None,
 ) -> None:
     """Rank candidate effects by how much of the model-vs-measurement residual each explains."""
     from twin.analysis.diagnose import diagnose as run_diagnosis
@@ -104,6 +113,7 @@ def diagnose(
                 on_progress=report,
                 nuisances=nuisances,
                 rank_per_stratum=rank_per_stratum,
+                per_stratum=per_stratum,
             )
         )
     if as_json:
@@ -127,6 +137,11 @@ def diagnose(
     )
     if result.nuisances is not None:
         _print_nuisances(result.nuisances)
+    if (on := result.sampled) is not None:
+        out_console.print(
+            f"diagnosed on {len(on['trajectories'])} of {on['of']} trajectories (at most {on['per_stratum']} per "
+            "sensor x indenter x path kind)"
+        )
     if (on := result.ranked_on) is not None:
         out_console.print(
             f"candidates ranked on {len(on['trajectories'])} of {on['of']} trajectories (at most {on['per_stratum']} "
