@@ -873,36 +873,20 @@ _TOTALS = ("volume", "membrane_energy", "bending_energy", "core_energy", "indent
 _POSE = ("rotation", "translation", "rotation_start", "translation_start")
 
 
-def _runs(rows: np.ndarray) -> list[tuple[int, int, int]]:
-    """(position in `rows`, first row, end row) of each run of consecutive system indices in `rows`."""
-    rows = np.asarray(rows, dtype=np.int64)
-    starts = np.flatnonzero(np.diff(rows, prepend=rows[:1] - 2) != 1)
-    ends = np.append(starts[1:], len(rows))
-    return [(int(a), int(rows[a]), int(rows[b - 1]) + 1) for a, b in zip(starts, ends, strict=True)]
-
-
 def _indexed(array: wp.array, rows: np.ndarray) -> wp.indexedarray:
     """The `rows` of `array` (along its first axis) as one indexed view on the array's device."""
-    index = wp.array(np.asarray(rows, dtype=np.int32), dtype=wp.int32, device=array.device)
-    return wp.indexedarray(array, [index])
+    return wp.indexedarray(array, [wp.array(np.asarray(rows, dtype=np.int32), dtype=wp.int32, device=array.device)])
 
 
 def put_rows(array: wp.array, rows: np.ndarray, values: np.ndarray) -> None:
-    """array[i] = values[k] for the k-th system index i of `rows` (distinct rows; host -> device): one copy
-    for a run of consecutive rows, else one host -> device copy and one scatter on the device."""
-    runs = _runs(rows)
-    if len(runs) == 1:
-        array[runs[0][1] : runs[0][2]].assign(values)
-    else:
-        _indexed(array, rows).assign(np.ascontiguousarray(values))
+    """array[i] = values[k] for the k-th system index i of `rows` (distinct rows): one host -> device copy and
+    one scatter on the device."""
+    _indexed(array, rows).assign(np.ascontiguousarray(values))
 
 
 def get_rows(array: wp.array, rows: np.ndarray) -> np.ndarray:
-    """array[rows] on the host, shape (len(rows), ...); rows not empty, in any order, repeats allowed: one copy
-    for a run of consecutive rows, else one gather on the device and one device -> host copy."""
-    runs = _runs(rows)
-    if len(runs) == 1:
-        return array[runs[0][1] : runs[0][2]].numpy().copy()
+    """array[rows] on the host, shape (len(rows), ...); rows not empty, in any order, repeats allowed: one gather
+    on the device and one device -> host copy."""
     return _indexed(array, rows).numpy()
 
 

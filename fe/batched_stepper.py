@@ -538,6 +538,7 @@ class BatchedStepper:
             clearance = shell.indenter_clearance(self._core_parts, self._core_floor, finished)
         reach = shell.indenter_skin_clearance(shell.x, self._skin_spacing, self._skin_floor, finished)
         forces, balances = self._force_balance(rows, state.pressure[rows])
+        contact_areas = np.where(gap_rows < 0.0, lumped_areas(x_rows, self.skin.triangles), 0.0).sum(axis=1)
         results = {}
         for k, i in enumerate(int(r) for r in rows):
             x, gap, force, balance = x_rows[k], gap_rows[k], forces[k], float(balances[k])
@@ -562,7 +563,7 @@ class BatchedStepper:
                     self.relaxation.advance(np.array([i]), self._dt[i : i + 1], x[None])
             else:
                 self.failure[i] = state.message[i]
-            results[i] = self._increment_result(i, x, gap, force, balance, now)
+            results[i] = self._increment_result(i, x, gap, contact_areas[k], force, balance, now)
         return results
 
     def _inadmissible(
@@ -630,12 +631,11 @@ class BatchedStepper:
         return ""
 
     def _increment_result(
-        self, i: int, x: np.ndarray, gap: np.ndarray, force: np.ndarray, balance: float, now: float
+        self, i: int, x: np.ndarray, gap: np.ndarray, area: float, force: np.ndarray, balance: float, now: float
     ) -> IncrementResult:
-        """System i's finished increment: contact area and radius from its final positions x (V,3) m and
-        indenter gaps (V,) m."""
+        """System i's finished increment: contact radius from its final positions x (V,3) m and indenter gaps (V,)
+        m; its contact area (m^2, the lumped areas of the vertices in contact)."""
         state, in_contact = self.newton, gap < 0.0
-        vertex_area = lumped_areas(x, self.skin.triangles)
         axis = self.pose_rotation[i, :, 2]
         rel = x - self.pose_translation[i]
         radial = rel - np.outer(rel @ axis, axis)
@@ -645,7 +645,7 @@ class BatchedStepper:
             force=force,
             pressure=float(state.pressure[i]),
             volume=float(state.volume[i] + self.shell.air.volume(state.pressure[i : i + 1])[0]),
-            contact_area=float(vertex_area[in_contact].sum()),
+            contact_area=float(area),
             contact_radius=float(radius),
             displacement=x - self.reference[i],
             newton_iterations=int(state.iterations[i]),

@@ -410,9 +410,7 @@ def _columns_of(system_of: np.ndarray, batch: int) -> np.ndarray:
     """(batch, 2) the columns of each system, in column order (-1: none), from each column's system (C,)."""
     order = np.argsort(system_of, kind="stable")
     systems = system_of[order]
-    position = np.arange(len(systems))
-    first = np.maximum.accumulate(np.where(np.r_[True, systems[1:] != systems[:-1]], position, 0))
-    rank = position - first  # 0 for a system's first column, 1 for its second
+    rank = np.arange(len(systems)) - np.searchsorted(systems, systems)  # 0: a system's first column, 1: its second
     if np.any(rank > 1):
         raise ValueError("at most two right-hand sides per system")
     columns_of = np.full((batch, 2), -1, dtype=np.int32)

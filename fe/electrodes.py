@@ -86,15 +86,11 @@ class ElectrodeParameters:
             if value.shape != (N_ELECTRODES,) or not np.all(np.isfinite(value)):
                 raise ValueError(f"ElectrodeParameters.{name} must be 19 finite values, got shape {value.shape}")
             object.__setattr__(self, name, value)
-        if np.any(self.gain <= 0.0) or np.any(self.load_ratio <= 0.0):
-            raise ValueError("ElectrodeParameters: gain and load_ratio must be > 0")
-        positive = ("drift_time_constant", "footprint_radius", "min_gap", "pdc_gain")
-        for name in positive:
-            if not getattr(self, name) > 0.0:
-                raise ValueError(f"ElectrodeParameters.{name} must be > 0, got {getattr(self, name)!r}")
-        for name in ("noise_std", "pdc_noise_std"):
-            if not getattr(self, name) >= 0.0:
-                raise ValueError(f"ElectrodeParameters.{name} must be >= 0, got {getattr(self, name)!r}")
+        positive = ("gain", "load_ratio", "drift_time_constant", "footprint_radius", "min_gap", "pdc_gain")
+        for name, floor in [(n, 0.0) for n in positive] + [("noise_std", None), ("pdc_noise_std", None)]:
+            value = np.asarray(getattr(self, name))
+            if not (np.all(value > floor) if floor is not None else np.all(value >= 0.0)):
+                raise ValueError(f"ElectrodeParameters.{name} must be {'>' if floor is not None else '>='} 0")
         if self.footprint_radius > 0.02:
             raise ValueError(f"footprint_radius {self.footprint_radius!r} m is not a BioTac length (metres?)")
 
@@ -209,12 +205,6 @@ class ElectrodeModel:
         if not np.all(np.isfinite(self._rest_impedance)):
             raise ValueError("an electrode sees no skin at the reference state (check the geometry/reference)")
 
-    def _check_vertices(self, vertices: np.ndarray) -> None:
-        """vertices (N, V, 3): N finite skins of the reference's shape."""
-        expected = self.reference.shape
-        if vertices.ndim != 3 or vertices.shape[1:] != expected or not np.all(np.isfinite(vertices)):
-            raise ValueError(f"vertices must be finite with shape {expected} (m), got {vertices.shape[1:]}")
-
     def _select_patches(self) -> list[np.ndarray]:
         """For each electrode, the skin vertex ids it may see: in front of it, near its axis."""
         reach = self.params.footprint_radius + self.SLIDE_MARGIN
@@ -258,21 +248,19 @@ class ElectrodeModel:
     def impedances(self, vertices: np.ndarray) -> np.ndarray:
         """(N, 19) `impedance` of N skins at once, vertices (N, V, 3) m (each skin's the same, bit for bit, as
         one at a time)."""
-        vertices = np.asarray(vertices, dtype=float)
-        self._check_vertices(vertices)
+        vertices, expected = np.asarray(vertices, dtype=float), self.reference.shape
+        if vertices.ndim != 3 or vertices.shape[1:] != expected or not np.all(np.isfinite(vertices)):
+            raise ValueError(f"vertices must be finite with shape {expected} (m), got {vertices.shape[1:]}")
         chunk = max(1, self.CHUNK_TRIANGLES // len(self._near_triangles))
-        if len(vertices) > chunk:
-            return np.concatenate([self._impedances(vertices[k : k + chunk]) for k in range(0, len(vertices), chunk)])
-        return self._impedances(vertices)
+        return np.concatenate([self._impedances(vertices[k : k + chunk]) for k in range(0, len(vertices), chunk)])
 
     def _impedances(self, vertices: np.ndarray) -> np.ndarray:
         """`impedances` of checked vertices (N, V, 3) m in one vectorised pass."""
         n, triangles, used = len(vertices), len(self._near_triangles), len(self._used)
         p = vertices[:, self._near_triangles]
         cross = np.cross(p[:, :, 1] - p[:, :, 0], p[:, :, 2] - p[:, :, 0])  # (N, T, 3)
-        summed = self._incidence @ cross.transpose(1, 0, 2).reshape(triangles, 3 * n)  # area-weighted
-        normals = summed.reshape(used, n, 3).transpose(1, 0, 2)
-        normals = normals / np.linalg.norm(normals, axis=2, keepdims=True)
+        normals = (self._incidence @ cross.transpose(1, 0, 2).reshape(triangles, 3 * n)).reshape(used, n, 3)
+        normals = normals.transpose(1, 0, 2) / np.linalg.norm(normals.transpose(1, 0, 2), axis=2, keepdims=True)
         inner = vertices[:, self._used] - 0.5 * self.skin_thickness * normals
         e = self._entry_electrode
         rel = inner[:, self._entry_local] - self._positions[e]

@@ -30,7 +30,12 @@ class ShellMesh:
 
 
 def lumped_areas(vertices: np.ndarray, triangles: np.ndarray) -> np.ndarray:
-    """One third of the adjacent triangle areas per vertex (m^2)."""
-    p0, p1, p2 = (vertices[triangles[:, k]] for k in range(3))
-    area = 0.5 * np.linalg.norm(np.cross(p1 - p0, p2 - p0), axis=1)
-    return np.bincount(triangles.ravel(), weights=np.repeat(area / 3.0, 3), minlength=len(vertices))
+    """One third of the adjacent triangle areas per vertex (m^2): (V,) of vertices (V, 3) m, or (R, V) of R meshes
+    (R, V, 3) at once (each the same, bit for bit, as alone)."""
+    many = np.reshape(vertices, (-1, *np.shape(vertices)[-2:]))
+    p0, p1, p2 = (many[:, triangles[:, k]] for k in range(3))
+    area = 0.5 * np.linalg.norm(np.cross(p1 - p0, p2 - p0), axis=2)
+    n = many.shape[1]
+    bins = (np.arange(len(many))[:, None] * n + triangles.ravel()).ravel()
+    summed = np.bincount(bins, weights=np.repeat(area / 3.0, 3, axis=1).ravel(), minlength=len(many) * n)
+    return summed.reshape(np.shape(vertices)[:-1])
