@@ -206,7 +206,9 @@ def test_many_skins_at_once_equal_one_at_a_time(geometry: BioTacGeometry, model:
     many = model.impedances(skins)
     assert many.shape == (len(skins), N_ELECTRODES)
     np.testing.assert_array_equal(many, [model.impedance(v) for v in skins])
-    np.testing.assert_array_equal(model.relative_impedances(skins[:2]), [model.relative_impedance(v) for v in skins[:2]])
+    np.testing.assert_array_equal(
+        model.relative_impedances(skins[:2]), [model.relative_impedance(v) for v in skins[:2]]
+    )
     skins[-1, 0, 0] = np.nan
     with pytest.raises(ValueError, match="finite"):
         model.impedances(skins)
