@@ -36,11 +36,13 @@ from __future__ import annotations
 import json
 from collections.abc import Callable
 from dataclasses import dataclass, field, replace
+from functools import partial
 
 import numpy as np
 
 from twin.analysis.data import CampaignData
 from twin.analysis.heldout import generalises, heldout, identifiability, judge_heldout
+from twin.analysis.lockstep import run_in_lockstep
 from twin.analysis.nuisances import NUISANCE_EFFECTS, fit_nuisances
 from twin.analysis.predict import Predictor, TwinModel
 from twin.analysis.refit import refit
@@ -213,7 +215,8 @@ def diagnose(
             identifiability(candidate, lin.jac)
             if candidate.name in cannot_tell:
                 candidate.identifiable = False  # never named: the nuisances could be what it fits
-            refit(candidate, model, predictor, base, lin)
+        # side by side, their replays solved together (`twin.analysis.lockstep`): the same fits, fewer waves
+        run_in_lockstep(predictor, [partial(refit, c, model, base=base, lin=lin) for c, lin in chosen])
         at_fits = [linearisation_models(EFFECTS[c.name], model, c.refit_parameters) for c, _ in chosen]
         base.prefetch(predictor, [m for models in at_fits for m in models])  # the held-out judgements in one batch
         for candidate, _ in chosen:

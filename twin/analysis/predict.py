@@ -13,7 +13,7 @@ from __future__ import annotations
 import hashlib
 import json
 import threading
-from collections.abc import Callable, Iterable, Sequence
+from collections.abc import Callable, Iterable, Iterator, Sequence
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import asdict, dataclass, field, replace
 
@@ -241,12 +241,10 @@ class Predictor:
         progress(done, total) (default: the predictor's `on_replays`) after each replay solved; returns how many
         were solved."""
         pending: dict[tuple, _PendingReplay] = {}
-        for model, trajectories in requests:
-            for trajectory in trajectories:
-                plan = self._plan(model, trajectory)
-                if plan.key not in self._replays and plan.key not in pending:
-                    fe = self._model_fe(model)
-                    pending[plan.key] = _PendingReplay(trajectory, plan, fe, self.readout(fe))
+        for model, trajectory, plan in self._missing(requests):
+            if plan.key not in pending:
+                fe = self._model_fe(model)
+                pending[plan.key] = _PendingReplay(trajectory, plan, fe, self.readout(fe))
         work = list(pending.values())
         solved = 0
         progress = progress or self.on_replays
@@ -260,6 +258,20 @@ class Predictor:
         for batch in _batches(work):
             self._solve(batch, done)
         return len(work)
+
+    def missing(self, requests: Sequence[tuple[TwinModel, Sequence[TrajectoryRecord]]]) -> int:
+        """How many of the replays that the (model, trajectories) `requests` need are not cached (repeats counted)."""
+        return sum(1 for _ in self._missing(requests))
+
+    def _missing(
+        self, requests: Sequence[tuple[TwinModel, Sequence[TrajectoryRecord]]]
+    ) -> Iterator[tuple[TwinModel, TrajectoryRecord, _ReplayPlan]]:
+        """(model, trajectory, replay plan) of each request whose replay is not cached."""
+        for model, trajectories in requests:
+            for trajectory in trajectories:
+                plan = self._plan(model, trajectory)
+                if plan.key not in self._replays:
+                    yield model, trajectory, plan
 
     def _solve(self, batch: list[_PendingReplay], done: Callable[[], None]) -> None:
         """Solve one batch of pending replays and cache them, done() after each: one batched run per share
