@@ -23,7 +23,8 @@ effect can explain (a score test, evaluated to second order); candidates are ran
 penalty.
 
 The top few (and, when none of them holds held out, those whose linearised fits come close to the
-best's) are then refitted with chord iterations (the same J, re-predicting nonlinearly after each step)
+best's) are then refitted with chord iterations (the same J, re-predicting nonlinearly after each step; the
+candidates side by side, each step's replays of all of them solved in one batch, `twin.analysis.lockstep`)
 and judged held out about their refit: each indenter in turn is left out of the fit (linearised at the
 refitted values) and predicted. The verdict (`twin.analysis.verdict`) names an effect only when that
 held-out residual passes the noise test (`twin.analysis.significance`, a chi-square test whose threshold

@@ -72,16 +72,10 @@ class _GatheringPredictor:
     def __init__(self, gather: _Gather) -> None:
         self._gather = gather
 
+    prefetch = Predictor.prefetch  # one model's replays, through this view's `prefetch_many`
+
     def prefetch_many(self, requests: Requests, progress: Callable[[int, int], None] | None = None) -> int:
         return self._gather.prefetch_many(requests)
-
-    def prefetch(
-        self,
-        model: TwinModel,
-        trajectories: Sequence[TrajectoryRecord],
-        progress: Callable[[int, int], None] | None = None,
-    ) -> int:
-        return self._gather.prefetch_many([(model, trajectories)])
 
     def __getattr__(self, name: str) -> Any:
         return getattr(self._gather.predictor, name)
