@@ -48,7 +48,14 @@ from twin.analysis.nuisances import NUISANCE_EFFECTS, fit_nuisances
 from twin.analysis.predict import Predictor, TwinModel
 from twin.analysis.refit import refit
 from twin.analysis.residual import CHANNELS, Residual, base_residual
-from twin.analysis.sensitivity import Linearisation, linear_fit, linearisation_models, linearise, sensitivities
+from twin.analysis.sensitivity import (
+    Linearisation,
+    first_models,
+    linear_fit,
+    linearisation_models,
+    linearise,
+    sensitivities,
+)
 from twin.analysis.subset import ranking_base, sampled
 from twin.analysis.verdict import Candidate, order_candidates, to_refit, verdict
 from twin.effects import EFFECTS
@@ -161,12 +168,17 @@ def diagnose(
     if per_stratum is not None:
         datasets, sampled_on = sampled(datasets, per_stratum)
     predictor = predictor or Predictor()
+    excluded = set(model.effects) | (set(NUISANCE_EFFECTS) if nuisances else set())
+    names = candidates if candidates is not None else [k for k in EFFECTS if k not in excluded]
+    if not nuisances:  # the base's replays and the candidates' first linearisations' in one batch (no fit between)
+        ranking_sets = sampled(datasets, rank_per_stratum)[0] if rank_per_stratum is not None else datasets
+        on_ranking = [t for d in ranking_sets for t in d.trajectories]
+        first = [(m, on_ranking) for m in first_models([EFFECTS[k] for k in names], model)]
+        predictor.prefetch_many([(model, [t for d in datasets for t in d.trajectories]), *first])
     fitted = fit_nuisances(datasets, model, predictor, lambda text: report("nuisances", text)) if nuisances else None
     base = fitted.base if fitted is not None else base_residual(datasets, model, predictor)
     residual = base.residual
     base_rms = float(np.sqrt(base.nuisance.chi2(residual.values) / len(residual.values)))
-    excluded = set(model.effects) | (set(NUISANCE_EFFECTS) if fitted is not None else set())
-    names = candidates if candidates is not None else [k for k in EFFECTS if k not in excluded]
     ranked: list[tuple[Candidate, Linearisation]] = []
     ranking, ranked_on = base, None
     if rank_per_stratum is not None:

@@ -97,13 +97,8 @@ def sensitivities(effects: list[Effect], model: TwinModel, predictor: Predictor,
     replay) tries what that gives (when it gives one) before its declared starts; its Linearisation keeps
     the estimate either way. Each stage's replays, over all the effects (the first linearisations, the
     trials, the second linearisations), are solved as one batch."""
-    points = []
-    for effect in effects:
-        point = effect.values(model.effects.get(effect.name))
-        points.append({**point, **effect.probe} if effect.probe and effect.is_off(point) else point)
-    base.prefetch(
-        predictor, [m for e, p in zip(effects, points, strict=True) for m in linearisation_models(e, model, p)]
-    )
+    points = first_points(effects, model)
+    base.prefetch(predictor, first_models(effects, model))
     lins = [linearise(e, model, p, predictor, base) for e, p in zip(effects, points, strict=True)]
     r = base.residual.values
     trials: list[list[dict[str, float]]] = []
@@ -133,6 +128,23 @@ def sensitivities(effects: list[Effect], model: TwinModel, predictor: Predictor,
     for i, point in again.items():
         lins[i] = replace(linearise(effects[i], model, point, predictor, base), data_start=lins[i].data_start)
     return lins
+
+
+def first_points(effects: list[Effect], model: TwinModel) -> list[dict[str, float]]:
+    """Where `sensitivities` first linearises each effect: at the model's values, or at the effect's probe when it
+    is off there and declares one."""
+    points = []
+    for effect in effects:
+        point = effect.values(model.effects.get(effect.name))
+        points.append({**point, **effect.probe} if effect.probe and effect.is_off(point) else point)
+    return points
+
+
+def first_models(effects: list[Effect], model: TwinModel) -> list[TwinModel]:
+    """The models whose replays the effects' first linearisations (`first_points`) need: known before any residual,
+    so they may be solved with the base model's replays."""
+    points = first_points(effects, model)
+    return [m for e, p in zip(effects, points, strict=True) for m in linearisation_models(e, model, p)]
 
 
 def effect_parameters(effect: Effect, point: dict[str, float]) -> Parameters:
