@@ -86,11 +86,12 @@ class ElectrodeParameters:
             if value.shape != (N_ELECTRODES,) or not np.all(np.isfinite(value)):
                 raise ValueError(f"ElectrodeParameters.{name} must be 19 finite values, got shape {value.shape}")
             object.__setattr__(self, name, value)
-        positive = ("gain", "load_ratio", "drift_time_constant", "footprint_radius", "min_gap", "pdc_gain")
-        for name, floor in [(n, 0.0) for n in positive] + [("noise_std", None), ("pdc_noise_std", None)]:
-            value = np.asarray(getattr(self, name))
-            if not (np.all(value > floor) if floor is not None else np.all(value >= 0.0)):
-                raise ValueError(f"ElectrodeParameters.{name} must be {'>' if floor is not None else '>='} 0")
+        for name in ("gain", "load_ratio", "drift_time_constant", "footprint_radius", "min_gap", "pdc_gain"):
+            if not np.all(np.asarray(getattr(self, name)) > 0.0):
+                raise ValueError(f"ElectrodeParameters.{name} must be > 0, got {getattr(self, name)!r}")
+        for name in ("noise_std", "pdc_noise_std"):
+            if not getattr(self, name) >= 0.0:
+                raise ValueError(f"ElectrodeParameters.{name} must be >= 0, got {getattr(self, name)!r}")
         if self.footprint_radius > 0.02:
             raise ValueError(f"footprint_radius {self.footprint_radius!r} m is not a BioTac length (metres?)")
 
@@ -256,11 +257,10 @@ class ElectrodeModel:
 
     def _impedances(self, vertices: np.ndarray) -> np.ndarray:
         """`impedances` of checked vertices (N, V, 3) m in one vectorised pass."""
-        n, triangles, used = len(vertices), len(self._near_triangles), len(self._used)
-        p = vertices[:, self._near_triangles]
-        cross = np.cross(p[:, :, 1] - p[:, :, 0], p[:, :, 2] - p[:, :, 0])  # (N, T, 3)
-        normals = (self._incidence @ cross.transpose(1, 0, 2).reshape(triangles, 3 * n)).reshape(used, n, 3)
-        normals = normals.transpose(1, 0, 2) / np.linalg.norm(normals.transpose(1, 0, 2), axis=2, keepdims=True)
+        n, p = len(vertices), vertices[:, self._near_triangles]
+        cross = np.cross(p[:, :, 1] - p[:, :, 0], p[:, :, 2] - p[:, :, 0])  # (N, T, 3), area-weighted normals
+        normals = (self._incidence @ cross.transpose(1, 0, 2).reshape(-1, 3 * n)).reshape(-1, n, 3).transpose(1, 0, 2)
+        normals = normals / np.linalg.norm(normals, axis=2, keepdims=True)
         inner = vertices[:, self._used] - 0.5 * self.skin_thickness * normals
         e = self._entry_electrode
         rel = inner[:, self._entry_local] - self._positions[e]

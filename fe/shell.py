@@ -35,7 +35,6 @@ def lumped_areas(vertices: np.ndarray, triangles: np.ndarray) -> np.ndarray:
     many = np.reshape(vertices, (-1, *np.shape(vertices)[-2:]))
     p0, p1, p2 = (many[:, triangles[:, k]] for k in range(3))
     area = 0.5 * np.linalg.norm(np.cross(p1 - p0, p2 - p0), axis=2)
-    n = many.shape[1]
-    bins = (np.arange(len(many))[:, None] * n + triangles.ravel()).ravel()
-    summed = np.bincount(bins, weights=np.repeat(area / 3.0, 3, axis=1).ravel(), minlength=len(many) * n)
+    bins = (np.arange(len(many))[:, None] * many.shape[1] + triangles.ravel()).ravel()
+    summed = np.bincount(bins, weights=np.repeat(area / 3.0, 3, axis=1).ravel(), minlength=many.size // 3)
     return summed.reshape(np.shape(vertices)[:-1])

@@ -56,7 +56,7 @@ from twin.analysis.sensitivity import (
     linearise,
     sensitivities,
 )
-from twin.analysis.subset import ranking_base, sampled
+from twin.analysis.subset import sampled
 from twin.analysis.verdict import Candidate, order_candidates, to_refit, verdict
 from twin.effects import EFFECTS
 
@@ -170,8 +170,8 @@ def diagnose(
     predictor = predictor or Predictor()
     excluded = set(model.effects) | (set(NUISANCE_EFFECTS) if nuisances else set())
     names = candidates if candidates is not None else [k for k in EFFECTS if k not in excluded]
+    ranking_sets, ranked_on = sampled(datasets, rank_per_stratum) if rank_per_stratum is not None else (datasets, None)
     if not nuisances:  # the base's replays and the candidates' first linearisations' in one batch (no fit between)
-        ranking_sets = sampled(datasets, rank_per_stratum)[0] if rank_per_stratum is not None else datasets
         on_ranking = [t for d in ranking_sets for t in d.trajectories]
         first = [(m, on_ranking) for m in first_models([EFFECTS[k] for k in names], model)]
         predictor.prefetch_many([(model, [t for d in datasets for t in d.trajectories]), *first])
@@ -180,9 +180,8 @@ def diagnose(
     residual = base.residual
     base_rms = float(np.sqrt(base.nuisance.chi2(residual.values) / len(residual.values)))
     ranked: list[tuple[Candidate, Linearisation]] = []
-    ranking, ranked_on = base, None
-    if rank_per_stratum is not None:
-        ranking, ranked_on = ranking_base(datasets, model, predictor, base, rank_per_stratum)
+    # ranked on a subset: its residual with the noise estimated on every trajectory
+    ranking = base if ranked_on is None else base_residual(ranking_sets, model, predictor, sigma=base.sigma)
     lins = sensitivities([EFFECTS[name] for name in names], model, predictor, ranking)
     r = ranking.residual.values  # the candidates are scored on the ranking trajectories (all, by default)
     n = len(r)

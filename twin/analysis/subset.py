@@ -3,14 +3,14 @@
 A diagnosis linearises every candidate effect by replaying every trajectory once per parameter; on a paper-size
 campaign (hundreds of trajectories) that is most of its time. The candidates' ranking (their linearised
 evidence and screening held-out figures) needs far fewer: each kind of press (sensor x indenter x path kind,
-normal or angled) a few times. `ranking_base` picks at most `per_stratum` trajectories of each such stratum,
-spread evenly over the stratum in campaign order (drifts over a campaign are sampled across it), and builds the
-residual of the model on them alone (the noise estimated on every trajectory). Diagnosis then refits the top
+normal or angled) a few times. `sampled` picks at most `per_stratum` trajectories of each such stratum,
+spread evenly over the stratum in campaign order (drifts over a campaign are sampled across it), and diagnosis
+ranks on the residual of the model on them alone (the noise estimated on every trajectory), then refits the top
 candidates and judges them held out (each indenter left out in turn) on every trajectory, so the verdict rests
 on all the data; which trajectories ranked is reported (`RankedOn.to_dict`, the `ranked_on` key of
-`twin diagnose --json`). `sampled` takes such a subset up front for a diagnosis that runs on it alone (every
-stage: noise, base, ranking, refits, held-out judgements; the `sampled` key), for a campaign too large to replay
-every trajectory many times.
+`twin diagnose --json`). With `--per-stratum`, such a subset is taken up front for a diagnosis that runs on it
+alone (every stage: noise, base, ranking, refits, held-out judgements; the `sampled` key), for a campaign too
+large to replay every trajectory many times.
 """
 
 from __future__ import annotations
@@ -21,8 +21,6 @@ from dataclasses import dataclass, replace
 import numpy as np
 
 from twin.analysis.data import CampaignData, TrajectoryRecord
-from twin.analysis.predict import Predictor, TwinModel
-from twin.analysis.residual import Base, base_residual
 
 
 def stratum(trajectory: TrajectoryRecord) -> tuple[int, str, bool]:
@@ -79,12 +77,3 @@ def sampled(datasets: list[CampaignData], per_stratum: int) -> tuple[list[Campai
         len({stratum(t) for t in trajectories}),
     )
     return [d for d in subsets if d.trajectories], on
-
-
-def ranking_base(
-    datasets: list[CampaignData], model: TwinModel, predictor: Predictor, base: Base, per_stratum: int
-) -> tuple[Base, RankedOn]:
-    """The residual of `model` on the stratified subset (`stratified`) of `datasets`' trajectories, with the
-    noise of `base` (the residual on all of them), and which trajectories those are."""
-    subsets, ranked_on = sampled(datasets, per_stratum)
-    return base_residual(subsets, model, predictor, sigma=base.sigma), ranked_on
