@@ -786,28 +786,14 @@ class BatchedShell:
         return np.clip(np.maximum(eta, 0.5 * tol / residual), 1e-10, _ETA_MAX)
 
     def _direction(
-        self,
-        pressure: np.ndarray,
-        c: np.ndarray,
-        mask: np.ndarray,
-        damping: np.ndarray,
-        eta: np.ndarray,
+        self, pressure: np.ndarray, c: np.ndarray, mask: np.ndarray, damping: np.ndarray, eta: np.ndarray
     ) -> tuple[np.ndarray, np.ndarray]:
         """Assemble K = H_E - p H_V (+ damping), solve K u1 = -r, K u2 = b (`self.linear`); dq of the masked
         systems (in self.dq; the other rows keep theirs) and dp (B,)."""
-        buf = self.buf
-        start = time.perf_counter()
-        self.linear.assemble(
-            [
-                (0, buf["membrane_hessian"], None),
-                (1, buf["bending_hessian"], None),
-                (2, buf["core_hessian"], None),
-                (2, buf["indenter_hessian"], None),
-                (0, buf["volume_hessian"], -pressure),
-            ],
-            damping,
-            mask,
-        )
+        buf, start = self.buf, time.perf_counter()
+        families = {"membrane": 0, "bending": 1, "core": 2, "indenter": 2}  # triangles, stencils, vertices
+        terms = [(family, buf[f"{name}_hessian"], None) for name, family in families.items()]
+        self.linear.assemble([*terms, (0, buf["volume_hessian"], -pressure)], damping, mask)
         self._launch_vertices(bk.newton_rhs, self.residual, self.bvec, self.rhs)
         active = np.concatenate([mask, mask])
         u, iterations, state = self.linear.solve(

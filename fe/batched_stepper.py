@@ -4,9 +4,10 @@
 re-solves all of them together on the warp device, with the per-system logic of the single stepper: a
 pose that does not touch the free skin costs no Newton work, leaving contact releases to the inflated
 state, the warm start extrapolates the last increment and pushes vertices out of the indenter, the
-friction slip is measured from the previous pose, and a system whose step fails refuses further steps
-until `reset`. Poses: rotation (3,3) indenter body -> sensor frame, tip position (3,) m; results are
-`fe.results.IncrementResult`s (forces in N, sensor frame), `wall_s` being the whole batch step's time.
+friction slip is measured from stick anchors that persist across increments, and a system whose step
+fails refuses further steps until `reset`. Poses: rotation (3,3) indenter body -> sensor frame, tip position
+(3,) m; results are `fe.results.IncrementResult`s (forces in N, sensor frame), `wall_s` being the whole batch
+step's time.
 
 The step is built from two calls that also serve continuous batching (`fe.batched_runner`): `admit`
 starts new increments for some systems while others are mid-solve, and `advance` runs one Newton
@@ -172,6 +173,9 @@ class BatchedStepper:
         self._motion, self._has_motion, self._travel = np.zeros((B, V, 3)), np.zeros(B, dtype=bool), np.zeros((B, 3))
         self._gap, self._gap_change = np.zeros((B, V)), np.zeros((B, V))
         self._lagged, self._lagged_change = np.zeros((B, V)), np.zeros((B, V))
+        self._anchor, self._anchored = np.zeros((B, V, 3)), np.zeros((B, V), dtype=bool)
+        """(B,V,3) where each skin vertex sticks on the indenter, in its body frame (m), and whether it has such a
+        stick anchor (pressed with friction at its last equilibrium); `_stick`."""
         self.newton = NewtonBatch.idle(B, 0.0)
         """Newton state of the increments under way (`running` marks the systems mid-solve); with trapped air
         the held volume is the liquid's."""
@@ -179,9 +183,6 @@ class BatchedStepper:
         self.time_s = np.full(B, np.nan)
         """Time (s) of each system's last step (NaN: none since its reset, or untimed)."""
         self._time_start, self._dt = np.full(B, np.nan), np.zeros(B)
-        self.creep_start = True
-        """Whether a pose held after a held one starts from the creep's extrapolation (`_predict`); False: from
-        the last state, the warm start before 2026-11-27 (benchmarks/diagnose_speed.py compares the two)."""
         self._depth, self._admitted_at = np.zeros(B), np.zeros(B)
         self._increment_travel = np.zeros((B, 3))
         self._half, self._core_floor, self._skin_floor = np.zeros(B), np.zeros(B), np.zeros(B)
@@ -262,7 +263,7 @@ class BatchedStepper:
         """Put the systems in `which` back to the inflated state, keeping their poses and depth origins."""
         self.x[which] = self.reference[which]
         self.pressure[which] = self.reference_pressure[which]
-        self.in_contact[which] = self._has_motion[which] = False
+        self.in_contact[which] = self._has_motion[which] = self._anchored[which] = False
         self._travel[which] = self._gap[which] = self._gap_change[which] = self._lagged[which] = 0.0
 
     def set_indenter(self, system: int, name: str) -> None:
@@ -461,17 +462,21 @@ class BatchedStepper:
         done = np.flatnonzero(converged)
         if len(done):
             self.x[done], self.pressure[done] = get_rows(shell.x, done), state.pressure[done]
+            self._stick(done, self.x[done], get_rows(shell.lagged_force, done))
         state.target[which & ~converged] = held[which & ~converged]
         return converged, list(state.message)
 
     def _begin(self, which: np.ndarray, start: np.ndarray) -> None:
         """Begin Newton for the `which` systems (at least one) from positions `start` (k,V,3) m, their last
-        equilibria being the increment's start (friction slip) and their lagged contact forces taken at `start`,
+        equilibria being the increment's start (friction slips from the stick anchors, `_stick`, or from the last
+        equilibrium where a vertex has none) and their lagged contact forces taken at `start`,
         except that a vertex pressed at both last equilibria (and at `start`) takes its last lagged force changed
         as in the last increment, by the share of the last displacement that `start` repeats (fewer Newton rounds
         after the first refresh, whose jump it shrinks)."""
         shell, rows = self.shell, np.flatnonzero(which)
-        put_rows(shell.x_start, rows, self.x[rows])
+        rotation, translation = self._start_rotation[rows], self._start_translation[rows, None]
+        anchors = np.einsum("bij,bvj->bvi", rotation, self._anchor[rows]) + translation
+        put_rows(shell.x_start, rows, np.where(self._anchored[rows, :, None], anchors, self.x[rows]))
         put_rows(shell.x, rows, start)
         shell.lag_contact(shell.x, which)
         motion, last, change = self._motion[rows], self._lagged[rows], self._lagged_change[rows]
@@ -497,7 +502,7 @@ class BatchedStepper:
         moved = np.einsum("bi,bi->b", last, last)
         along = np.einsum("bi,bi->b", travel, last) / np.maximum(moved, 1e-300)  # 0 without a last move
         creep = np.exp(-self._dt[rows] / self.relaxation.times[rows]) if self.relaxation is not None else 0.0
-        held = self._has_motion[rows] & (moved == 0.0) & ~travel.any(axis=1) & self.creep_start  # creeping on
+        held = self._has_motion[rows] & (moved == 0.0) & ~travel.any(axis=1)  # creeping on
         share = np.where(held, creep, np.clip(along, 0, 1))
         x = self.x[rows] + share[:, None, None] * np.where(self._has_motion[rows, None, None], self._motion[rows], 0.0)
         turn = self.pose_rotation[rows] @ np.transpose(self._start_rotation[rows], (0, 2, 1))
@@ -564,7 +569,25 @@ class BatchedStepper:
             else:
                 self.failure[i] = state.message[i]
             results[i] = self._increment_result(i, x, gap, contact_areas[k], force, balance, now)
+        accepted = state.converged[rows]
+        self._stick(rows[accepted], x_rows[accepted], lagged_rows[accepted])
         return results
+
+    def _stick(self, rows: np.ndarray, x: np.ndarray, lagged: np.ndarray) -> None:
+        """Return mapping of the friction (issue 17): after the `rows` systems converged at positions x (k,V,3) m
+        with lagged normal forces `lagged` (k,V) N, each pressed vertex keeps a stick anchor on the indenter
+        (body frame) where its tangential slip from the anchor is what it was, clipped to the slip length eps:
+        a sticking vertex keeps its friction force at a held pose instead of starting the next increment
+        unloaded and creeping, a sliding one carries mu lambda on. Vertices without friction force lose theirs."""
+        start_r, start_t = self._start_rotation[rows], self._start_translation[rows, None]
+        body = np.einsum("bji,bvj->bvi", self.pose_rotation[rows], x - self.pose_translation[rows, None])
+        slip = np.einsum("bij,bvj->bvi", start_r, body) + start_t - get_rows(self.shell.x_start, rows)
+        normal = get_rows(self.shell.lagged_normal, rows)
+        tangential = slip - np.einsum("bvi,bvi->bv", slip, normal)[:, :, None] * normal
+        length = np.linalg.norm(tangential, axis=2, keepdims=True)
+        kept = tangential * np.minimum(1.0, self.skin.contact.slip_length / np.maximum(length, 1e-300))
+        self._anchor[rows] = body - np.einsum("bji,bvj->bvi", start_r, kept)
+        self._anchored[rows] = lagged * np.array([[self.skins[i].params.friction] for i in rows]) > 0.0
 
     def _inadmissible(
         self,

@@ -27,8 +27,10 @@ normal force (N) and n the normal of the last lagging pass (the surface contact'
 the vertex with the weights N_i: lambda their magnitude, n their direction, `lag_candidates`), u_T the slip
 over the increment projected on the plane normal to n, and f0 the C1 smoothing of |u| over the slip length
 eps (m). The indenter moves rigidly from pose (R0, t0) to (R, t); the slip of a skin vertex at p relative to
-the indenter material point now under it is u = R0 R^T (p - t) + t0 - x_start, i.e. its motion seen from the
-indenter's body frame. Its SDF is evaluated in its own frame (tip at the origin, body along +z) and covers
+the indenter material point it sticks to is u = R0 R^T (p - t) + t0 - x_start, i.e. its motion seen from the
+indenter's body frame, x_start being that point at the start pose: the vertex's stick anchor, carried from
+increment to increment by a return mapping (`fe.batched_stepper.BatchedStepper._stick`), or its last equilibrium
+where it has none. Its SDF is evaluated in its own frame (tip at the origin, body along +z) and covers
 the whole body, head and shank (`fe.indenter_sdf.body_sdf_and_grad`), so the skin cannot slip past the
 head's back.
 """
