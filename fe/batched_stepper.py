@@ -569,8 +569,8 @@ class BatchedStepper:
             else:
                 self.failure[i] = state.message[i]
             results[i] = self._increment_result(i, x, gap, contact_areas[k], force, balance, now)
-        accepted = state.converged[rows]
-        self._stick(rows[accepted], x_rows[accepted], lagged_rows[accepted])
+        if (accepted := state.converged[rows]).any():
+            self._stick(rows[accepted], x_rows[accepted], lagged_rows[accepted])
         return results
 
     def _stick(self, rows: np.ndarray, x: np.ndarray, lagged: np.ndarray) -> None:
@@ -587,7 +587,7 @@ class BatchedStepper:
         length = np.linalg.norm(tangential, axis=2, keepdims=True)
         kept = tangential * np.minimum(1.0, self.skin.contact.slip_length / np.maximum(length, 1e-300))
         self._anchor[rows] = body - np.einsum("bji,bvj->bvi", start_r, kept)
-        self._anchored[rows] = lagged * np.array([[self.skins[i].params.friction] for i in rows]) > 0.0
+        self._anchored[rows] = lagged * np.array([self.skins[i].params.friction for i in rows])[:, None] > 0.0
 
     def _inadmissible(
         self,
