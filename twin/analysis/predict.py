@@ -416,7 +416,7 @@ def held_solves(indices: np.ndarray) -> np.ndarray:
     first `HELD_SOLVES_DENSE`, every power-of-two one and its last (9 of a 5 s pause's 50); `fill_holds`
     fills the others. Sound because a held pose's state depends on time only, not on how often it is solved:
     the friction keeps its stick anchors across solves (docs/fe.md); measured against solving every event,
-    0.02 mN apart at the solved events and 0.05 mN at the filled ones (docs/analysis.md)."""
+    0.08 mN apart at most (benchmarks/hold_solves.py, docs/scale.md)."""
     starts = np.r_[0, np.flatnonzero(np.diff(indices)) + 1]
     position = np.arange(len(indices)) - np.repeat(starts, np.diff(np.r_[starts, len(indices)]))
     last = np.r_[np.diff(indices) != 0, True]
