@@ -56,3 +56,22 @@ def test_frictionless_press_and_release_returns_the_work(frictionless_biotac: Bi
     bound = STEP**2 / 8.0 * (kinks.sum() + kinks.max())  # the two ends' intervals counted with the largest
     assert abs(load - stored) < bound, (load, stored, bound)
     assert bound < 2e-3 * load  # and the bound is tight: it allows 0.2 % of the work at most
+
+
+def test_a_frictional_press_and_release_dissipates(frictional_biotac: BioTacModel) -> None:
+    """With friction (mu 0.5) the cycle's work is what friction dissipated: positive (the second law; a stick
+    anchor moved the wrong way would give work back), and the release returns less work than the press took."""
+    model, name = frictional_biotac, "sphere_medium"
+    path = model.plan_trajectory(get_indenter(name), np.array([-6e-3, 0.0, -9e-3]), 30.0, 0.0, DEPTH, STEP)
+    stepper = model.stepper(name)
+    n = len(path.depths)
+    tips = path.touch_point + np.r_[path.depths, path.depths[-2::-1]][:, None] * path.direction
+    forces = []
+    for tip in tips:
+        result = stepper.step(path.rotation, tip)
+        assert result.converged, (tip, result.message)
+        forces.append(result.force)
+    forces = np.array(forces)
+    load, cycle = _trapezoid(forces[:n], tips[:n]), _trapezoid(forces, tips)
+    assert load > 1e-3
+    assert cycle > 1e-3 * load, (cycle, load)
