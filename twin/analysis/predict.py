@@ -428,7 +428,8 @@ def fill_holds(times: np.ndarray, solved: np.ndarray, values: np.ndarray, relaxa
     """`values` (S, ...) at the solved events completed at the others (times (S,) s): between the solved events
     a and b around each (the same hold: a hold's first and last are solved), the exponential of the skin's
     relaxation time through both, v_b + (v_a - v_b) (e^(-(t - t_a)/tau) - e^(-(t_b - t_a)/tau)) /
-    (1 - e^(-(t_b - t_a)/tau)): exact for one Prony branch's decay; NaN where either is NaN."""
+    (1 - e^(-(t_b - t_a)/tau)): exact for one Prony branch's decay; NaN where either is NaN; the solved events'
+    values returned as they are."""
     index = np.arange(len(times))
     before = np.maximum.accumulate(np.where(solved, index, 0))
     after = np.minimum.accumulate(np.where(solved, index, len(times) - 1)[::-1])[::-1]
@@ -458,14 +459,15 @@ def _replay_of(readout: SensorReadout, plan: _ReplayPlan, increments: Iterable[I
         force[s], pressure[s] = result.force, result.pressure
         electrodes[s] = readout.electrode_counts(result.displacement)
     times, indices = plan.events
-    solved = np.column_stack([force, pressure, electrodes, np.isfinite(pressure)])
-    columns = np.full((len(times), solved.shape[1]), np.nan)
-    columns[plan.solved] = solved
-    if not plan.solved.all():
-        columns = fill_holds(times, plan.solved, columns, plan.relaxation_time_s)
-    pressure = columns[:, 3]
+
+    def every_event(values: np.ndarray) -> np.ndarray:
+        full = np.full((len(times), *values.shape[1:]), np.nan)
+        full[plan.solved] = values
+        return fill_holds(times, plan.solved, full, plan.relaxation_time_s)
+
+    force, pressure, electrodes = every_event(force), every_event(pressure), every_event(electrodes)
     pdc_change = readout.pdc_change(pressure - pressure[0])
-    return Replay(times, indices, columns[:, :3], pressure, columns[:, 4:23], pdc_change, columns[:, 23] == 1.0)
+    return Replay(times, indices, force, pressure, electrodes, pdc_change, np.isfinite(pressure))
 
 
 def measured_force_fullrate(trajectory: TrajectoryRecord) -> np.ndarray:

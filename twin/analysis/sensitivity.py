@@ -98,7 +98,7 @@ def sensitivities(effects: list[Effect], model: TwinModel, predictor: Predictor,
     the estimate either way. Each stage's replays, over all the effects (the first linearisations, the
     trials, the second linearisations), are solved as one batch."""
     points = first_points(effects, model)
-    base.prefetch(predictor, first_models(effects, model))
+    base.prefetch(predictor, first_models(effects, model, points))
     lins = [linearise(e, model, p, predictor, base) for e, p in zip(effects, points, strict=True)]
     r = base.residual.values
     trials: list[list[dict[str, float]]] = []
@@ -140,10 +140,12 @@ def first_points(effects: list[Effect], model: TwinModel) -> list[dict[str, floa
     return points
 
 
-def first_models(effects: list[Effect], model: TwinModel) -> list[TwinModel]:
-    """The models whose replays the effects' first linearisations (`first_points`) need: known before any residual,
-    so they may be solved with the base model's replays."""
-    points = first_points(effects, model)
+def first_models(
+    effects: list[Effect], model: TwinModel, points: list[dict[str, float]] | None = None
+) -> list[TwinModel]:
+    """The models whose replays the effects' first linearisations at `points` (default `first_points`) need: known
+    before any residual, so they may be solved with the base model's replays."""
+    points = first_points(effects, model) if points is None else points
     return [m for e, p in zip(effects, points, strict=True) for m in linearisation_models(e, model, p)]
 
 
