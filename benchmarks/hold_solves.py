@@ -2,12 +2,13 @@
 process.
 
 While the skin relaxes, the plant re-solves a held pose every `RELAXATION_SOLVE_INTERVAL_S` (0.1 s: 50 events in
-a 5 s pause). A replay now solves, of each hold, its first `HELD_SOLVES_DENSE` events, every power-of-two one and
-its last (`twin.analysis.predict.held_solves`) and fills the others with the relaxation's exponential
-(`fill_holds`); the baseline sets `HELD_SOLVES_DENSE` huge, so that every event is solved. Each way replays every
-trajectory of a small campaign with long pauses (`Predictor.prefetch`, then `predict` each; a fresh Predictor,
-inflation excluded) and the table gives the fe solves, wall seconds, their ratio, and the largest difference of
-the full-rate and increment forces (N, and as a fraction of the largest |force|).
+a 5 s pause). A replay now solves, of each hold, its first `HELD_SOLVES_FIRST` events and its last
+(`twin.analysis.predict.held_solves`) and fills the others with the relaxation's exponential (`fill_holds`); the
+baseline (`Predictor(held_first=...)` above any hold's events) solves every event, and a middle schedule its first
+five and its last. Each way replays every trajectory of a small campaign with long pauses (`Predictor.prefetch`,
+then `predict` each; a fresh Predictor, inflation excluded) and the tables give the fe solves, wall seconds, their
+ratio to the baseline, and the largest difference from it of the full-rate and increment forces (N, and as a
+fraction of the largest |force|).
 
     python benchmarks/hold_solves.py [--campaign FILE] [--out runs/hold_solves] [--pause-s 5.0]
         [--normal-depth-mm 1.0] [--angled-depth-mm 0.5] [--fraction 0.15] [--time-s 1.0] [--device cpu]
@@ -28,9 +29,8 @@ import warp as wp
 from rich.console import Console
 from rich.table import Table
 
-from twin.analysis import predict
 from twin.analysis.data import CampaignData, load_campaign
-from twin.analysis.predict import Prediction, Predictor, TwinModel, held_solves, solve_events
+from twin.analysis.predict import HELD_SOLVES_FIRST, Prediction, Predictor, TwinModel, held_solves, solve_events
 from twin.campaign import QUICK_CONFIG, run_campaign
 from twin.effects import apply_skin
 from twin.protocol import QUICK_SETTINGS
@@ -51,26 +51,25 @@ def campaign_file(out: Path, normal_depth: float, angled_depth: float, pause_s: 
     return path
 
 
-def fe_solves(data: CampaignData, dense: bool) -> int:
-    """Events the replays of every trajectory solve (a relaxing skin's schedule), every one or the sparse ones."""
+EVERY_EVENT = 10**9
+"""`held_first` that solves every event of every hold (the baseline)."""
+
+
+def fe_solves(data: CampaignData, held_first: int) -> int:
+    """Events the replays of every trajectory solve (a relaxing skin's schedule) with `held_first` (`held_solves`)."""
     events = [solve_events(t.raw, RELAXATION_SOLVE_INTERVAL_S)[1] for t in data.trajectories]
-    return sum(len(e) if dense else int(held_solves(e).sum()) for e in events)
+    return sum(int(held_solves(e, held_first).sum()) for e in events)
 
 
-def replays(data: CampaignData, model: TwinModel, device: str, dense: bool) -> tuple[float, list[Prediction]]:
+def replays(data: CampaignData, model: TwinModel, device: str, held_first: int) -> tuple[float, list[Prediction]]:
     """Wall seconds of a fresh Predictor's prefetch and predictions of every trajectory (inflation excluded), and
-    the predictions; with `dense` every held event is solved."""
-    predictor = Predictor(device)
+    the predictions, each hold solved at its first `held_first` events and its last."""
+    predictor = Predictor(device, held_first=held_first)
     predictor.fe_model(apply_skin(model.skin, model.effects), model.mesh_max_edge, model.inflation)
-    sparse_default = predict.HELD_SOLVES_DENSE
-    predict.HELD_SOLVES_DENSE = 10**9 if dense else sparse_default
-    try:
-        start = time.perf_counter()
-        predictor.prefetch(model, data.trajectories)
-        predictions = [predictor.predict(model, t) for t in data.trajectories]
-        return time.perf_counter() - start, predictions
-    finally:
-        predict.HELD_SOLVES_DENSE = sparse_default
+    start = time.perf_counter()
+    predictor.prefetch(model, data.trajectories)
+    predictions = [predictor.predict(model, t) for t in data.trajectories]
+    return time.perf_counter() - start, predictions
 
 
 def largest_difference(a: list[np.ndarray], b: list[np.ndarray]) -> float:
@@ -97,19 +96,25 @@ def main() -> None:
     relaxing = {"skin_relaxation": {"fraction": args.fraction, "time_s": args.time_s}}
     model = TwinModel(effects=relaxing, mesh_max_edge=data.mesh_max_edge)
     wp.force_load(device=args.device)  # every kernel module loaded before either timed run
-    runs = {dense: replays(data, model, args.device, dense) for dense in (True, False)}
-    (dense_s, dense), (sparse_s, sparse) = runs[True], runs[False]
-    table = Table("schedule", "fe solves", "wall s", "ratio dense / sparse")
-    for name, flag, seconds in (("every event (before)", True, dense_s), ("sparse holds (now)", False, sparse_s)):
-        table.add_row(name, str(fe_solves(data, flag)), f"{seconds:.1f}", f"{dense_s / seconds:.2f}")
+    schedules = {
+        "every event (baseline)": EVERY_EVENT,
+        "first 5 and last": 5,
+        "first and last (now)": HELD_SOLVES_FIRST,
+    }
+    runs = {name: replays(data, model, args.device, first) for name, first in schedules.items()}
+    base_s, base = runs["every event (baseline)"]
+    scale = max(float(np.nanmax(np.abs(p.force_fullrate))) for p in base)
+    table = Table("schedule", "fe solves", "wall s", "ratio baseline / it", "full rate |diff| N", "increments |diff| N")
+    for name, first in schedules.items():
+        seconds, predictions = runs[name]
+        diffs = [
+            largest_difference([getattr(p, field) for p in base], [getattr(p, field) for p in predictions])
+            for field in ("force_fullrate", "increment_force")
+        ]
+        row = [name, str(fe_solves(data, first)), f"{seconds:.1f}", f"{base_s / seconds:.2f}"]
+        table.add_row(*row, *(f"{d:.2e} ({d / scale:.1e})" for d in diffs))
     Console().print(table)
-    scale = max(float(np.nanmax(np.abs(p.force_fullrate))) for p in dense)
-    differences = Table("force", "largest |dense - sparse| (N)", "of the largest |force|")
-    for name, field in (("full rate", "force_fullrate"), ("increments", "increment_force")):
-        diff = largest_difference([getattr(p, field) for p in dense], [getattr(p, field) for p in sparse])
-        differences.add_row(name, f"{diff:.2e}", f"{diff / scale:.1e}")
-    Console().print(differences)
-    converged = all(p.converged.all() for p in dense + sparse)
+    converged = all(p.converged.all() for _, predictions in runs.values() for p in predictions)
     print(f"largest |force| {scale:.3f} N; every increment converged: {converged}")
 
 

@@ -346,13 +346,13 @@ class BatchedStepper:
         free_now[rows], pressed = self._sweep(rows)
         gap_ref, _, face_ref, _ = shell.proximity(self._reference_w, rows)
         free_ref[rows] = (gap_ref.min(axis=1) >= 0.0) & (face_ref >= 0.0)
-        relaxed = np.ones(self.batch, dtype=bool)
+        relaxed, memory = np.ones(self.batch, dtype=bool), np.zeros(self.batch, dtype=bool)
         if self.relaxation is not None:
-            relaxed[rows] = self.relaxation.at_rest(rows)
+            relaxed[rows], memory = self.relaxation.at_rest(rows), self.relaxation.fractions > 0.0
         untouched = which & free_now & ~self.in_contact & relaxed
-        # A skin without viscoelastic memory that the indenter leaves releases to the inflated equilibrium;
-        # one with memory creeps back instead, which the solve follows.
-        released = which & free_now & self.in_contact & free_ref & (self.relaxation is None)
+        # A skin without viscoelastic memory that the indenter leaves releases to the inflated equilibrium
+        # (whatever its batch's neighbours); one with memory creeps back instead, which the solve follows.
+        released = which & free_now & self.in_contact & free_ref & ~memory
         self._release(released)
         solving = which & ~untouched & ~released
         refused = {}

@@ -1,5 +1,5 @@
-"""An independent generator of measurement effects (an F/T calibration map, a stream delay): applied to a
-campaign file's raw F/T streams.
+"""An independent generator of measurement effects (an F/T calibration map, a stream delay, a clipped range, a
+quantised resolution; a PDC gain and drift): applied to a campaign file's raw F/T and PDC streams.
 
 Written apart from `twin.plant`, `twin.effects` and `twin.analysis` (it imports none of them): it reads
 the file with h5py, changes each trajectory's full-rate F/T force reading (`raw/<id>/wrench`, sensor
@@ -8,6 +8,7 @@ it (docs/dataset.md, Narang et al.): tare at the first sample, rotate into the b
 trajectory's `sensor_in_biotac`, first-order 5 Hz zero-phase Butterworth low-pass, the last sample of
 each increment. Before changing anything it checks that this recomputation reproduces the file's own
 rows, so a file it writes is what the testbed would have written had the sensor carried the effect.
+The PDC rows are the raw PDC at the same samples, untared.
 """
 
 from __future__ import annotations
@@ -60,6 +61,53 @@ def apply_ft_delay(source: Path, out: Path, samples: int) -> Path:
         return np.concatenate([np.repeat(wrench[:1], samples, axis=0), wrench[: len(wrench) - samples]])
 
     return _apply(source, out, change)
+
+
+def apply_ft_clip(source: Path, out: Path, limits: np.ndarray) -> Path:
+    """Copy `source` to `out` with every trajectory's F/T force reading clipped to +-`limits` (3,) N per sensor
+    axis (the reading as recorded: bias and noise included, as an electronics' range clips it) and its force
+    rows recomputed."""
+    limits = np.asarray(limits, dtype=float)
+
+    def change(wrench: np.ndarray) -> np.ndarray:
+        wrench[:, :3] = np.minimum(np.maximum(wrench[:, :3], -limits), limits)
+        return wrench
+
+    return _apply(source, out, change)
+
+
+def apply_ft_quantise(source: Path, out: Path, step: float) -> Path:
+    """Copy `source` to `out` with every trajectory's F/T force reading rounded to whole multiples of `step` (N)
+    (the reading as recorded) and its force rows recomputed."""
+
+    def change(wrench: np.ndarray) -> np.ndarray:
+        wrench[:, :3] = step * np.floor(wrench[:, :3] / step + 0.5)
+        return wrench
+
+    return _apply(source, out, change)
+
+
+def apply_pdc_map(source: Path, out: Path, gain: float, rate: float) -> Path:
+    """Copy `source` to `out` with every trajectory's raw PDC reading p (counts) at time t (s, the file's clock)
+    replaced by gain * p + rate * t, and the PDC rows (the raw PDC at each increment's last sample) taken again."""
+    shutil.copyfile(source, out)
+    with h5py.File(out, "r+") as f:
+        meta = f["trajectories"]
+        rows = f["pdc/data"]
+        values = rows[()]
+        for i, tid in enumerate(meta["trajectory_id"][()]):
+            raw = f[f"raw/{int(tid)}"]
+            time, increment = raw["time"][()], raw["increment"][()]
+            first, n = int(meta["first_row"][i]), int(meta["n_rows"][i])
+            last = np.flatnonzero(np.diff(increment, append=increment[-1] + 1) != 0)
+            last = last[increment[last] >= 0]
+            if not np.array_equal(raw["pdc"][()][last], values[first : first + n]):
+                raise RuntimeError(f"trajectory {tid}: the PDC rows are not the raw PDC at the increment ends")
+            pdc = gain * raw["pdc"][()] + rate * time
+            raw["pdc"][...] = pdc
+            values[first : first + n] = pdc[last]
+        rows[...] = values
+    return out
 
 
 def _apply(source: Path, out: Path, change: Callable[[np.ndarray], np.ndarray]) -> Path:

@@ -3,10 +3,11 @@ when nothing is hidden; an effect outside the library comes out "unexplained".
 
 Each case hides one effect, drawn with its size from a seed inside `twin.hidden`, in a plant; the
 diagnosis sees only the campaign file. The seed can be changed with BIOTAC_TWIN_HIDDEN_SEED to draw
-other sizes, trajectory points and noise. A measurement effect the library's draws never produce (an
-F/T gain on z only) is applied to the null campaign's raw streams by `effect_generator`, code separate
-from the plant and the analysis. The fe replays of the nominal model and its finite-difference
-neighbours are shared between cases (same paths), so each case pays for its campaign and its refits.
+other sizes, trajectory points and noise. Measurement effects the library's draws never produce (an F/T gain
+on z only, a range clipping the axis that moves most, a quantised reading, a PDC drift) are applied to the null
+campaign's raw streams by `effect_generator`, code separate from the plant and the analysis. The fe replays of
+the nominal model and its finite-difference neighbours are shared between cases (same paths), so each case pays
+for its campaign and its refits.
 """
 
 import json
@@ -17,9 +18,10 @@ from pathlib import Path
 import h5py
 import numpy as np
 import pytest
-from effect_generator import apply_ft_map
+from effect_generator import apply_ft_clip, apply_ft_map, apply_ft_quantise, apply_pdc_map
 from measurement import strip_plant_view
 
+from twin.analysis.compare import noise_estimate
 from twin.analysis.data import load_campaign
 from twin.analysis.diagnose import diagnose
 from twin.analysis.heldout import NOISE_TOLERANCE
@@ -137,3 +139,45 @@ def test_a_fit_that_does_not_generalise_is_not_named(z_gain_file: Path, predicto
     assert diagnosis.verdict == "unexplained", diagnosis.reason
     assert all(c.refitted and not c.heldout_is_noise for c in diagnosis.candidates)
     assert all(f"{c.name} (held out {c.heldout_rms:.2f}x" in diagnosis.reason for c in diagnosis.candidates)
+
+
+def _raw_force(dataset: Path) -> np.ndarray:
+    """(T, 3) every raw F/T force reading of a campaign file (N, sensor frame, untared)."""
+    with h5py.File(dataset, "r") as f:
+        return np.concatenate([f[f"raw/{k}/wrench"][()][:, :3] for k in f["raw"]])
+
+
+def test_a_clipped_ft_range_is_named_with_its_limit(
+    null_loop: LoopResult, predictor: Predictor, tmp_path: Path
+) -> None:
+    """The axis whose reading moves most is clipped halfway between its rest and its peak magnitude."""
+    readings = _raw_force(null_loop.dataset)
+    rest, peak = np.abs(readings[0]), np.abs(readings).max(axis=0)
+    axis = int(np.argmax(peak - rest))
+    limits = np.full(3, 1e3)
+    limits[axis] = 0.5 * (rest[axis] + peak[axis])
+    data = load_campaign(apply_ft_clip(null_loop.dataset, tmp_path / "clipped.hdf5", limits))
+    diagnosis = diagnose([data], TwinModel(mesh_max_edge=data.mesh_max_edge), predictor, top=1)
+    best = diagnosis.candidates[0]
+    assert diagnosis.verdict == "ft_saturation", diagnosis.reason
+    assert best.refit_parameters["f" + "xyz"[axis]] == pytest.approx(limits[axis], abs=2e-3)
+    assert best.heldout_is_noise and best.heldout_rms <= best.heldout_rms_threshold
+
+
+def test_a_quantised_null_is_nothing_and_its_noise_counts_the_rounding(
+    null_loop: LoopResult, predictor: Predictor, tmp_path: Path
+) -> None:
+    """A 30 mN resolution, three times the F/T noise: no effect is claimed on it."""
+    step = 0.03
+    data = load_campaign(apply_ft_quantise(null_loop.dataset, tmp_path / "quantised.hdf5", step))
+    noise = noise_estimate(data.trajectories)
+    assert min(noise[c] for c in ("force_x", "force_y", "force_z")) >= step / np.sqrt(12.0)
+    diagnosis = diagnose([data], TwinModel(mesh_max_edge=data.mesh_max_edge), predictor, top=1)
+    assert diagnosis.verdict == "nothing", diagnosis.reason
+
+
+def test_a_pdc_drift_is_named_with_its_rate(null_loop: LoopResult, predictor: Predictor, tmp_path: Path) -> None:
+    data = load_campaign(apply_pdc_map(null_loop.dataset, tmp_path / "pdc.hdf5", 1.0, -0.3))
+    diagnosis = diagnose([data], TwinModel(mesh_max_edge=data.mesh_max_edge), predictor, top=1)
+    assert diagnosis.verdict == "pdc_drift", diagnosis.reason
+    assert diagnosis.candidates[0].refit_parameters["rate"] == pytest.approx(-0.3, abs=0.03)

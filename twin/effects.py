@@ -23,6 +23,11 @@ from fe.params import SKIN_PARAMETERS, Knob, SkinParameters
 EffectValues = dict[str, dict[str, float]]
 CleanWrench = Callable[[np.ndarray], np.ndarray]
 """Noise-free sensor-frame wrench (N, 6) at the given times (N,) s."""
+Reading = Callable[[np.ndarray, dict[str, float]], np.ndarray]
+"""What the F/T electronics put out (N, 6) of what the gauges carry (N, 6, sensor frame: the load through the
+signal chain, the bias and the noise), given the effect's values."""
+PdcReading = Callable[[np.ndarray, np.ndarray, dict[str, float]], np.ndarray]
+"""The PDC counts read out (N,) at times (N,) s from the nominal read-out's counts (N,), given the values."""
 
 
 @dataclass(frozen=True)
@@ -40,7 +45,9 @@ class EffectParameter:
 
 @dataclass(frozen=True)
 class Effect:
-    """A candidate mechanism. Exactly one of `skin`, `path`, `wrench` says how it acts."""
+    """A candidate mechanism. Exactly one of `skin`, `path`, `wrench`, `reading`, `pdc` says how it acts: on the
+    skin, the indenter path, the load the F/T gauges carry, the F/T electronics' output (bias and noise
+    included: a range, a resolution) or the PDC read-out."""
 
     name: str
     description: str
@@ -50,6 +57,8 @@ class Effect:
     skin: Callable[[SkinParameters, dict[str, float]], SkinParameters] | None = None
     path: Callable[[np.ndarray, dict[str, float]], np.ndarray] | None = None
     wrench: Callable[[np.ndarray, CleanWrench, dict[str, float]], np.ndarray] | None = None
+    reading: Reading | None = None
+    pdc: PdcReading | None = None
     probe: dict[str, float] = field(default_factory=dict)
     """Values at which to linearise while the effect is off, for parameters that do nothing at the off
     point (a relaxation time while the relaxing fraction is zero); empty: linearise at the off point."""
@@ -201,6 +210,17 @@ def _quadratic(times: np.ndarray, clean: CleanWrench, v: dict[str, float]) -> np
     return wrench
 
 
+def _saturation(reading: np.ndarray, v: dict[str, float]) -> np.ndarray:
+    limits = np.array([v["fx"], v["fy"], v["fz"]])
+    out = np.array(reading, dtype=float)
+    out[:, :3] = np.clip(out[:, :3], -limits, limits)
+    return out
+
+
+def _pdc_drift(times: np.ndarray, pdc: np.ndarray, v: dict[str, float]) -> np.ndarray:
+    return pdc + v["rate"] * times
+
+
 def _mm(name: str) -> EffectParameter:
     return EffectParameter(name, 0.0, -3e-3, 3e-3, 2e-4, "m")
 
@@ -211,6 +231,11 @@ def _calibration_parameter(term: str) -> EffectParameter:
         return EffectParameter(term, 1.0, 0.5, 1.5, 0.02, "1")
     return EffectParameter(term, 0.0, -0.2, 0.2, 0.01, "1")
 
+
+FORCE_AXES = ("fx", "fy", "fz")
+"""The F/T force axes (sensor frame): `ft_saturation`'s parameters, each axis's limit."""
+SATURATION_OFF_N = 1000.0
+"""`ft_saturation`'s off value (N): a range no press of the testbed reaches."""
 
 _REGISTRATION_STARTS = tuple({axis: sign * 1e-3} for axis in REGISTRATION_AXES for sign in (-1.0, 1.0))
 """A millimetre along each axis, both ways: where a registration search also looks (paper: 0.5-1.5 mm)."""
@@ -274,6 +299,24 @@ _DECLARED: dict[str, Effect] = {
             wrench=_calibration,
             linear=True,
         ),
+        Effect(
+            "ft_saturation",
+            "The F/T reading clips at its range: each force axis of the output (bias included, sensor frame) "
+            "stays within +-its limit.",
+            "measurement",
+            tuple(EffectParameter(axis, SATURATION_OFF_N, 0.2, SATURATION_OFF_N, 0.05, "N") for axis in FORCE_AXES),
+            ("force",),
+            reading=_saturation,
+        ),
+        Effect(
+            "pdc_drift",
+            "The PDC read-out drifts linearly in time (taring removes only its value at the start).",
+            "measurement",
+            (EffectParameter("rate", 0.0, -5.0, 5.0, 0.05, "counts/s"),),
+            ("pdc",),
+            pdc=_pdc_drift,
+            linear=True,
+        ),
     )
 }
 LIBRARY_ORDER = (
@@ -290,6 +333,8 @@ LIBRARY_ORDER = (
     "ft_crosstalk",
     "ft_gain",
     "ft_calibration",
+    "ft_saturation",
+    "pdc_drift",
 )
 """The library's order (what `twin effects` lists and the order diagnosis keeps among equal candidates)."""
 _LIBRARY = {name: _skin_effect(name, knobs) for name, knobs in SKIN_KNOBS.items()} | _DECLARED
@@ -313,6 +358,12 @@ use them to check that an effect outside the library comes out "unexplained"."""
 
 MEASUREMENT_ORDER = ("time_delay", "ft_crosstalk", "ft_calibration", "ft_gain", "ft_nonlinearity", "ft_drift")
 """Order of the F/T signal chain: the sensor sees a delayed load, mixes and scales it, then drifts."""
+READING_ORDER = ("ft_saturation",)
+"""Order of the F/T electronics' effects on what the gauges carry (bias and noise included). A resolution is not
+an effect: the analysis counts its rounding in the noise (`twin.analysis.readings`)."""
+PDC_ORDER = ("pdc_drift",)
+"""Order of the PDC read-out's effects. A PDC gain is not one: every sensor's PDC gain is a nuisance the residual
+profiles out (`twin.analysis.residual.PDC_GAIN_PRIOR`)."""
 
 
 def get_effect(name: str) -> Effect:
@@ -359,3 +410,30 @@ def measure_wrench(times: np.ndarray, clean: CleanWrench, values: EffectValues) 
 
 def _bind(effect: Effect, inner: CleanWrench, v: dict[str, float]) -> CleanWrench:
     return lambda t: effect.wrench(t, inner, v)
+
+
+def read_out(reading: np.ndarray, values: EffectValues) -> np.ndarray:
+    """(N, 6) F/T output from what the gauges carry (N, 6: the load through `measure_wrench`, plus bias and
+    noise; sensor frame) through the electronics' effects (`READING_ORDER`); a copy when there are none."""
+    checked = check_values(values)
+    out = np.array(reading, dtype=float)
+    for name in READING_ORDER:
+        if name in checked:
+            out = get_effect(name).reading(out, checked[name])
+    return out
+
+
+def read_pdc(times: np.ndarray, pdc: np.ndarray, values: EffectValues) -> np.ndarray:
+    """(N,) PDC counts as read out at `times` (s) from the nominal read-out's counts (N,) through the PDC
+    effects (`PDC_ORDER`); a copy when there are none."""
+    checked = check_values(values)
+    out = np.array(pdc, dtype=float)
+    for name in PDC_ORDER:
+        if name in checked:
+            out = get_effect(name).pdc(np.asarray(times, dtype=float), out, checked[name])
+    return out
+
+
+def has_reading_effects(values: EffectValues) -> bool:
+    """Whether any F/T electronics effect (`READING_ORDER`) is among `values` (its output then depends on the bias)."""
+    return any(name in values for name in READING_ORDER)

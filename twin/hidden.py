@@ -4,7 +4,8 @@ The analysis never sees what is drawn here: callers put the values into a plant 
 sealed manifest beside the data, which only the final reveal reads. Sizes are drawn well above the
 noise of a quick campaign but within what a real testbed shows (a few tenths of a millimetre of
 registration error, a few percent of calibration error, tens of milliseconds of stream delay, a
-bubble of a fifth to a third of the fluid).
+bubble of a fifth to a third of the fluid, an F/T range of 1.2-2 N on its axial force (bias included),
+a PDC drift of 0.2-0.5 counts/s).
 """
 
 from __future__ import annotations
@@ -70,6 +71,8 @@ HIDDEN_DRAWS: dict[str, Callable[[np.random.Generator], dict[str, float]]] = {
     "ft_gain": lambda rng: {"scale": _either(rng, 0.08, 0.15)},
     "ft_calibration": _calibration,
     "ft_nonlinearity": lambda rng: {"coefficient": _signed(rng, 0.08, 0.15)},
+    "ft_saturation": lambda rng: {"fz": float(rng.uniform(1.2, 2.0))},
+    "pdc_drift": lambda rng: {"rate": _signed(rng, 0.2, 0.5)},
 }
 """How each effect's hidden size is drawn (the library's and the unlisted ones): the skin effects from the
 parameter table, the structured ones (registration, the F/T maps) by their own draw."""

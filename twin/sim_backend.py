@@ -25,7 +25,7 @@ from fe.electrodes import N_ELECTRODES, ElectrodeModel
 from fe.indentation import IncrementResult
 from fe.sensor import BioTacModel
 from twin.backend import ARMS, BackendError, Sample, check_arm
-from twin.effects import EffectValues, check_values, measure_wrench
+from twin.effects import EffectValues, check_values, measure_wrench, read_out, read_pdc
 from twin.kinematics import joint_limits, velocity_limits
 from twin.plant import MeasurementNoise, PlantSensor
 from twin.readout import SensorReadout, ft_load
@@ -180,12 +180,15 @@ class SimBackend:
         joints = {arm: self._joints[arm] + self.noise.encoder * z[7 * i : 7 * i + 7] for i, arm in enumerate(ARMS)}
         k = len(ARMS) * 7
         wrench_noise = np.concatenate([self.noise.force * z[k : k + 3], self.noise.torque * z[k + 3 : k + 6]])
-        wrench = self._measured_wrench() + self.sensor.ft_bias + wrench_noise
+        carried = self._measured_wrench() + self.sensor.ft_bias + wrench_noise  # what the gauges carry
+        wrench = read_out(carried[None], self.effects)[0]
         if not self.electrode_counts:
             return Sample(self.time_s, joints, wrench, np.full(N_ELECTRODES, np.nan), np.nan)
         electrodes = self._readout.electrode_counts(self._clean["displacement"], self.time_s, self.rng)
-        pdc = self._readout.pdc(self._clean["pressure"], self.rng)
-        return Sample(self.time_s, joints, wrench, electrodes, float(pdc))
+        pdc = read_pdc(
+            np.array([self.time_s]), np.array([self._readout.pdc(self._clean["pressure"], self.rng)]), self.effects
+        )
+        return Sample(self.time_s, joints, wrench, electrodes, float(pdc[0]))
 
     def close(self) -> None:
         """Nothing to release in simulation."""

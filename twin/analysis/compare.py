@@ -18,6 +18,7 @@ import numpy as np
 
 from twin.analysis.data import CampaignData, TrajectoryRecord
 from twin.analysis.predict import Prediction, Predictor, TwinModel, measured_force_fullrate
+from twin.analysis.readings import plateaus, resolution
 
 FORCE_CHANNELS = ("force_x", "force_y", "force_z")
 PHASES = ("loading", "pause", "unloading")
@@ -82,6 +83,10 @@ def time_in_increment(trajectory: TrajectoryRecord) -> np.ndarray:
     return raw.time - start_time
 
 
+LATTICE_REACH = 4.0
+"""Scales within which a quantised reading's differences count as noise (`noise_estimate`)."""
+
+
 def _robust_sigma(values: np.ndarray) -> float:
     """1.4826 MAD: the standard deviation of the normal part of `values` (NaN when none is finite)."""
     values = values[np.isfinite(values)]
@@ -92,19 +97,35 @@ def noise_estimate(trajectories: list[TrajectoryRecord]) -> dict[str, float]:
     """Per-channel full-rate white-noise standard deviation (N for forces, counts for pdc), robust (MAD).
 
     From the full-rate recordings: during the settle pauses the signal is (nearly) constant, so successive
-    differences are noise: sigma = 1.4826 MAD(diff) / sqrt(2). When no trajectory has raw streams (row-only
-    files), `rows_noise_estimate` instead.
+    differences are noise: sigma = 1.4826 MAD(diff) / sqrt(2). Differences that touch a sample held at a
+    clipped F/T range (`twin.analysis.readings.plateaus`: noise-free there) are left out. When the F/T reading
+    is quantised (`twin.analysis.readings.resolution`, the coarsest axis's step q) a force channel's differences
+    take a few values only, so its MAD can be 0 or a whole step: sigma is then their root mean square within
+    `LATTICE_REACH` scales (max(sqrt(2) MAD sigma, q)), and never below the rounding noise q / sqrt(12). When no
+    trajectory has raw streams (row-only files), `rows_noise_estimate` instead.
     """
     recorded = [t for t in trajectories if not t.rows_only]
     if not recorded:
         return rows_noise_estimate(trajectories)
+    clipped = plateaus(recorded)
     diffs: dict[str, list[np.ndarray]] = {c: [] for c in (*FORCE_CHANNELS, "pdc")}
     for t in recorded:
         force = measured_force_fullrate(t)
+        held = clipped.at_limit(np.asarray(t.raw.wrench, dtype=float)[:, :3])
+        free = ~(held[1:] | held[:-1])
         for i, c in enumerate(FORCE_CHANNELS):
-            diffs[c].append(np.diff(force[:, i]))
+            diffs[c].append(np.diff(force[:, i])[free])
         diffs["pdc"].append(np.diff(t.raw.pdc))
-    return {c: float(_robust_sigma(np.concatenate(parts)) / np.sqrt(2.0)) for c, parts in diffs.items()}
+    steps = resolution(recorded)
+    step = float(np.nanmax(steps)) if np.isfinite(steps).any() else None
+    noise = {}
+    for c, parts in diffs.items():
+        d = np.concatenate(parts)
+        noise[c] = float(_robust_sigma(d) / np.sqrt(2.0))
+        if step is not None and c in FORCE_CHANNELS:
+            reach = LATTICE_REACH * max(np.sqrt(2.0) * noise[c], step)
+            noise[c] = max(float(np.sqrt(np.mean(d[np.abs(d) <= reach] ** 2) / 2.0)), step / np.sqrt(12.0))
+    return noise
 
 
 def rows_noise_estimate(trajectories: list[TrajectoryRecord]) -> dict[str, float]:

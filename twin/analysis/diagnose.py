@@ -224,7 +224,7 @@ def diagnose(
             ]
         for candidate, lin in chosen:
             report("refit", candidate.name)
-            identifiability(candidate, lin.jac)
+            identifiability(candidate, lin)
             if candidate.name in cannot_tell:
                 candidate.identifiable = False  # never named: the nuisances could be what it fits
         # side by side, their replays solved together (`twin.analysis.lockstep`): the same fits, fewer waves

@@ -79,14 +79,23 @@ def record_heldout(
     candidate.heldout_has_power = not bool(test(without).is_noise)
 
 
-def identifiability(candidate: Candidate, jac: np.ndarray) -> None:
-    """Parameter correlations and the condition of J^T J (scaled, `twin.analysis.fit.uncertainty`); flag
-    non-identifiable fits."""
-    spread = fit_uncertainty(jac, np.array([p.scale for p in EFFECTS[candidate.name].parameters]))
+def identifiability(candidate: Candidate, lin: Linearisation) -> None:
+    """Parameter correlations and the condition of J^T J (scaled, `twin.analysis.fit.uncertainty`) of the
+    parameters that act on these data; flag non-identifiable fits. A parameter at its off value whose column is
+    zero on every sample is inert, not unidentified (an F/T range on an axis whose reading never reaches it): it
+    is left out (its correlations 0); a candidate with no parameter acting is not identifiable."""
+    parameters = EFFECTS[candidate.name].parameters
+    inert = np.array([lin.point[p.name] == p.off for p in parameters]) & ~np.any(lin.jac != 0.0, axis=0)
+    acting = np.flatnonzero(~inert)
+    spread = fit_uncertainty(lin.jac[:, acting], np.array([parameters[i].scale for i in acting]))
+    correlation = np.zeros((len(parameters), len(parameters)))
+    correlation[np.ix_(acting, acting)] = spread.correlation
     candidate.condition = spread.condition
-    candidate.correlation = spread.correlation.round(4).tolist()
-    off_diagonal = np.abs(spread.correlation - np.diag(np.diag(spread.correlation)))
-    candidate.identifiable = bool(candidate.condition < 1e8 and (off_diagonal.max(initial=0.0) < 0.98))
+    candidate.correlation = correlation.round(4).tolist()
+    off_diagonal = np.abs(correlation - np.diag(np.diag(correlation)))
+    candidate.identifiable = bool(
+        acting.size > 0 and candidate.condition < 1e8 and (off_diagonal.max(initial=0.0) < 0.98)
+    )
 
 
 def whitened_rms(residual: np.ndarray) -> float:

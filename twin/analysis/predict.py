@@ -4,7 +4,8 @@ A `TwinModel` is the nominal skin parameters plus effect values (twin.effects) a
 prediction of a trajectory re-solves the skin along the trajectory's recorded path (standoff,
 loading, unloading: the same pose sequence the testbed ran), turns each increment's force into the
 F/T load the mount sees, runs it through the model's measurement effects at the recorded sample
-times, and then through the very processing the measurements went through (tare, 5 Hz zero-phase
+times (the F/T signal chain; its electronics, which see the bias, taken from the measured first sample; the
+PDC read-out), and then through the very processing the measurements went through (tare, 5 Hz zero-phase
 low-pass, increment-end subsampling), so predicted and measured rows are directly comparable.
 """
 
@@ -27,7 +28,16 @@ from fe.results import IncrementResult
 from fe.sensor import BioTacModel
 from twin.analysis.data import TrajectoryRecord
 from twin.controller import Recording
-from twin.effects import EffectValues, apply_path, apply_skin, check_values, measure_wrench
+from twin.effects import (
+    EffectValues,
+    apply_path,
+    apply_skin,
+    check_values,
+    has_reading_effects,
+    measure_wrench,
+    read_out,
+    read_pdc,
+)
 from twin.fe_models import INFLATION_RULES, ModelCache
 from twin.lanes import usable_cpus
 from twin.processing import ProcessedRows, lowpass, process
@@ -39,6 +49,10 @@ MODEL_CACHE_SIZE = 24
 PREFETCH_SLOTS = 256
 """Systems of one batched prefetch run at most (with one skin, more trajectories queue for the slots that
 free up; with several, more replays make more runs)."""
+
+
+HELD_SOLVES_FIRST = 1
+"""Events a replay solves at the start of every held pose besides its last (`held_solves`): 2 of a 5 s pause's 50."""
 
 
 @dataclass(frozen=True)
@@ -96,7 +110,7 @@ class Prediction:
     increment_pressure: np.ndarray  # (K,) Pa
     converged: np.ndarray  # (K,) bool; later indices after a failure are NaN-filled
     force_fullrate: np.ndarray  # (T, 3) N, biotac frame, tared, unfiltered (model + measurement effects)
-    pdc_fullrate: np.ndarray  # (T,) counts, tared: the nominal PDC read-out of the pressure change
+    pdc_fullrate: np.ndarray  # (T,) counts, tared: the PDC read-out (the model's PDC effects) of the pressure change
     rows: ProcessedRows
 
 
@@ -131,15 +145,13 @@ class _PendingReplay:
 
 
 def _batches(work: list[_PendingReplay]) -> list[list[_PendingReplay]]:
-    """The pending replays grouped into batched runs: one per set of skins that can share a batch (and all
-    timed or none)."""
+    """The pending replays grouped into batched runs: one per set of skins that can share a batch, relaxing
+    (timed) and elastic replays together (`_run`)."""
     groups: list[list[_PendingReplay]] = []
     for item in work:
         for group in groups:
             first = group[0]
-            if first.plan.timed == item.plan.timed and (
-                first.fe is item.fe or can_share_batch(first.fe.inflated_skin(), item.fe.inflated_skin())
-            ):
+            if first.fe is item.fe or can_share_batch(first.fe.inflated_skin(), item.fe.inflated_skin()):
                 group.append(item)
                 break
         else:
@@ -176,9 +188,16 @@ class Predictor:
     """
 
     def __init__(
-        self, device: str = "cpu", on_replays: Callable[[int, int], None] | None = None, threads: int | None = None
+        self,
+        device: str = "cpu",
+        on_replays: Callable[[int, int], None] | None = None,
+        threads: int | None = None,
+        held_first: int = HELD_SOLVES_FIRST,
     ) -> None:
         self.device = device
+        self.held_first = held_first
+        """Events solved at the start of each held pose besides its last (`held_solves`; more than a hold has:
+        every event, as the plant solves them)."""
         self.on_replays = on_replays
         """Told (done, total) as each replay of a `prefetch_many` without its own `progress` is solved."""
         if threads is not None and threads > 1 and device != "cpu":
@@ -216,7 +235,8 @@ class Predictor:
         model_key = (tuple(sorted(asdict(skin).items())), model.mesh_max_edge, model.inflation)
         key = (model_key, trajectory.sensor_id, trajectory.trajectory_id, tips.round(12).tobytes())
         times, indices = solve_events(raw, RELAXATION_SOLVE_INTERVAL_S if timed else None)
-        return _ReplayPlan(key, tips, (times, indices), timed, held_solves(indices), skin.relaxation_time_s)
+        solved = held_solves(indices, self.held_first)
+        return _ReplayPlan(key, tips, (times, indices), timed, solved, skin.relaxation_time_s)
 
     def _model_fe(self, model: TwinModel) -> BioTacModel:
         """The inflated fe model of `model`'s skin with its effects applied."""
@@ -300,9 +320,13 @@ class Predictor:
                 future.result()
 
     def _run(self, batch: list[_PendingReplay], done: Callable[[], None]) -> None:
-        """Solve pending replays (the longest first) in one batched run and cache them; done() after each."""
+        """Solve pending replays (the longest first) in one batched run and cache them; done() after each. When
+        any skin relaxes the run is timed, and each elastic replay is given its events' times, which a skin that
+        does not relax ignores (its solves are those of an untimed run, tests/test_batched_replay.py): on a GPU
+        the elastic replays then share the run's slots with the relaxing ones instead of waiting for them."""
         skins = [item.fe.inflated_skin() for item in batch]
         one_skin = all(item.fe is batch[0].fe for item in batch)
+        timed = any(item.plan.timed for item in batch)
 
         def finished(index: int, increments: list[IncrementResult]) -> None:
             item = batch[index]
@@ -312,7 +336,7 @@ class Predictor:
 
         run_trajectories(
             skins[0] if one_skin else skins,
-            [_pose_trajectory(item.trajectory, item.plan) for item in batch],
+            [_pose_trajectory(item.trajectory, item.plan, timed) for item in batch],
             self.device,
             slots=min(len(batch), PREFETCH_SLOTS),
             on_trajectory=finished,
@@ -342,8 +366,9 @@ class Predictor:
             return loads[np.clip(np.searchsorted(replay.time, t, side="right") - 1, 0, None)]
 
         wrench = measure_wrench(times, clean_at, model.effects)
-        pdc_change = replay.pdc_change[sample_event]
-        pdc = raw.pdc[0] + pdc_change
+        if has_reading_effects(model.effects):  # the F/T electronics see the bias: the measured first sample
+            wrench = read_out(wrench + (raw.wrench[0] - wrench[0]), model.effects)  # less the load there
+        pdc = read_pdc(times, raw.pdc[0] + replay.pdc_change[sample_event], model.effects)
         predicted = Recording(
             time=times,
             joints=raw.joints,
@@ -365,6 +390,7 @@ class Predictor:
         )
         tared = (wrench[:, :3] - wrench[0, :3]) @ trajectory.sensor_in_biotac[:3, :3].T
         last = np.r_[np.flatnonzero(np.diff(replay.path_index)), len(replay.path_index) - 1]  # per path index
+        pdc_change = pdc - pdc[0]
         return Prediction(replay.force[last], replay.pressure[last], replay.converged[last], tared, pdc_change, rows)
 
 
@@ -406,22 +432,18 @@ def solve_events(raw: Recording, interval_s: float | None) -> tuple[np.ndarray, 
     return np.asarray(times, dtype=float), np.asarray(indices, dtype=int)
 
 
-HELD_SOLVES_DENSE = 5
-"""Solves at the start of every held pose, one per event (`held_solves`), before they thin out."""
-
-
-def held_solves(indices: np.ndarray) -> np.ndarray:
+def held_solves(indices: np.ndarray, first: int = HELD_SOLVES_FIRST) -> np.ndarray:
     """Which events (path indices (S,), `solve_events`) a replay solves ((S,) bool): of each run of events at
     one pose (a hold, re-solved every `RELAXATION_SOLVE_INTERVAL_S` by the plant while the skin relaxes) its
-    first `HELD_SOLVES_DENSE`, every power-of-two one and its last (9 of a 5 s pause's 50); `fill_holds`
-    fills the others. Sound because a held pose's state depends on time only, not on how often it is solved:
-    the friction keeps its stick anchors across solves (docs/fe.md); measured against solving every event,
-    0.08 mN apart at most (benchmarks/hold_solves.py, docs/scale.md)."""
+    first `first` and its last; `fill_holds` fills the others with the relaxation's exponential. Sound because
+    a held pose's state depends on time only, not on how often it is solved (the friction keeps its stick
+    anchors across solves, docs/fe.md), and one Prony branch relaxes along one exponential: measured against
+    solving every event, 0.3 mN apart at most with the first alone (benchmarks/hold_solves.py,
+    docs/scale.md)."""
     starts = np.r_[0, np.flatnonzero(np.diff(indices)) + 1]
     position = np.arange(len(indices)) - np.repeat(starts, np.diff(np.r_[starts, len(indices)]))
     last = np.r_[np.diff(indices) != 0, True]
-    power_of_two = (position & (position - 1)) == 0
-    return (position < HELD_SOLVES_DENSE) | power_of_two | last
+    return (position < first) | last
 
 
 def fill_holds(times: np.ndarray, solved: np.ndarray, values: np.ndarray, relaxation_time_s: float) -> np.ndarray:
@@ -440,11 +462,11 @@ def fill_holds(times: np.ndarray, solved: np.ndarray, values: np.ndarray, relaxa
     return values[after] + weight * (values[before] - values[after])
 
 
-def _pose_trajectory(trajectory: TrajectoryRecord, plan: _ReplayPlan) -> PoseTrajectory:
-    """The indenter poses of a replay's solved events for the batched runner (timed when the skin relaxes)."""
+def _pose_trajectory(trajectory: TrajectoryRecord, plan: _ReplayPlan, timed: bool) -> PoseTrajectory:
+    """The indenter poses of a replay's solved events for the batched runner, with their times when `timed`."""
     times, indices = plan.solves
     rotations = np.repeat(np.asarray(trajectory.rotation, dtype=np.float64)[None], len(times), axis=0)
-    return PoseTrajectory(trajectory.indenter, rotations, plan.tips[indices], times if plan.timed else None)
+    return PoseTrajectory(trajectory.indenter, rotations, plan.tips[indices], times if timed else None)
 
 
 def _replay_of(readout: SensorReadout, plan: _ReplayPlan, increments: Iterable[IncrementResult]) -> Replay:

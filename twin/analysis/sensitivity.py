@@ -13,6 +13,7 @@ import numpy as np
 from twin.analysis.fit import Parameters, linear_step
 from twin.analysis.onset import onset_start
 from twin.analysis.predict import Predictor, TwinModel
+from twin.analysis.reading_starts import range_start
 from twin.analysis.residual import Base
 from twin.effects import REGISTRATION, Effect
 
@@ -31,10 +32,14 @@ class StartEstimate(Protocol):
 
 DataStart = Callable[[Predictor, TwinModel, Base], StartEstimate]
 """An effect's start estimated from the data (predictor, the model, the base residual): no linearisation."""
-DATA_STARTS: dict[str, DataStart] = {REGISTRATION: onset_start}
+DATA_STARTS: dict[str, DataStart] = {
+    REGISTRATION: onset_start,
+    "ft_saturation": range_start,
+}
 """Effect name -> its start from the data, tried first among the effect's declared starts while it is off (a
-registration offset from the contact onsets, `twin.analysis.onset`); effects not listed have the declared
-starts only. Kept here, not in the effect library: the library knows nothing of the analysis."""
+registration offset from the contact onsets, `twin.analysis.onset`; an F/T range from the readings' plateaus,
+`twin.analysis.reading_starts`); effects not listed have the declared starts only.
+Kept here, not in the effect library: the library knows nothing of the analysis."""
 
 
 @dataclass(frozen=True)
