@@ -8,7 +8,7 @@ import pytest
 
 import twin.effects as effects_module
 from fe.params import SkinParameters
-from twin.effects import EFFECTS, apply_path, apply_skin, check_values, measure_wrench
+from twin.effects import EFFECTS, apply_path, apply_skin, check_values, measure_wrench, read_out, read_pdc
 
 
 def _step_load(times: np.ndarray) -> np.ndarray:
@@ -29,6 +29,8 @@ def test_every_effect_is_off_at_its_off_values() -> None:
         np.testing.assert_array_equal(measure_wrench(times, _step_load, values), _step_load(times), err_msg=name)
         assert apply_skin(skin, values) == skin
         np.testing.assert_array_equal(apply_path(tips, values), tips)
+        np.testing.assert_array_equal(read_out(_step_load(times) + 2.0, values), _step_load(times) + 2.0)
+        np.testing.assert_array_equal(read_pdc(times, times * 3.0, values), times * 3.0)
     assert len(EFFECTS) >= 8
 
 
@@ -55,6 +57,27 @@ def test_physics_effects_change_skin_and_path() -> None:
     assert skin.friction == pytest.approx(2 * 0.186)
     shifted = apply_path(np.zeros((2, 3)), {"registration_offset": {"dx": 1e-3}})
     assert shifted[:, 0] == pytest.approx([1e-3, 1e-3])
+
+
+def test_backlash_trails_each_rest_pose_by_its_lag_and_takes_up_the_slack_at_a_reversal() -> None:
+    """A press of 0.1 mm increments to 0.4 mm and back, a lag of 0.15 mm: loading trails by the lag (the first
+    0.15 mm are slack), the first 0.3 mm back are slack again, then it trails by the lag the other way."""
+    depth = np.r_[0.0, 0.1, 0.2, 0.3, 0.4, 0.3, 0.2, 0.1, 0.0] * 1e-3
+    direction = np.array([0.0, 0.6, -0.8])
+    tips = np.array([1e-3, 2e-3, -7e-3]) + np.outer(depth, direction)
+    trailed = apply_path(tips, {"robot_backlash": {"lag": 0.15e-3}})
+    reached = (trailed - tips[0]) @ direction
+    expected = np.r_[0.0, 0.0, 0.05, 0.15, 0.25, 0.25, 0.25, 0.25, 0.15] * 1e-3
+    np.testing.assert_allclose(reached, expected, atol=1e-15)
+    np.testing.assert_allclose(np.cross(trailed - tips[0], direction), 0.0, atol=1e-15)  # on the press line
+    # a registration offset and the backlash commute (the play operator is translation-equivariant)
+    both = {"robot_backlash": {"lag": 0.15e-3}, "registration_offset": {"dz": 0.3e-3}}
+    np.testing.assert_allclose(apply_path(tips, both), trailed + [0.0, 0.0, 0.3e-3], atol=1e-15)
+
+
+def test_pdc_drift_grows_linearly_in_time() -> None:
+    times = np.array([0.0, 10.0, 20.0])
+    np.testing.assert_allclose(read_pdc(times, np.full(3, 1600.0), {"pdc_drift": {"rate": -0.3}}), [1600, 1597, 1594])
 
 
 def test_bad_effect_values_are_refused() -> None:

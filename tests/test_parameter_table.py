@@ -99,8 +99,8 @@ _HAND_WRITTEN_SKIN_EFFECTS = {
 }
 _LIBRARY_ORDER = (
     "skin_thickness", "skin_modulus", "indenter_friction", "skin_relaxation", "skin_stiffening", "trapped_air",
-    "fill_volume", "registration_offset", "time_delay", "ft_drift", "ft_crosstalk", "ft_gain", "ft_calibration",
-    "ft_saturation", "pdc_drift",
+    "fill_volume", "registration_offset", "robot_backlash", "time_delay", "ft_drift", "ft_crosstalk", "ft_gain",
+    "ft_calibration", "ft_saturation", "pdc_drift",
 )  # fmt: skip
 
 

@@ -149,6 +149,10 @@ REGISTRATION_AXES = ("dx", "dy", "dz")
 """Its parameters, in the order of the offset's biotac-frame axes x, y, z."""
 
 
+BACKLASH = "robot_backlash"
+"""The effect by which the tip trails its commanded rest poses (`trail`); the plant applies it to each rest pose."""
+
+
 def registration_vector(values: dict[str, float] | None) -> np.ndarray:
     """(3,) m, biotac frame: the offset of `registration_offset` values (missing parameters off)."""
     v = EFFECTS[REGISTRATION].values(values)
@@ -163,6 +167,23 @@ def registration_values(offset: np.ndarray) -> dict[str, float]:
 
 def _registration(tips: np.ndarray, v: dict[str, float]) -> np.ndarray:
     return tips + registration_vector(v)
+
+
+def trail(actual: np.ndarray, commanded: np.ndarray, lag: float) -> np.ndarray:
+    """Where a tip with backlash stands once commanded to `commanded` (3,) m from where it stood, `actual` (3,) m:
+    it trails its command by up to `lag` m along its last move (a play operator: a move shorter than the slack
+    left after a reversal leaves it where it was)."""
+    commanded = np.asarray(commanded, dtype=float)
+    gap = commanded - actual
+    distance = float(np.linalg.norm(gap))
+    return commanded - lag * gap / distance if distance > lag else np.array(actual, dtype=float)
+
+
+def _backlash(tips: np.ndarray, v: dict[str, float]) -> np.ndarray:
+    out = np.array(tips, dtype=float)
+    for k in range(1, len(out)):
+        out[k] = trail(out[k - 1], tips[k], v["lag"])
+    return out
 
 
 def _delay(times: np.ndarray, clean: CleanWrench, v: dict[str, float]) -> np.ndarray:
@@ -254,6 +275,16 @@ _DECLARED: dict[str, Effect] = {
             starts=_REGISTRATION_STARTS,
         ),
         Effect(
+            BACKLASH,
+            "The robot's tip trails its commanded rest pose by up to `lag` along its last move (backlash: at a "
+            "reversal the slack is taken up first), from no lag at the standoff (biotac frame).",
+            "physics",
+            (EffectParameter("lag", 0.0, 0.0, 0.5e-3, 2e-5, "m"),),
+            ("force", "pdc", "electrodes"),
+            path=_backlash,
+            starts=({"lag": 0.1e-3}, {"lag": 0.25e-3}),
+        ),
+        Effect(
             "time_delay",
             "The F/T stream lags the joint stream by a constant delay.",
             "measurement",
@@ -328,6 +359,7 @@ LIBRARY_ORDER = (
     "trapped_air",
     "fill_volume",
     "registration_offset",
+    "robot_backlash",
     "time_delay",
     "ft_drift",
     "ft_crosstalk",

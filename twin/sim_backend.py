@@ -25,7 +25,7 @@ from fe.electrodes import N_ELECTRODES, ElectrodeModel
 from fe.indentation import IncrementResult
 from fe.sensor import BioTacModel
 from twin.backend import ARMS, BackendError, Sample, check_arm
-from twin.effects import EffectValues, check_values, measure_wrench, read_out, read_pdc
+from twin.effects import BACKLASH, EffectValues, check_values, measure_wrench, read_out, read_pdc, trail
 from twin.kinematics import joint_limits, velocity_limits
 from twin.plant import MeasurementNoise, PlantSensor
 from twin.readout import SensorReadout, ft_load
@@ -124,6 +124,9 @@ class SimBackend:
         self._stepper: SkinSolver | None = None
         self._stepper_arm: str | None = None
         self._last_tip: np.ndarray | None = None
+        self._trailing: np.ndarray | None = None
+        """Where the tip stands with the plant's backlash (`twin.effects.trail`; m, biotac frame; None: at the next
+        rest pose, as commanded)."""
         self._clean = self._rest_signals()
         self.solve_log: list[tuple[float, IncrementResult]] = []
         """Every fe solve as (simulated time s, result), in time order."""
@@ -140,7 +143,7 @@ class SimBackend:
         if tool is not None and tool != "pin":
             self._stepper = self._solver(tool)
             self._stepper_arm = arm
-            self._last_tip = None
+            self._last_tip, self._trailing = None, None
             self._clean = self._rest_signals()
             self._record_wrench()
 
@@ -232,6 +235,10 @@ class SimBackend:
 
     def _solve_if_moved(self, arm: str) -> None:
         pose = self.tip_pose_biotac(arm)
+        if BACKLASH in self.effects:  # the tip trails its rest poses, from none at the first (the standoff)
+            start = pose[:3, 3] if self._trailing is None else self._trailing
+            self._trailing = trail(start, pose[:3, 3], self.effects[BACKLASH]["lag"])
+            pose[:3, 3] = self._trailing
         moved = self._last_tip is None or _norm(pose[:3, 3] - self._last_tip) > self.settings.pose_tolerance
         relaxing = (
             self._stepper.relaxes
