@@ -1,5 +1,5 @@
-"""Row-only files (issue 20, "the data users have"): `twin compare` / `twin validate` on the paper's public
-layout, presses derived from the rows alone.
+"""Row-only files (issue 20, "the data users have"): `twin compare` / `twin validate` / `twin diagnose` on the
+paper's public layout, presses derived from the rows alone.
 
 References are independent of the row-only code: the campaign's own trajectory metadata (planned press
 directions, touch points, depths), the same campaign analysed from its raw streams, and hand-made press paths.
@@ -16,27 +16,38 @@ from typer.testing import CliRunner
 
 from twin.analysis.compare import compare
 from twin.analysis.data import load_campaign
+from twin.analysis.diagnose import diagnose
 from twin.analysis.predict import Predictor, TwinModel
 from twin.analysis.rows_only import RAW_ONLY_EFFECTS, segment_presses
 from twin.analysis.validate import validate
 from twin.cli import app
 
 
-@pytest.fixture(scope="module")
-def campaign(tmp_path_factory: pytest.TempPathFactory) -> Path:
-    """Sensor 2 of a plant without nuisances, sphere_medium: a 0.8 mm normal press and a 0.5 mm press tilted
-    30 degrees at the same point (the second starts within 1 mm of where the first ends), 0.1 s pauses, 2 mm
-    mesh."""
+def _campaign(out: Path, hidden: dict | None = None) -> Path:
+    """Sensor 2 of a plant without nuisances (`hidden` effects in it), sphere_medium: a 0.8 mm normal press and a
+    0.5 mm press tilted 30 degrees at the same point (the second starts within 1 mm of where the first ends), 0.1 s
+    pauses, 2 mm mesh."""
     from twin.campaign import QUICK_CONFIG, run_campaign
     from twin.plant import make_plant
     from twin.protocol import QUICK_SETTINGS
 
     plant = make_plant(
-        [2], seed=0, variability=0.0, mount_rotation_error=0.0, mount_translation_error=0.0, exact_registration=True
+        [2],
+        seed=0,
+        effects=hidden,
+        variability=0.0,
+        mount_rotation_error=0.0,
+        mount_translation_error=0.0,
+        exact_registration=True,
     )
     settings = replace(QUICK_SETTINGS, normal_depth=0.8e-3, angled_depth=0.5e-3, pause_s=0.1)
     config = replace(QUICK_CONFIG, sensors=(2,), indenters=("sphere_medium",), settings=settings)
-    return run_campaign(config, tmp_path_factory.mktemp("rows"), workers=1, plant=plant).files[2]
+    return run_campaign(config, out, workers=1, plant=plant).files[2]
+
+
+@pytest.fixture(scope="module")
+def campaign(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    return _campaign(tmp_path_factory.mktemp("rows"))
 
 
 @pytest.fixture(scope="module")
@@ -91,3 +102,21 @@ def test_validate_cli_on_a_paper_file_names_what_it_cannot_identify(copies: tupl
     assert "public meshes in order" in result.stderr  # the paper's files do not name their indenters
     summary = json.loads(result.stdout[result.stdout.index("{") :])
     assert np.isfinite(summary["indenters"]["sphere_medium"]["mean_rms_n"])
+
+
+def test_diagnose_on_paper_files_finds_a_hidden_skin_and_says_nothing_on_a_null(
+    copies: tuple[Path, Path], tmp_path: Path
+) -> None:
+    """The loop on the data users have: rows only, in the paper's layout. A skin 15 % thinner in the plant is
+    named; the null campaign's rows give "nothing"; effects rows cannot identify are not tried (asked for: a
+    one-line error)."""
+    predictor, model = Predictor(), TwinModel(mesh_max_edge=2e-3)
+    thin = paper_copy(_campaign(tmp_path / "thin", {"skin_thickness": {"scale": 0.85}}), tmp_path / "biotac2.hdf5")
+    found = diagnose([load_campaign(thin)], model, predictor, top=1)
+    assert found.verdict == "skin_thickness", found.reason
+    assert found.candidates[0].refit_parameters["scale"] == pytest.approx(0.85, abs=0.05)
+    assert not {c.name for c in found.candidates} & set(RAW_ONLY_EFFECTS)
+    null = diagnose([load_campaign(copies[0])], model, predictor, top=1)
+    assert null.verdict == "nothing", null.reason
+    with pytest.raises(ValueError, match="row-only file cannot identify time_delay"):
+        diagnose([load_campaign(copies[0])], model, predictor, candidates=["time_delay", "skin_modulus"])

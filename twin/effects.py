@@ -394,7 +394,8 @@ READING_ORDER = ("ft_saturation",)
 """Order of the F/T electronics' effects on what the gauges carry (bias and noise included). A resolution is not
 an effect: the analysis counts its rounding in the noise (`twin.analysis.readings`)."""
 PDC_ORDER = ("pdc_drift",)
-"""Order of the PDC read-out's effects. A PDC gain is not one: every sensor's PDC gain is a nuisance the residual
+"""Order of the PDC read-out's effects (affine in the counts, so a model applies them to the tared change and the
+taring removes the rest). A PDC gain is not one: every sensor's PDC gain is a nuisance the residual
 profiles out (`twin.analysis.residual.PDC_GAIN_PRIOR`)."""
 
 

@@ -79,7 +79,14 @@ class SensorReadout:
 
         time_s: s since power-on (drift). rng: None for the expected counts, else noise and ADC rounding.
         """
-        return self.electrodes.impedance_counts(self.relative_impedance(displacement), time_s, rng)
+        return self.impedance_counts(self.relative_impedance(displacement), time_s, rng)
+
+    def impedance_counts(
+        self, impedance: np.ndarray, time_s: float = 0.0, rng: np.random.Generator | None = None
+    ) -> np.ndarray:
+        """(19,) raw electrode counts of relative electrode impedances (19,) (`relative_impedance(s)`); time_s and
+        rng as in `electrode_counts`."""
+        return self.electrodes.impedance_counts(impedance, time_s, rng)
 
     def pdc(self, pressure: float, rng: np.random.Generator | None = None) -> float:
         """Raw PDC counts for the fluid gauge pressure (Pa); rng as in `electrode_counts`."""

@@ -128,26 +128,30 @@ def noise_estimate(trajectories: list[TrajectoryRecord]) -> dict[str, float]:
     return noise
 
 
-def rows_noise_estimate(trajectories: list[TrajectoryRecord]) -> dict[str, float]:
-    """Per-channel noise from rows alone, as the full-rate sigma `noise_estimate` gives.
+def rows_noise(trajectories: list[TrajectoryRecord]) -> dict[str, float]:
+    """Per-channel noise of the rows themselves (N for forces, low-passed as the rows are; counts for pdc).
 
     Rows are increment ends a settle pause apart, so their noise is independent from row to row; second
     differences along each press remove a force that changes linearly with depth: rows sigma = 1.4826
-    MAD(second differences) / sqrt(6) (an upper bound where the force curves within three rows). Forces in
-    rows are low-passed: the full-rate sigma is the rows sigma over the filter's noise gain at the
-    trajectories' (stand-in) sample rate.
+    MAD(second differences) / sqrt(6) (an upper bound where the force curves within three rows).
     """
-    from twin.analysis.report.stats import filtered_noise_gain
-
     second: dict[str, list[np.ndarray]] = {c: [] for c in (*FORCE_CHANNELS, "pdc")}
     for t in trajectories:
         for i, c in enumerate(FORCE_CHANNELS):
             second[c].append(np.diff(t.rows["force"][:, i], n=2))
         second["pdc"].append(np.diff(np.asarray(t.rows["pdc"], dtype=float), n=2))
+    return {c: float(_robust_sigma(np.concatenate(parts)) / np.sqrt(6.0)) for c, parts in second.items()}
+
+
+def rows_noise_estimate(trajectories: list[TrajectoryRecord]) -> dict[str, float]:
+    """Per-channel noise from rows alone, as the full-rate sigma `noise_estimate` gives: forces in rows are
+    low-passed, so the full-rate sigma is the rows sigma (`rows_noise`) over the filter's noise gain at the
+    trajectories' (stand-in) sample rate."""
+    from twin.analysis.report.stats import filtered_noise_gain
+
     rates = [t.rate_hz for t in trajectories if len(t.raw.time) > 1]  # a press refused at once has one sample
     gain = filtered_noise_gain(float(np.median(rates)))
-    sigma = {c: _robust_sigma(np.concatenate(parts)) / np.sqrt(6.0) for c, parts in second.items()}
-    return {c: float(v / gain) if c in FORCE_CHANNELS else v for c, v in sigma.items()}
+    return {c: v / gain if c in FORCE_CHANNELS else v for c, v in rows_noise(trajectories).items()}
 
 
 def compare(

@@ -42,12 +42,13 @@ from functools import partial
 import numpy as np
 
 from twin.analysis.data import CampaignData
-from twin.analysis.heldout import generalises, heldout, identifiability, judge_heldout
+from twin.analysis.heldout import generalises, heldout, heldout_folds, identifiability, judge_heldout
 from twin.analysis.lockstep import run_in_lockstep
 from twin.analysis.nuisances import NUISANCE_EFFECTS, fit_nuisances
 from twin.analysis.predict import Predictor, TwinModel
 from twin.analysis.refit import refit
 from twin.analysis.residual import CHANNELS, Residual, base_residual
+from twin.analysis.rows_only import RAW_ONLY_EFFECTS
 from twin.analysis.sensitivity import (
     Linearisation,
     first_models,
@@ -156,7 +157,8 @@ def diagnose(
     sensor x indenter x path kind (`twin.analysis.subset`; not with `nuisances`); the top ones are linearised
     again, refitted and judged held out on every trajectory, and `ranked_on` says which trajectories ranked.
     With `per_stratum`, the whole diagnosis runs on at most that many trajectories of each stratum
-    (`twin.analysis.subset.sampled`), and `sampled` says which."""
+    (`twin.analysis.subset.sampled`), and `sampled` says which. On row-only data (`twin.analysis.rows_only`) the
+    effects those cannot identify (`RAW_ONLY_EFFECTS`) are not candidates (ValueError when asked for)."""
     if top < 0:
         raise ValueError(f"the number of candidates to refit must be >= 0, got {top}")
     if rank_per_stratum is not None and nuisances:
@@ -168,7 +170,12 @@ def diagnose(
     if per_stratum is not None:
         datasets, sampled_on = sampled(datasets, per_stratum)
     predictor = predictor or Predictor()
-    excluded = set(model.effects) | (set(NUISANCE_EFFECTS) if nuisances else set())
+    rows_only = any(t.rows_only for d in datasets for t in d.trajectories)
+    blind = set(RAW_ONLY_EFFECTS) if rows_only else set()
+    if blind & set(candidates or ()):
+        named = sorted(blind & set(candidates or ()))
+        raise ValueError(f"a row-only file cannot identify {', '.join(named)}: {RAW_ONLY_EFFECTS[named[0]]}")
+    excluded = set(model.effects) | (set(NUISANCE_EFFECTS) if nuisances else set()) | blind
     names = candidates if candidates is not None else [k for k in EFFECTS if k not in excluded]
     ranking_sets, ranked_on = sampled(datasets, rank_per_stratum) if rank_per_stratum is not None else (datasets, None)
     if not nuisances:  # the base's replays and the candidates' first linearisations' in one batch (no fit between)
@@ -205,7 +212,7 @@ def diagnose(
             explained_fraction=drop / excess if excess > 0 else 0.0,
             onset=lin.data_start.to_dict() if lin.data_start is not None else None,
         )
-        candidate.heldout_rms = heldout(effect, scored, r, ranking.residual.indenter)[0]
+        candidate.heldout_rms = heldout(effect, scored, r, heldout_folds(ranking.residual))[0]
         ranked.append((candidate, lin))
     # Evidence can be fooled by a flexible effect that fits every indenter its own way: those that
     # also predict left-out indenters to within the tolerance rank ahead of those that do not.

@@ -9,7 +9,7 @@ import numpy as np
 
 from twin.analysis.fit import uncertainty as fit_uncertainty
 from twin.analysis.predict import Predictor, TwinModel
-from twin.analysis.residual import Base
+from twin.analysis.residual import Base, Residual
 from twin.analysis.sensitivity import Linearisation, linear_fit, linearise
 from twin.analysis.significance import NoiseTest, out_of_fold_excess
 from twin.analysis.verdict import Candidate, parameters_at_bound
@@ -25,17 +25,25 @@ def generalises(candidate: Candidate) -> bool:
     return candidate.heldout_rms is None or candidate.heldout_rms <= NOISE_TOLERANCE
 
 
-def heldout(effect: Effect, lin: Linearisation, r: np.ndarray, indenter: np.ndarray) -> tuple[float | None, np.ndarray]:
-    """Leave-one-indenter-out about `lin`: the effect fitted (linearised) on the other indenters predicts
-    each left-out one. (whitened RMS of the left-out residuals, those residuals (N,), NaN where no
-    prediction); (None, r - offset) with fewer than two indenters."""
+def heldout_folds(residual: Residual) -> np.ndarray:
+    """(N,) the fold each residual sample is held out with: its indenter when the residual has two or more, else
+    its trajectory (a campaign of one indenter holds out one press at a time, fitted on the others)."""
+    if len(np.unique(residual.indenter)) >= 2:
+        return residual.indenter
+    return residual.trajectory_index
+
+
+def heldout(effect: Effect, lin: Linearisation, r: np.ndarray, folds: np.ndarray) -> tuple[float | None, np.ndarray]:
+    """Leave-one-fold-out about `lin` (folds (N,): `heldout_folds`): the effect fitted (linearised) on the other
+    folds predicts each left-out one. (whitened RMS of the left-out residuals, those residuals (N,), NaN where no
+    prediction); (None, all NaN) with fewer than two folds: nothing is held out."""
     target = r - lin.offset
-    groups = np.unique(indenter)
+    groups = np.unique(folds)
     if len(groups) < 2:
-        return None, target
+        return None, np.full_like(target, np.nan)
     left_out = np.full_like(target, np.nan)
     for g in groups:
-        train, test = indenter != g, indenter == g
+        train, test = folds != g, folds == g
         delta = linear_fit(effect, lin.point, lin.jac[train], target[train])
         left_out[test] = target[test] - lin.jac[test] @ delta
     return whitened_rms(left_out), left_out
@@ -51,8 +59,9 @@ def judge_heldout(candidate: Candidate, model: TwinModel, predictor: Predictor, 
     effect = EFFECTS[candidate.name]
     about = base.about(predictor, model.with_effects({candidate.name: candidate.refit_parameters}))
     at_fit = linearise(effect, model, candidate.refit_parameters, predictor, about)
-    rms, left_out = heldout(effect, at_fit, about.residual.values, about.residual.indenter)
-    out_of_fold = out_of_fold_excess(at_fit.jac, about.residual.indenter)
+    folds = heldout_folds(about.residual)
+    rms, left_out = heldout(effect, at_fit, about.residual.values, folds)
+    out_of_fold = out_of_fold_excess(at_fit.jac, folds)
     record_heldout(
         candidate, rms, left_out, base.residual.values, lambda r: about.noise_test(r, out_of_fold=out_of_fold)
     )
@@ -69,7 +78,11 @@ def record_heldout(
     """Set the candidate's held-out figures: `rms` and the held-out residual `left_out` (N,; NaN where
     there is no prediction), whether `test` (the held-out noise test) passes it, the RMS the test allows,
     and the power rule (`twin.analysis.verdict`): the whitened RMS of `base_residual` (N,, the residual
-    without the effect) on the same samples and whether the same test rejects it."""
+    without the effect) on the same samples and whether the same test rejects it. With nothing held out
+    (`rms` None: a single fold) the candidate is left unjudged (`heldout_is_noise` None: never named)."""
+    if rms is None:
+        candidate.heldout_rms, candidate.heldout_is_noise, candidate.heldout_has_power = None, None, False
+        return
     held = test(left_out)
     without = np.where(np.isfinite(left_out), base_residual, np.nan)
     candidate.heldout_rms = rms

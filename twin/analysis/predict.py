@@ -368,7 +368,9 @@ class Predictor:
         wrench = measure_wrench(times, clean_at, model.effects)
         if has_reading_effects(model.effects):  # the F/T electronics see the bias: the measured first sample
             wrench = read_out(wrench + (raw.wrench[0] - wrench[0]), model.effects)  # less the load there
-        pdc = read_pdc(times, raw.pdc[0] + replay.pdc_change[sample_event], model.effects)
+        read = read_pdc(times, replay.pdc_change[sample_event], model.effects)  # affine: taring drops the offset
+        pdc_change = read - read[0]
+        pdc = raw.pdc[0] + pdc_change
         predicted = Recording(
             time=times,
             joints=raw.joints,
@@ -390,7 +392,6 @@ class Predictor:
         )
         tared = (wrench[:, :3] - wrench[0, :3]) @ trajectory.sensor_in_biotac[:3, :3].T
         last = np.r_[np.flatnonzero(np.diff(replay.path_index)), len(replay.path_index) - 1]  # per path index
-        pdc_change = pdc - pdc[0]
         return Prediction(replay.force[last], replay.pressure[last], replay.converged[last], tared, pdc_change, rows)
 
 

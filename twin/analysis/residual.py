@@ -1,6 +1,7 @@
 """The whitened full-rate residual that diagnosis, the nuisance stage and the noise test work on.
 
-Four full-rate channels of every sample where the model converged: the tared force (N, biotac frame;
+Four full-rate channels of every sample where the model converged (of a file read from rows only, of its rows
+alone, `residual_samples`): the tared force (N, biotac frame;
 x, y, z) and the tared PDC (counts), each measured minus predicted, whitened by the noise estimated from
 the data itself, with each trajectory's constant offset projected out (the tare sample carries one noise
 draw the model cannot know; this is also where a real F/T sensor's bias goes). A real sensor's PDC gain is
@@ -20,10 +21,11 @@ from dataclasses import dataclass, replace
 import numpy as np
 
 from assets.indenters import get_indenter
-from twin.analysis.compare import FORCE_CHANNELS, noise_estimate, time_in_increment
+from twin.analysis.compare import FORCE_CHANNELS, noise_estimate, rows_noise, time_in_increment
 from twin.analysis.data import CampaignData, TrajectoryRecord
-from twin.analysis.predict import Predictor, TwinModel, measured_force_fullrate, measured_pdc_fullrate
+from twin.analysis.predict import Predictor, TwinModel, filtered, measured_force_fullrate, measured_pdc_fullrate
 from twin.analysis.significance import NO_FIT, NoiseTest, OutOfFold, noise_test
+from twin.processing import increment_ends
 
 CHANNELS = (*FORCE_CHANNELS, "pdc")
 """Residual channels, in the order of the last axis of every signal array."""
@@ -53,14 +55,16 @@ class Residual:
 def fullrate_prediction(
     predictor: Predictor, model: TwinModel, trajectories: list[TrajectoryRecord], model_for: ModelFor = same_model
 ) -> list[np.ndarray]:
-    """Per trajectory (T, 4): predicted tared force x, y, z (N) and PDC (counts), each trajectory by
-    model_for(model, trajectory); the missing replays solved as one batch first (`Predictor.prefetch_many`)."""
+    """Per trajectory (T, 4): predicted tared force x, y, z (N; low-passed like the rows for a trajectory read
+    from rows only) and PDC (counts), each trajectory by model_for(model, trajectory); the missing replays
+    solved as one batch first (`Predictor.prefetch_many`)."""
     models = [model_for(model, t) for t in trajectories]
     predictor.prefetch_many(model_requests([model], trajectories, model_for))
     out = []
     for m, t in zip(models, trajectories, strict=True):
         p = predictor.predict(m, t)
-        out.append(np.column_stack([p.force_fullrate, p.pdc_fullrate]))
+        force = filtered(p.force_fullrate, t.rate_hz) if t.rows_only else p.force_fullrate  # rows are low-passed
+        out.append(np.column_stack([force, p.pdc_fullrate]))
     return out
 
 
@@ -117,6 +121,17 @@ class GainNuisance:
         return out
 
 
+def residual_samples(trajectory: TrajectoryRecord) -> np.ndarray:
+    """(T,) bool: the samples of a trajectory's recording the residual uses: every one, or, for a trajectory read
+    from rows only, its rows (each increment's last sample: the rest of its stand-in recording holds the row and
+    carries no noise of its own, so counting it would pass copies of one row for independent samples)."""
+    if not trajectory.rows_only:
+        return np.ones(len(trajectory.raw.time), dtype=bool)
+    rows = np.zeros(len(trajectory.raw.time), dtype=bool)
+    rows[increment_ends(trajectory.raw.increment)] = True
+    return rows
+
+
 def build_residual(
     trajectories: list[TrajectoryRecord], predicted: list[np.ndarray], sigma: np.ndarray
 ) -> tuple[Residual, list[np.ndarray]]:
@@ -138,7 +153,7 @@ def build_residual(
     cov: dict[str, list] = {k: [] for k in names}
     k = len(CHANNELS)
     for i, (t, p) in enumerate(zip(trajectories, predicted, strict=True)):
-        valid = np.isfinite(p).all(axis=1)
+        valid = np.isfinite(p).all(axis=1) & residual_samples(t)
         masks.append(valid)
         r = (measured(t) - p)[valid] / sigma
         r = r - r.mean(axis=0)
@@ -282,8 +297,11 @@ def base_residual(
 
 
 def noise_sigma(trajectories: list[TrajectoryRecord]) -> np.ndarray:
-    """(4,) noise sigma of force x, y, z (N) and PDC (counts) from successive differences, never below the
-    rounding noise of integer PDC counts."""
-    noise = noise_estimate(trajectories)
+    """(4,) noise sigma of force x, y, z (N) and PDC (counts) of the residual's samples, never below the rounding
+    noise of integer PDC counts: from successive differences (`noise_estimate`), or, when every trajectory is
+    read from rows only (whose rows alone are residual samples, `residual_samples`), the rows' own
+    (`rows_noise`: their forces low-passed)."""
+    rows_only = all(t.rows_only for t in trajectories)
+    noise = rows_noise(trajectories) if rows_only else noise_estimate(trajectories)
     quantum = 1.0 / np.sqrt(12.0)
     return np.array([max(noise[c], 1e-9) for c in FORCE_CHANNELS] + [max(noise["pdc"], quantum)])

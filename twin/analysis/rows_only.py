@@ -53,8 +53,9 @@ RAW_ONLY_EFFECTS = {
     "time_delay": "the F/T and joint streams' relative timing is not in the rows",
     "ft_drift": "the tare sample and the full-rate time base are not in the rows",
     "skin_relaxation": "the settle pauses are not recorded, only their last samples",
+    "ft_saturation": "the untared F/T readings, whose bias a range clips too, are not in the rows",
 }
-"""Library effects a row-only file cannot identify, and why."""
+"""Library effects a row-only file cannot identify, and why (`twin diagnose` does not try them on such files)."""
 
 
 def is_rows_only(f: h5py.File) -> bool:

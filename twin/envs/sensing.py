@@ -52,7 +52,7 @@ class TactileReadout:
         `SensorReadout.relative_impedances`)."""
         if impedance is None:
             impedance = self.sensor.relative_impedance(displacement)
-        electrodes = self.sensor.electrodes.impedance_counts(impedance, 0.0, rng)
+        electrodes = self.sensor.impedance_counts(impedance, 0.0, rng)
         pdc = self.sensor.pdc(pressure, rng)
         noisy_force = np.asarray(force, dtype=float) + self.force_noise_n * rng.standard_normal(3)
         return Reading(electrodes, pdc, noisy_force)
