@@ -14,7 +14,7 @@ import pytest
 from scipy.stats import chi2, norm
 
 from twin.analysis.diagnose import Diagnosis, diagnose
-from twin.analysis.heldout import heldout, record_heldout, whitened_rms
+from twin.analysis.heldout import heldout, heldout_folds, record_heldout, whitened_rms
 from twin.analysis.predict import TwinModel
 from twin.analysis.residual import Base, GainNuisance, Residual
 from twin.analysis.sensitivity import Linearisation
@@ -356,3 +356,33 @@ def test_the_pdc_gain_is_profiled_about_the_judged_model() -> None:
     assert not about_base.is_noise, ("profiled about the base's PDC, 3 % of the pressure change is left", about_base)
     assert about_judged.is_noise, about_judged
     assert all(test.is_noise for test in _gain_case(0.0, 300.0)), "with an exact read-out gain both ways agree"
+
+
+def test_one_indenter_is_held_out_press_by_press_and_one_press_holds_nothing_out() -> None:
+    """A campaign of one indenter holds out one trajectory at a time (fitted on the others); with a single
+    trajectory nothing is held out, the candidate is left unjudged and not named, and the verdict says why."""
+    rng = np.random.default_rng(3)
+    n = 400
+    jac = rng.standard_normal(n)
+    target = 0.3 * jac + rng.standard_normal(n)  # an effect of 0.3 in unit noise, the same on both presses
+    lin = Linearisation({"scale": 1.0}, np.zeros(n), jac[:, None])
+    covariates = {"axis": np.zeros(n, dtype=int), "sensor": np.zeros(n, dtype=int)}
+    one_indenter = Residual(
+        target, np.repeat([0, 1], n // 2), np.full(n, "sphere_medium", dtype=object), covariates, np.ones(4)
+    )
+    folds = heldout_folds(one_indenter)
+    np.testing.assert_array_equal(folds, one_indenter.trajectory_index)
+    rms, left_out = heldout(EFFECTS["skin_modulus"], lin, target, folds)
+    for press in (0, 1):  # each press predicted by the fit on the other, by hand
+        train, test = folds != press, folds == press
+        slope = float(jac[train] @ target[train] / (jac[train] @ jac[train]))
+        np.testing.assert_allclose(left_out[test], target[test] - slope * jac[test], rtol=1e-12)
+    assert rms == pytest.approx(whitened_rms(left_out))
+    one_press = replace(one_indenter, trajectory_index=np.zeros(n, dtype=int))
+    rms, left_out = heldout(EFFECTS["skin_modulus"], lin, target, heldout_folds(one_press))
+    assert rms is None and np.isnan(left_out).all()
+    candidate = Candidate("skin_modulus", "physics", {}, 900.0, 900.0, 0.9, refit_rms=0.99, refit_parameters={})
+    record_heldout(candidate, rms, left_out, target, lambda r: pytest.fail("nothing is held out to test"))
+    assert candidate.heldout_is_noise is None and not candidate.supported_heldout
+    outcome, reason, _ = verdict(1.4, False, 1.02, order_candidates([candidate]))
+    assert outcome == "unexplained" and "nothing can be held out" in reason

@@ -81,7 +81,7 @@ def record_heldout(
     without the effect) on the same samples and whether the same test rejects it. With nothing held out
     (`rms` None: a single fold) the candidate is left unjudged (`heldout_is_noise` None: never named)."""
     if rms is None:
-        candidate.heldout_rms, candidate.heldout_is_noise, candidate.heldout_has_power = None, None, False
+        candidate.heldout_rms, candidate.heldout_is_noise, candidate.heldout_has_power = None, None, None
         return
     held = test(left_out)
     without = np.where(np.isfinite(left_out), base_residual, np.nan)

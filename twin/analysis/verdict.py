@@ -156,6 +156,8 @@ def verdict(
         closest = sorted((c for c in candidates if c.refitted), key=lambda c: c.heldout_rms or float("inf"))
         shown = "; ".join(_figures(c) for c in closest[:CLOSEST_SHOWN]) or "none refitted"
         why = ["no refitted candidate brings the held-out residual to the noise"]
+        if closest and all(c.heldout_rms is None for c in closest):
+            why = ["nothing can be held out (one trajectory of one indenter), so no effect is named"]
         if any(c.heldout_is_noise and c.heldout_has_power is False for c in closest):
             why.append("with a held-out test that can tell it from no effect")
         if any(c.supported_heldout and not c.identifiable for c in closest):
