@@ -14,7 +14,7 @@ The PDC rows are the raw PDC at the same samples, untared.
 from __future__ import annotations
 
 import shutil
-from collections.abc import Callable
+from collections.abc import Callable, Iterator
 from pathlib import Path
 
 import h5py
@@ -35,8 +35,22 @@ def _rows_force(
     rate = 1.0 / np.median(np.diff(time))
     b, a = butter(1, CUTOFF_HZ / (0.5 * rate))
     smooth = filtfilt(b, a, force, axis=0) if len(force) > 3 * max(len(a), len(b)) else force
+    return smooth[_row_samples(increment)]
+
+
+def _row_samples(increment: np.ndarray) -> np.ndarray:
+    """The samples rows are taken at: the last of each increment >= 0 (the standoff, -1, has none)."""
     last = np.flatnonzero(np.diff(increment, append=increment[-1] + 1) != 0)
-    return smooth[last[increment[last] >= 0]]
+    return last[increment[last] >= 0]
+
+
+def _trajectories(f: h5py.File) -> Iterator[tuple[int, h5py.Group, slice, np.ndarray]]:
+    """Each trajectory of an open campaign file: its id, raw group, rows (a slice of the row datasets) and
+    sensor_in_biotac (4x4)."""
+    meta = f["trajectories"]
+    for i, tid in enumerate(meta["trajectory_id"][()]):
+        first, n = int(meta["first_row"][i]), int(meta["n_rows"][i])
+        yield int(tid), f[f"raw/{int(tid)}"], slice(first, first + n), meta["sensor_in_biotac"][i]
 
 
 def apply_ft_map(source: Path, out: Path, mapping: np.ndarray) -> Path:
@@ -92,20 +106,15 @@ def apply_pdc_map(source: Path, out: Path, gain: float, rate: float) -> Path:
     replaced by gain * p + rate * t, and the PDC rows (the raw PDC at each increment's last sample) taken again."""
     shutil.copyfile(source, out)
     with h5py.File(out, "r+") as f:
-        meta = f["trajectories"]
         rows = f["pdc/data"]
         values = rows[()]
-        for i, tid in enumerate(meta["trajectory_id"][()]):
-            raw = f[f"raw/{int(tid)}"]
-            time, increment = raw["time"][()], raw["increment"][()]
-            first, n = int(meta["first_row"][i]), int(meta["n_rows"][i])
-            last = np.flatnonzero(np.diff(increment, append=increment[-1] + 1) != 0)
-            last = last[increment[last] >= 0]
-            if not np.array_equal(raw["pdc"][()][last], values[first : first + n]):
+        for tid, raw, taken, _ in _trajectories(f):
+            last = _row_samples(raw["increment"][()])
+            if not np.array_equal(raw["pdc"][()][last], values[taken]):
                 raise RuntimeError(f"trajectory {tid}: the PDC rows are not the raw PDC at the increment ends")
-            pdc = gain * raw["pdc"][()] + rate * time
+            pdc = gain * raw["pdc"][()] + rate * raw["time"][()]
             raw["pdc"][...] = pdc
-            values[first : first + n] = pdc[last]
+            values[taken] = pdc[last]
         rows[...] = values
     return out
 
@@ -115,19 +124,15 @@ def _apply(source: Path, out: Path, change: Callable[[np.ndarray], np.ndarray]) 
     its force rows; raises when the recomputation does not reproduce the source rows first."""
     shutil.copyfile(source, out)
     with h5py.File(out, "r+") as f:
-        meta = f["trajectories"]
         rows = f["force/data"]
         forces = rows[()]
-        for i, tid in enumerate(meta["trajectory_id"][()]):
-            raw = f[f"raw/{int(tid)}"]
+        for tid, raw, taken, rotation in _trajectories(f):
             time, wrench, increment = raw["time"][()], raw["wrench"][()], raw["increment"][()]
-            rotation = meta["sensor_in_biotac"][i]
-            first, n = int(meta["first_row"][i]), int(meta["n_rows"][i])
             again = _rows_force(time, wrench, increment, rotation)
-            if again.shape != (n, 3) or np.abs(again - forces[first : first + n]).max() > ROWS_AGREE_N:
+            if again.shape != forces[taken].shape or np.abs(again - forces[taken]).max() > ROWS_AGREE_N:
                 raise RuntimeError(f"trajectory {tid}: the recomputed rows do not match the file's")
             wrench = change(wrench)
             raw["wrench"][...] = wrench
-            forces[first : first + n] = _rows_force(time, wrench, increment, rotation)
+            forces[taken] = _rows_force(time, wrench, increment, rotation)
         rows[...] = forces
     return out
