@@ -10,7 +10,14 @@ would leave, in expectation, a residual within the noise test's threshold (`_sig
 noise test can see on these data: the loop rightly says "nothing", and such a case is counted apart, not
 as a miss.
 
-    python benchmarks/diagnose_bench.py [--seeds 5,6,7] [--effects a,b|all] [--out runs/diagnose_bench] [--json FILE]
+With `--generated`, each seed's null campaign (the `none` case's) is also changed by the independent generator
+(tests/effect_generator.py: code apart from the plant, the effect library and the analysis) with sizes drawn from
+the seed: an F/T gain on z only (expected `ft_calibration`), a stream delay of whole samples (`time_delay`), the
+axis that moves most clipped between its rest and peak readings (`ft_saturation`), a PDC drift (`pdc_drift`) and a
+quantised F/T reading (expected "nothing"); each is diagnosed (one refit) and counted apart.
+
+    python benchmarks/diagnose_bench.py [--seeds 5,6,7] [--effects a,b|all|""] [--generated] [--out runs/diagnose_bench]
+        [--json FILE]
 
 The default (three seeds, three effects) takes minutes on two cores; `--effects all` the whole library.
 """
@@ -19,19 +26,26 @@ from __future__ import annotations
 
 import argparse
 import json
+import sys
 import time
 from dataclasses import replace
+from functools import partial
 from pathlib import Path
 
+import h5py
 import numpy as np
 
 from twin.analysis.data import load_campaign
+from twin.analysis.diagnose import diagnose
 from twin.analysis.predict import Predictor, TwinModel
 from twin.analysis.residual import base_residual
 from twin.campaign import QUICK_CONFIG
 from twin.demo import LoopResult, run_loop
 from twin.effects import EFFECTS, UNLISTED_EFFECTS
 from twin.hidden import read_sealed_manifest
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "tests"))
+import effect_generator  # noqa: E402  (the independent generator lives with the tests)
 
 CONFIG = replace(QUICK_CONFIG, sensors=(2,), indenters=("sphere_small", "cylinder_long"))
 NONE = "none"
@@ -89,6 +103,69 @@ def _case(out: Path, hidden: str, seed: int, predictor: Predictor) -> dict:
     }
 
 
+GENERATED = {
+    "gen_ft_z_gain": "ft_calibration",
+    "gen_ft_delay": "time_delay",
+    "gen_ft_clip": "ft_saturation",
+    "gen_pdc_drift": "pdc_drift",
+    "gen_quantised_null": "nothing",
+}
+"""The independent generator's cases (`--generated`) and the verdict each must give."""
+
+
+def _generated(name: str, null: Path, out: Path, rng: np.random.Generator) -> tuple[Path, dict]:
+    """The seed's null campaign with the generated effect `name` (sizes from `rng`) applied by
+    tests/effect_generator.py, code apart from the plant and the analysis; (its file, the sizes)."""
+    if name == "gen_ft_z_gain":
+        gain = float(rng.choice([-1.0, 1.0]) * rng.uniform(0.08, 0.15) + 1.0)
+        return effect_generator.apply_ft_map(null, out, np.diag([1.0, 1.0, gain])), {"zz": gain}
+    if name == "gen_ft_delay":
+        samples = int(rng.integers(4, 12))
+        return effect_generator.apply_ft_delay(null, out, samples), {"samples": samples}
+    if name == "gen_ft_clip":
+        with h5py.File(null, "r") as f:
+            readings = np.concatenate([f[f"raw/{k}/wrench"][()][:, :3] for k in f["raw"]])
+        rest, peak = np.abs(readings[0]), np.abs(readings).max(axis=0)
+        axis = int(np.argmax(peak - rest))
+        limits = np.full(3, 1e3)
+        limits[axis] = rest[axis] + rng.uniform(0.3, 0.7) * (peak[axis] - rest[axis])
+        return effect_generator.apply_ft_clip(null, out, limits), {"axis": "xyz"[axis], "limit": limits[axis]}
+    if name == "gen_pdc_drift":
+        rate = float(rng.choice([-1.0, 1.0]) * rng.uniform(0.2, 0.5))
+        return effect_generator.apply_pdc_map(null, out, 1.0, rate), {"rate": rate}
+    step = float(rng.uniform(0.02, 0.04))
+    return effect_generator.apply_ft_quantise(null, out, step), {"step": step}
+
+
+def _generated_case(out: Path, name: str, seed: int, predictor: Predictor) -> dict:
+    """Diagnose the seed's null campaign (the `none` case's, run first when missing) with a generated effect."""
+    null = out / f"seed{seed}_{NONE}" / "campaign" / f"biotac{CONFIG.sensors[0]}.hdf5"
+    if not null.exists():
+        _case(out, NONE, seed, predictor)
+    start = time.perf_counter()
+    rng = np.random.default_rng(np.random.SeedSequence([seed, sum(map(ord, name))]))
+    path, sizes = _generated(name, null, out / f"seed{seed}_{name}.hdf5", rng)
+    data = load_campaign(path)
+    diagnosis = diagnose([data], TwinModel(mesh_max_edge=data.mesh_max_edge), predictor, top=1)
+    first = diagnosis.candidates[0]
+    added = first.name if diagnosis.verdict == "ambiguous" else diagnosis.verdict
+    return {
+        "seed": seed,
+        "hidden": name,
+        "sizes": sizes,
+        "added": added,
+        "verdict": diagnosis.verdict,
+        "rank_of_hidden": None,
+        "fitted": first.refit_parameters if added == first.name else None,
+        "rms_before": diagnosis.base_rms,
+        "noise_rms_threshold": diagnosis.rms_threshold,
+        "rms_after": first.refit_rms if added == first.name else None,
+        "heldout_rms": first.heldout_rms if added == first.name else None,
+        "seconds": {"total": time.perf_counter() - start},
+        "reason": diagnosis.reason,
+    }
+
+
 def _print(cases: list[dict], effects: list[str]) -> None:
     header = ("seed", "hidden", "rank", "verdict", "added", "before", "after", "held", "s")
     print(f"{header[0]:>4} {header[1]:20} {header[2]:>4} {header[3]:20} {header[4]:20}", end="")
@@ -119,12 +196,16 @@ def _print(cases: list[dict], effects: list[str]) -> None:
     print(f"in-library top-1: {sum(map(_correct, library))}/{len(library)}; ", end="")
     print(f"on effects the noise test can see: {sum(map(_correct, seen))}/{len(seen)}; ", end="")
     print(f"below the noise test: {', '.join(unseen) or 'none'}")
+    generated = [c for c in cases if c["hidden"] in GENERATED]
+    if generated:
+        print(f"generated by tests/effect_generator.py: {sum(map(_correct, generated))}/{len(generated)}")
 
 
 def _correct(case: dict) -> bool:
     """The loop added the hidden effect, claimed nothing on none, or called an unlisted one unexplained."""
     return (
         case["added"] == case["hidden"]
+        or case["added"] == GENERATED.get(case["hidden"])
         or (case["hidden"] == NONE and case["added"] == "nothing")
         or (case["hidden"] in UNLISTED_EFFECTS and case["added"] == "unexplained")
     )
@@ -138,20 +219,28 @@ def main() -> None:
     )
     parser.add_argument("--out", type=Path, default=Path("runs/diagnose_bench"))
     parser.add_argument("--json", type=Path, default=None, help="write every case here")
+    parser.add_argument(
+        "--generated",
+        action="store_true",
+        help="also each seed's null campaign with effects applied by tests/effect_generator.py (GENERATED)",
+    )
     args = parser.parse_args()
-    effects = [*sorted(EFFECTS), NONE, *sorted(UNLISTED_EFFECTS)] if args.effects == "all" else args.effects.split(",")
+    every = [*sorted(EFFECTS), NONE, *sorted(UNLISTED_EFFECTS)]
+    effects = every if args.effects == "all" else [e for e in args.effects.split(",") if e]
     unknown = set(effects) - set(EFFECTS) - set(UNLISTED_EFFECTS) - {NONE}
     if unknown:
         parser.error(f"unknown effects {sorted(unknown)}")
     cases = []
     for seed in (int(s) for s in args.seeds.split(",")):
         predictor = Predictor()  # same seed, same points: fe replays are shared between its cases
-        for hidden in effects:
-            cases.append(_case(args.out, hidden, seed, predictor))
+        generated = [partial(_generated_case, args.out, name, seed, predictor) for name in GENERATED]
+        plant = [partial(_case, args.out, hidden, seed, predictor) for hidden in effects]
+        for case in plant + (generated if args.generated else []):
+            cases.append(case())
             print(json.dumps(cases[-1]), flush=True)
             if args.json:
                 args.json.write_text(json.dumps(cases, indent=2))
-    _print(cases, effects)
+    _print(cases, effects + (list(GENERATED) if args.generated else []))
 
 
 if __name__ == "__main__":
