@@ -181,3 +181,25 @@ def test_a_pdc_drift_is_named_with_its_rate(null_loop: LoopResult, predictor: Pr
     diagnosis = diagnose([data], TwinModel(mesh_max_edge=data.mesh_max_edge), predictor, top=1)
     assert diagnosis.verdict == "pdc_drift", diagnosis.reason
     assert diagnosis.candidates[0].refit_parameters["rate"] == pytest.approx(-0.3, abs=0.03)
+
+
+def test_two_generated_effects_are_found_in_turn(null_loop: LoopResult, predictor: Predictor, tmp_path: Path) -> None:
+    """An F/T gain of 0.88 on z and a PDC drift of 0.3 counts/s, applied by the independent generator: neither
+    alone brings the held-out residual to the noise, so the first diagnosis is "unexplained" with the F/T map
+    closest; added (`fit_effect`, as `twin improve` does), the next diagnosis names the drift, and with both the
+    residual is noise."""
+    gained = apply_ft_map(null_loop.dataset, tmp_path / "gain.hdf5", np.diag([1.0, 1.0, 0.88]))
+    data = load_campaign(apply_pdc_map(gained, tmp_path / "both.hdf5", 1.0, 0.3))
+    model = TwinModel(mesh_max_edge=data.mesh_max_edge)
+    first = diagnose([data], model, predictor, top=1)
+    assert first.verdict == "unexplained" and first.candidates[0].name == "ft_calibration", first.reason
+    gain = fit_effect([data], model, "ft_calibration", predictor)
+    assert gain.values["zz"] == pytest.approx(0.88, abs=0.01)
+    second = diagnose([data], gain.model, predictor, top=1)
+    assert second.verdict == "pdc_drift", second.reason
+    drift = fit_effect([data], gain.model, "pdc_drift", predictor)
+    assert drift.values["rate"] == pytest.approx(0.3, abs=0.03) and set(drift.model.effects) == {
+        "ft_calibration",
+        "pdc_drift",
+    }
+    assert diagnose([data], drift.model, predictor, top=1).verdict == "nothing"
