@@ -1,5 +1,5 @@
-"""An independent generator of measurement effects (an F/T calibration map, a stream delay, a clipped range, a
-quantised resolution; a PDC gain and drift): applied to a campaign file's raw F/T and PDC streams.
+"""An independent generator of measurement effects (an F/T calibration map, a drift, a stream delay, a clipped
+range, a quantised resolution; a PDC gain and drift): applied to a campaign file's raw F/T and PDC streams.
 
 Written apart from `twin.plant`, `twin.effects` and `twin.analysis` (it imports none of them): it reads
 the file with h5py, changes each trajectory's full-rate F/T force reading (`raw/<id>/wrench`, sensor
@@ -59,7 +59,7 @@ def apply_ft_map(source: Path, out: Path, mapping: np.ndarray) -> Path:
     and its force rows recomputed. Raises when the recomputation does not reproduce the source rows."""
     mapping = np.asarray(mapping, dtype=float)
 
-    def change(wrench: np.ndarray) -> np.ndarray:
+    def change(wrench: np.ndarray, time: np.ndarray) -> np.ndarray:
         wrench[:, :3] = wrench[:, :3] @ mapping.T
         return wrench
 
@@ -71,8 +71,21 @@ def apply_ft_delay(source: Path, out: Path, samples: int) -> Path:
     streams by `samples` whole samples (the first reading held until then, as a stream that starts late
     reads) and its force rows recomputed."""
 
-    def change(wrench: np.ndarray) -> np.ndarray:
+    def change(wrench: np.ndarray, time: np.ndarray) -> np.ndarray:
         return np.concatenate([np.repeat(wrench[:1], samples, axis=0), wrench[: len(wrench) - samples]])
+
+    return _apply(source, out, change)
+
+
+def apply_ft_drift(source: Path, out: Path, rates: np.ndarray) -> Path:
+    """Copy `source` to `out` with every trajectory's F/T force reading drifting by `rates` (3,) N/s per sensor axis
+    on the file's clock (a bias that creeps; taring removes its value at the first sample) and its force rows
+    recomputed."""
+    rates = np.asarray(rates, dtype=float)
+
+    def change(wrench: np.ndarray, time: np.ndarray) -> np.ndarray:
+        wrench[:, :3] += np.outer(time, rates)
+        return wrench
 
     return _apply(source, out, change)
 
@@ -83,7 +96,7 @@ def apply_ft_clip(source: Path, out: Path, limits: np.ndarray) -> Path:
     rows recomputed."""
     limits = np.asarray(limits, dtype=float)
 
-    def change(wrench: np.ndarray) -> np.ndarray:
+    def change(wrench: np.ndarray, time: np.ndarray) -> np.ndarray:
         wrench[:, :3] = np.minimum(np.maximum(wrench[:, :3], -limits), limits)
         return wrench
 
@@ -94,7 +107,7 @@ def apply_ft_quantise(source: Path, out: Path, step: float) -> Path:
     """Copy `source` to `out` with every trajectory's F/T force reading rounded to whole multiples of `step` (N)
     (the reading as recorded) and its force rows recomputed."""
 
-    def change(wrench: np.ndarray) -> np.ndarray:
+    def change(wrench: np.ndarray, time: np.ndarray) -> np.ndarray:
         wrench[:, :3] = step * np.floor(wrench[:, :3] / step + 0.5)
         return wrench
 
@@ -119,8 +132,8 @@ def apply_pdc_map(source: Path, out: Path, gain: float, rate: float) -> Path:
     return out
 
 
-def _apply(source: Path, out: Path, change: Callable[[np.ndarray], np.ndarray]) -> Path:
-    """Copy `source` to `out`, replace each trajectory's raw wrench (T, 6) by change(wrench) and recompute
+def _apply(source: Path, out: Path, change: Callable[[np.ndarray, np.ndarray], np.ndarray]) -> Path:
+    """Copy `source` to `out`, replace each trajectory's raw wrench (T, 6) by change(wrench, time (T,) s) and recompute
     its force rows; raises when the recomputation does not reproduce the source rows first."""
     shutil.copyfile(source, out)
     with h5py.File(out, "r+") as f:
@@ -131,7 +144,7 @@ def _apply(source: Path, out: Path, change: Callable[[np.ndarray], np.ndarray]) 
             again = _rows_force(time, wrench, increment, rotation)
             if again.shape != forces[taken].shape or np.abs(again - forces[taken]).max() > ROWS_AGREE_N:
                 raise RuntimeError(f"trajectory {tid}: the recomputed rows do not match the file's")
-            wrench = change(wrench)
+            wrench = change(wrench, time)
             raw["wrench"][...] = wrench
             forces[taken] = _rows_force(time, wrench, increment, rotation)
         rows[...] = forces

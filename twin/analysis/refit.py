@@ -1,10 +1,11 @@
 """Refitting one effect to the data (damped Gauss-Newton through `twin.analysis.fit`, re-predicted nonlinearly),
-and `fit_effect`, what `twin improve` runs: one effect fitted and judged held out."""
+and `fit_effect`: one effect fitted and judged held out; `fit_jointly`, what `twin improve` runs: one added, then
+every effect of the model refitted in turn."""
 
 from __future__ import annotations
 
 from collections.abc import Callable
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from itertools import product
 
 import numpy as np
@@ -177,3 +178,31 @@ def fit_effect(
         candidate.heldout_base_rms,
         candidate.heldout_has_power,
     )
+
+
+JOINT_SWEEPS = 1
+"""Sweeps of `fit_jointly` over the model's effects after one is added."""
+
+
+def fit_jointly(
+    datasets: list[CampaignData],
+    model: TwinModel,
+    name: str,
+    predictor: Predictor | None = None,
+    sweeps: int = JOINT_SWEEPS,
+) -> EffectFit:
+    """Add effect `name` (`fit_effect`), then refit every effect of the model in turn, the others fixed at their
+    latest values (the earlier ones first, `name` last), `sweeps` times: a coordinate descent by which an earlier
+    effect's fit, biased by the one missing then, is corrected once that one is in. The fit returned is `name`'s last,
+    on the model with every effect refitted (`EffectFit.model`), with the RMS before the first; without earlier
+    effects it is `fit_effect`'s."""
+    predictor = predictor or Predictor()
+    first = fit_effect(datasets, model, name, predictor)
+    earlier = [other for other in model.effects if other != name]
+    if not earlier:
+        return first
+    last = first
+    for _ in range(sweeps):
+        for other in [*earlier, name]:
+            last = fit_effect(datasets, last.model, other, predictor)
+    return replace(last, rms_before=first.rms_before)

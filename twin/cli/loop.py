@@ -176,22 +176,25 @@ def improve(
         bool, typer.Option("--json", help="Print the history entry as JSON (strict: NaN as null) instead of tables.")
     ] = False,
 ) -> None:
-    """Fit an effect's parameters, show the error before and after, save the model in the history (beside
-    the model or the dataset unless --history names one)."""
+    """Fit an effect's parameters, then refit every effect of the model in turn with it (`fit_jointly`: an earlier
+    fit biased by the effect that was missing is corrected), show the error before and after, save the model in the
+    history (beside the model or the dataset unless --history names one)."""
     from twin.analysis.diagnose import strict_json
     from twin.analysis.history import append_entry, history_beside
-    from twin.analysis.refit import fit_effect
+    from twin.analysis.refit import fit_jointly
 
     predictor = analysis_predictor(device)
     data, twin_model = _inputs(datasets, model)
     history = history if history is not None else history_beside(datasets, model)
     with replay_progress(predictor):
-        fit = guarded(lambda: fit_effect(data, twin_model, add, predictor))
+        fit = guarded(lambda: fit_jointly(data, twin_model, add, predictor))
+    refitted = {name: values for name, values in fit.model.effects.items() if name != add}
     entry = append_entry(
         history,
         {
             "model": fit.model.to_dict(),
             "added": {"effect": add, "values": fit.values},
+            "refitted": refitted,
             "datasets": [{"path": str(d.path), "sha256_16": d.digest} for d in data],
             "rms_before": fit.rms_before,
             "rms_after": fit.rms_after,
@@ -209,6 +212,10 @@ def improve(
         print(json.dumps(strict_json(entry), allow_nan=False))
     else:
         _print_fit(fit, add)
+        for name, values in refitted.items():
+            was = twin_model.effects[name]
+            shown = ", ".join(f"{k}={v:.5g} (was {was.get(k, v):.5g})" for k, v in values.items() if v != was.get(k, v))
+            out_console.print(f"refitted with it: {name}: {shown or 'unchanged'}")
     (err_console if as_json else out_console).print(f"saved as step {entry['step']} in {history}")
 
 
