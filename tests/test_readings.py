@@ -5,7 +5,7 @@ continuous noisy ones; the saturation effect itself clips the reading, bias incl
 import numpy as np
 import pytest
 
-from twin.analysis.readings import PLATEAU_SAMPLES, Plateaus, lattice_step
+from twin.analysis.readings import PLATEAU_SAMPLES, lattice_step, plateaus, resolution
 from twin.effects import EFFECTS, SATURATION_OFF_N, read_out
 
 
@@ -19,6 +19,8 @@ def _press(rng: np.random.Generator, n: int = 4000) -> np.ndarray:
 def test_a_quantised_reading_gives_its_step(step: float) -> None:
     quantised = step * np.floor(_press(np.random.default_rng(1)) / step + 0.5)
     assert lattice_step(quantised) == pytest.approx(step, rel=1e-9)
+    steps = resolution(np.column_stack([quantised, _press(np.random.default_rng(4)), 2.0 * quantised]))
+    assert steps[0] == pytest.approx(step, rel=1e-9) and np.isnan(steps[1]) and steps[2] == pytest.approx(2 * step)
 
 
 def test_a_continuous_or_sparse_reading_has_no_lattice() -> None:
@@ -33,9 +35,7 @@ def test_a_clipped_axis_shows_a_plateau_and_only_its_samples_are_held() -> None:
         [0.5 + 0.01 * rng.standard_normal(4000), 0.3 + 0.01 * rng.standard_normal(4000), _press(rng)]
     )
     clipped = np.clip(readings, -2.2, 2.2)
-    magnitude = np.abs(clipped)
-    largest = magnitude.max(axis=0)
-    found = Plateaus(largest, (magnitude >= largest - 1e-9).sum(axis=0))
+    found = plateaus(clipped)
     assert found.clipped.tolist() == [False, False, True] and found.largest[2] == 2.2
     assert found.held[2] == (readings[:, 2] <= -2.2).sum() >= PLATEAU_SAMPLES
     assert np.array_equal(found.at_limit(clipped), readings[:, 2] <= -2.2)

@@ -47,7 +47,7 @@ class EffectParameter:
 class Effect:
     """A candidate mechanism. Exactly one of `skin`, `path`, `wrench`, `reading`, `pdc` says how it acts: on the
     skin, the indenter path, the load the F/T gauges carry, the F/T electronics' output (bias and noise
-    included: a range, a resolution) or the PDC read-out."""
+    included: a range) or the PDC read-out."""
 
     name: str
     description: str
@@ -432,13 +432,16 @@ def apply_path(tips: np.ndarray, values: EffectValues) -> np.ndarray:
 
 def measure_wrench(times: np.ndarray, clean: CleanWrench, values: EffectValues) -> np.ndarray:
     """(N, 6) F/T readings at `times` (s) from the clean load `clean`, through the measurement effects."""
-    checked = check_values(values)
     chain = clean
-    for name in MEASUREMENT_ORDER:
-        if name in checked:
-            effect, v = get_effect(name), checked[name]
-            chain = _bind(effect, chain, v)
+    for effect, v in _in_order(MEASUREMENT_ORDER, values):
+        chain = _bind(effect, chain, v)
     return np.asarray(chain(np.asarray(times, dtype=float)))
+
+
+def _in_order(order: tuple[str, ...], values: EffectValues) -> list[tuple[Effect, dict[str, float]]]:
+    """(effect, its checked values) of each effect in `values` that `order` lists, in that order."""
+    checked = check_values(values)
+    return [(get_effect(name), checked[name]) for name in order if name in checked]
 
 
 def _bind(effect: Effect, inner: CleanWrench, v: dict[str, float]) -> CleanWrench:
@@ -448,22 +451,18 @@ def _bind(effect: Effect, inner: CleanWrench, v: dict[str, float]) -> CleanWrenc
 def read_out(reading: np.ndarray, values: EffectValues) -> np.ndarray:
     """(N, 6) F/T output from what the gauges carry (N, 6: the load through `measure_wrench`, plus bias and
     noise; sensor frame) through the electronics' effects (`READING_ORDER`); a copy when there are none."""
-    checked = check_values(values)
     out = np.array(reading, dtype=float)
-    for name in READING_ORDER:
-        if name in checked:
-            out = get_effect(name).reading(out, checked[name])
+    for effect, v in _in_order(READING_ORDER, values):
+        out = effect.reading(out, v)
     return out
 
 
 def read_pdc(times: np.ndarray, pdc: np.ndarray, values: EffectValues) -> np.ndarray:
     """(N,) PDC counts as read out at `times` (s) from the nominal read-out's counts (N,) through the PDC
     effects (`PDC_ORDER`); a copy when there are none."""
-    checked = check_values(values)
     out = np.array(pdc, dtype=float)
-    for name in PDC_ORDER:
-        if name in checked:
-            out = get_effect(name).pdc(np.asarray(times, dtype=float), out, checked[name])
+    for effect, v in _in_order(PDC_ORDER, values):
+        out = effect.pdc(np.asarray(times, dtype=float), out, v)
     return out
 
 

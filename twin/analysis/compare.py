@@ -18,7 +18,7 @@ import numpy as np
 
 from twin.analysis.data import CampaignData, TrajectoryRecord
 from twin.analysis.predict import Prediction, Predictor, TwinModel, measured_force_fullrate
-from twin.analysis.readings import plateaus, resolution
+from twin.analysis.readings import force_readings, plateaus, resolution
 
 FORCE_CHANNELS = ("force_x", "force_y", "force_z")
 PHASES = ("loading", "pause", "unloading")
@@ -107,7 +107,8 @@ def noise_estimate(trajectories: list[TrajectoryRecord]) -> dict[str, float]:
     recorded = [t for t in trajectories if not t.rows_only]
     if not recorded:
         return rows_noise_estimate(trajectories)
-    clipped = plateaus(recorded)
+    readings = force_readings(recorded)
+    clipped = plateaus(readings)
     diffs: dict[str, list[np.ndarray]] = {c: [] for c in (*FORCE_CHANNELS, "pdc")}
     for t in recorded:
         force = measured_force_fullrate(t)
@@ -116,7 +117,7 @@ def noise_estimate(trajectories: list[TrajectoryRecord]) -> dict[str, float]:
         for i, c in enumerate(FORCE_CHANNELS):
             diffs[c].append(np.diff(force[:, i])[free])
         diffs["pdc"].append(np.diff(t.raw.pdc))
-    steps = resolution(recorded)
+    steps = resolution(readings)
     step = float(np.nanmax(steps)) if np.isfinite(steps).any() else None
     noise = {}
     for c, parts in diffs.items():

@@ -10,7 +10,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from twin.analysis.predict import Predictor, TwinModel
-from twin.analysis.readings import Plateaus, plateaus
+from twin.analysis.readings import Plateaus, force_readings, plateaus
 from twin.analysis.residual import Base
 from twin.effects import EFFECTS, FORCE_AXES
 
@@ -42,4 +42,4 @@ class RangeEstimate:
 
 def range_start(predictor: Predictor, model: TwinModel, base: Base) -> RangeEstimate:
     """`ft_saturation`'s data-driven start (`DATA_STARTS`): the plateaus of `base`'s raw readings."""
-    return RangeEstimate(plateaus(base.trajectories))
+    return RangeEstimate(plateaus(force_readings(base.trajectories)))

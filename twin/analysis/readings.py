@@ -56,9 +56,10 @@ class Plateaus:
         return (np.abs(readings) >= limit).any(axis=1)
 
 
-def plateaus(trajectories: list[TrajectoryRecord]) -> Plateaus:
-    """The campaign's largest |force reading| per axis and how many samples hold it."""
-    magnitude = np.abs(force_readings(trajectories))
+def plateaus(readings: np.ndarray) -> Plateaus:
+    """The largest |reading| per axis of `readings` (T, 3) (a campaign's, `force_readings`) and how many samples
+    hold it."""
+    magnitude = np.abs(readings)
     if magnitude.size == 0:
         return Plateaus(np.zeros(3), np.zeros(3, dtype=int))
     largest = magnitude.max(axis=0)
@@ -77,7 +78,7 @@ def lattice_step(values: np.ndarray) -> float:
     return float(np.median(gaps[np.round(multiples) == 1.0]))
 
 
-def resolution(trajectories: list[TrajectoryRecord]) -> np.ndarray:
-    """(3,) the lattice step of each force axis's raw readings over the campaign (N; NaN: not quantised)."""
-    readings = force_readings(trajectories)
+def resolution(readings: np.ndarray) -> np.ndarray:
+    """(3,) the lattice step of each axis of `readings` (T, 3) (a campaign's, `force_readings`; N; NaN: not
+    quantised)."""
     return np.array([lattice_step(readings[:, axis]) if len(readings) else np.nan for axis in range(3)])
