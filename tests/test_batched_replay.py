@@ -47,10 +47,13 @@ def data(tiny: Path) -> CampaignData:
     return load_campaign(tiny)
 
 
-def _both_ways(model: TwinModel, data: CampaignData) -> tuple[list[Prediction], list[Prediction]]:
-    """Predictions of every trajectory replayed one at a time, and after one batched prefetch."""
+def _both_ways(
+    model: TwinModel, data: CampaignData, workers: int | None = None
+) -> tuple[list[Prediction], list[Prediction]]:
+    """Predictions of every trajectory replayed one at a time, and after one batched prefetch (on `workers`
+    processes; default one per usable CPU)."""
     single = [Predictor("cpu").predict(model, t) for t in data.trajectories]
-    batched = Predictor("cpu")
+    batched = Predictor("cpu", workers=workers)
     assert batched.prefetch(model, data.trajectories) == len(data.trajectories)
     assert batched.prefetch(model, data.trajectories) == 0  # all cached: nothing left to solve
     return single, [batched.predict(model, t) for t in data.trajectories]
@@ -101,11 +104,12 @@ def test_a_batched_replay_stops_at_the_first_failure_like_the_single_one(
     data: CampaignData, monkeypatch: pytest.MonkeyPatch
 ) -> None:
     """With Newton allowed only a few iterations the skin fails where the indenter first presses: both ways
-    keep the increments before it and nothing after."""
+    keep the increments before it and nothing after (solved in this process: the patch does not reach worker
+    processes)."""
     inflated_skin = BioTacModel.inflated_skin
     impatient = NewtonSettings(max_iterations=4)
     monkeypatch.setattr(BioTacModel, "inflated_skin", lambda self: replace(inflated_skin(self), newton=impatient))
-    single, batched = _both_ways(TwinModel(mesh_max_edge=data.mesh_max_edge), data)
+    single, batched = _both_ways(TwinModel(mesh_max_edge=data.mesh_max_edge), data, workers=1)  # patched here
     for one in single:
         failed = np.flatnonzero(~one.converged)
         assert failed.size and failed[0] > 0 and (failed == np.arange(failed[0], len(one.converged))).all()
@@ -156,7 +160,7 @@ def test_a_prefetch_of_many_models_replays_like_one_model_at_a_time(
     one_model = Predictor("cpu")
     solved = [one_model.prefetch(m, data.trajectories) for m in models]
     assert solved == [len(data.trajectories)] * 3 + [0, len(data.trajectories)]
-    many_models = Predictor("cpu", threads=1)
+    many_models = Predictor("cpu", workers=1)
     runs = []
     monkeypatch.setattr(predict, "run_trajectories", lambda *a, **k: runs.append(a[1]) or run_trajectories(*a, **k))
     assert many_models.prefetch_many([(m, data.trajectories) for m in models]) == sum(solved)
@@ -172,7 +176,7 @@ def test_a_prefetch_of_many_models_replays_like_one_model_at_a_time(
     assert np.nanmax(np.abs(forces[1] - forces[0])) > 1e-3 and np.nanmax(np.abs(forces[2] - forces[0])) > 1e-3
 
 
-def test_a_prefetch_split_over_threads_replays_bit_for_bit_like_one_run(data: CampaignData) -> None:
+def test_a_prefetch_split_over_worker_processes_replays_bit_for_bit_like_one_run(data: CampaignData) -> None:
     nominal = TwinModel(mesh_max_edge=data.mesh_max_edge)
     models = [
         nominal,
@@ -180,14 +184,14 @@ def test_a_prefetch_split_over_threads_replays_bit_for_bit_like_one_run(data: Ca
         nominal.with_effects({"skin_relaxation": {"fraction": 0.4, "time_s": 0.5}}),  # timed: a run of its own
     ]
     requests = [(m, data.trajectories) for m in models]
-    one_run, threaded = Predictor("cpu", threads=1), Predictor("cpu", threads=3)
-    assert one_run.threads == 1 and threaded.threads == 3
+    one_run, threaded = Predictor("cpu", workers=1), Predictor("cpu", workers=3)
+    assert one_run.workers == 1 and threaded.workers == 3
     with pytest.raises(ValueError, match="CPU device only"):
-        Predictor("cuda", threads=2)
+        Predictor("cuda", workers=2)
     done: list[tuple[int, int]] = []
     n = len(models) * len(data.trajectories)
     assert one_run.prefetch_many(requests) == threaded.prefetch_many(requests, lambda *d: done.append(d)) == n
-    assert sorted(done) == [(k, n) for k in range(1, n + 1)]  # each replay told once, from whichever thread
+    assert sorted(done) == [(k, n) for k in range(1, n + 1)]  # each replay told once, from whichever worker
     for model in models:
         for t in data.trajectories:
             one, split = one_run.predict(model, t), threaded.predict(model, t)

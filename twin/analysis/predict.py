@@ -13,10 +13,16 @@ from __future__ import annotations
 
 import hashlib
 import json
-import threading
+import multiprocessing
+import queue
+import sys
 from collections.abc import Callable, Iterable, Iterator, Sequence
-from concurrent.futures import ThreadPoolExecutor
+from concurrent.futures import ProcessPoolExecutor
+from contextlib import contextmanager
 from dataclasses import asdict, dataclass, field, replace
+from functools import cache
+from types import ModuleType
+from typing import Any
 
 import numpy as np
 import warp as wp
@@ -134,41 +140,195 @@ class _ReplayPlan:
 
 
 @dataclass(frozen=True)
-class _PendingReplay:
-    """A replay to solve: the trajectory, its plan, the inflated fe model of its skin and that model's
-    read-out."""
+class _ReplayJob:
+    """A replay to solve, small enough to send to a worker process: the skin of its model (effects applied),
+    mesh (m) and inflation rule, the indenter, its rotation (3, 3) body -> sensor frame and the plan."""
 
-    trajectory: TrajectoryRecord
+    skin: SkinParameters
+    mesh_max_edge: float
+    inflation: str
+    indenter: str
+    rotation: np.ndarray
     plan: _ReplayPlan
-    fe: BioTacModel
-    readout: SensorReadout
+
+    @property
+    def model_key(self) -> tuple:
+        """What its inflated fe model depends on (jobs of one key share a model)."""
+        return self.plan.key[0]
+
+    @property
+    def events(self) -> int:
+        """The fe solves it takes."""
+        return int(self.plan.solved.sum())
 
 
-def _batches(work: list[_PendingReplay]) -> list[list[_PendingReplay]]:
-    """The pending replays grouped into batched runs: one per set of skins that can share a batch, relaxing
-    (timed) and elastic replays together (`_run`)."""
-    groups: list[list[_PendingReplay]] = []
-    for item in work:
+class _ReplaySolver:
+    """Inflated fe models (cached, with their read-outs) and batched runs of replay jobs on one warp device: a
+    Predictor's own, and each replay worker process's (`_solve_share`)."""
+
+    def __init__(self, device: str) -> None:
+        self.device = device
+        self._readouts: dict[int, SensorReadout] = {}
+        self._models = ModelCache(MODEL_CACHE_SIZE, on_drop=lambda model: self._readouts.pop(id(model), None))
+
+    def inflated(self, skin: SkinParameters, mesh_max_edge: float, inflation: str) -> tuple:
+        """(fe model, its InflationResult) for these parameters (built once); raises if it did not inflate."""
+        model, result = self._models.get(skin, mesh_max_edge, inflation)
+        if not result.converged:
+            raise RuntimeError(f"the model did not inflate for {skin}: {result.message}")
+        return model, result
+
+    def readout(self, fe: BioTacModel) -> SensorReadout:
+        """The nominal sensor read-out of this fe model's inflated skin (built once)."""
+        key = id(fe)
+        if key not in self._readouts:
+            self._readouts[key] = SensorReadout.of_model(fe)
+        return self._readouts[key]
+
+    def solve(self, jobs: Sequence[_ReplayJob], done: Callable[[tuple, Replay], None]) -> None:
+        """Solve the jobs, done(key, replay) after each: one batched run per set of skins that can share a batch,
+        relaxing (timed) and elastic replays together, the longest first. When any skin of a run relaxes the run
+        is timed, and each elastic replay is given its events' times, which a skin that does not relax ignores
+        (its solves are those of an untimed run, tests/test_batched_replay.py): on a GPU the elastic replays then
+        share the run's slots with the relaxing ones instead of waiting for them."""
+        fes = {job.model_key: self.inflated(job.skin, job.mesh_max_edge, job.inflation)[0] for job in jobs}
+        groups: list[list[_ReplayJob]] = []
+        for job in sorted(jobs, key=lambda job: -job.events):
+            fe = fes[job.model_key]
+            for group in groups:
+                first = fes[group[0].model_key]
+                if first is fe or can_share_batch(first.inflated_skin(), fe.inflated_skin()):
+                    group.append(job)
+                    break
+            else:
+                groups.append([job])
         for group in groups:
-            first = group[0]
-            if first.fe is item.fe or can_share_batch(first.fe.inflated_skin(), item.fe.inflated_skin()):
-                group.append(item)
-                break
-        else:
-            groups.append([item])
-    return groups
+            self._run(group, [fes[job.model_key] for job in group], done)
+
+    def _run(self, jobs: list[_ReplayJob], fes: list[BioTacModel], done: Callable[[tuple, Replay], None]) -> None:
+        """One batched run of `jobs` (their fe models `fes`)."""
+        skins = [fe.inflated_skin() for fe in fes]
+        one_skin = all(fe is fes[0] for fe in fes)
+        timed = any(job.plan.timed for job in jobs)
+
+        def finished(index: int, increments: list[IncrementResult]) -> None:
+            job = jobs[index]
+            replay = _replay_of(self.readout(fes[index]), job.plan, increments)
+            increments.clear()  # the displacement fields are read: free them as the run goes on
+            done(job.plan.key, replay)
+
+        run_trajectories(
+            skins[0] if one_skin else skins,
+            [_pose_trajectory(job, timed) for job in jobs],
+            self.device,
+            slots=min(len(jobs), PREFETCH_SLOTS),
+            on_trajectory=finished,
+        )
 
 
-def _shares(batch: list[_PendingReplay], parts: int) -> list[list[_PendingReplay]]:
-    """The replays split into at most `parts` non-empty shares of about equal solves (events): each, the
-    longest first, goes to the share with the fewest events so far; each share keeps the longest first."""
-    shares: list[list[_PendingReplay]] = [[] for _ in range(min(parts, len(batch)))]
+def _shares(jobs: list[_ReplayJob], parts: int) -> list[list[_ReplayJob]]:
+    """The jobs split into at most `parts` non-empty shares of about equal solves (events): units, the longest
+    first, each go to the share with the fewest events so far. A unit is all the jobs of one skin when there are
+    at least two skins a share (each worker then inflates fewer models), else one job."""
+    by_model: dict[tuple, list[_ReplayJob]] = {}
+    for job in jobs:
+        by_model.setdefault(job.model_key, []).append(job)
+    units = list(by_model.values()) if len(by_model) >= 2 * parts else [[job] for job in jobs]
+    shares: list[list[_ReplayJob]] = [[] for _ in range(min(parts, len(units)))]
     events = [0] * len(shares)
-    for item in sorted(batch, key=lambda item: -item.plan.solved.sum()):
+    for unit in sorted(units, key=lambda unit: -sum(job.events for job in unit)):
         least = events.index(min(events))
-        shares[least].append(item)
-        events[least] += int(item.plan.solved.sum())
+        shares[least].extend(unit)
+        events[least] += sum(job.events for job in unit)
     return shares
+
+
+_WORKER: tuple[_ReplaySolver, Any] | None = None
+"""In a replay worker process: its solver (models cached across the shares it solves) and the queue on which it
+tells each replay solved (`_start_worker`); None elsewhere."""
+
+
+def _start_worker(progress: Any) -> None:
+    """A replay worker process's initializer: its own CPU solver and the progress queue; the fe kernels loaded."""
+    global _WORKER
+    _WORKER = (_ReplaySolver("cpu"), progress)
+    wp.force_load(device="cpu")
+
+
+def _started() -> None:
+    """A task that only makes the pool start a worker."""
+
+
+@contextmanager
+def _main_hidden() -> Iterator[None]:
+    """While it lasts, this process's __main__ is an empty module: a worker spawned then re-imports nothing of the
+    caller's script (an unguarded script would otherwise run again in each worker); workers run this module's
+    functions only."""
+    main = sys.modules["__main__"]
+    sys.modules["__main__"] = ModuleType("__main__")
+    try:
+        yield
+    finally:
+        sys.modules["__main__"] = main
+
+
+def _solve_share(batch: int, jobs: list[_ReplayJob]) -> list[tuple[tuple, Replay]]:
+    """(In a replay worker) solve a share of batch `batch`; (key, replay) of each job, each told on the progress
+    queue as (batch, key) when solved."""
+    solver, progress = _WORKER
+    out: list[tuple[tuple, Replay]] = []
+
+    def done(key: tuple, replay: Replay) -> None:
+        out.append((key, replay))
+        progress.put((batch, key))
+
+    solver.solve(jobs, done)
+    return out
+
+
+class ReplayWorkers:
+    """Worker processes that solve shares of a batch of replays on warp's CPU device, each share one batched run
+    of its own: the fe kernels, the sparse factorisations and the Python between them all run at once (threads
+    shared Python's lock: measured 1.1-1.4x on 2 cores, against ~1.8x here; docs/scale.md). Each worker keeps
+    its own cache of inflated models. Replays are the same bit for bit however a batch is split (every system
+    iterates on its own). Started once per process and count (`replay_workers`), shut down at exit."""
+
+    def __init__(self, count: int) -> None:
+        context = multiprocessing.get_context("spawn")  # never fork a process that holds warp's state
+        self._progress = context.Queue()
+        self._pool = ProcessPoolExecutor(count, context, initializer=_start_worker, initargs=(self._progress,))
+        with _main_hidden():
+            for _ in range(count):  # each submit to a pool with no idle worker starts one
+                self._pool.submit(_started)
+        self._batches = 0
+        self.count = count
+
+    def solve(self, jobs: list[_ReplayJob], done: Callable[[tuple, Replay], None], told: Callable[[], None]) -> None:
+        """Solve the jobs in up to `count` shares (`_shares`), done(key, replay) for each as its share returns and
+        told() as each is solved in a worker (progress)."""
+        self._batches += 1
+        batch = self._batches
+        futures = [self._pool.submit(_solve_share, batch, share) for share in _shares(jobs, self.count)]
+        heard = 0
+        while not all(future.done() for future in futures) or heard < len(jobs):
+            try:
+                if self._progress.get(timeout=0.05)[0] == batch:
+                    heard += 1
+                    told()
+            except queue.Empty:
+                if all(future.done() for future in futures):
+                    break
+        for future in futures:
+            for key, replay in future.result():
+                done(key, replay)
+        for _ in range(len(jobs) - heard):
+            told()
+
+
+@cache
+def replay_workers(count: int) -> ReplayWorkers:
+    """This process's `count` replay worker processes (started at the first call)."""
+    return ReplayWorkers(count)
 
 
 class Predictor:
@@ -181,17 +341,17 @@ class Predictor:
     `prefetch_many` those of many models, as the systems of one batched run (`fe.batched_runner`), which is
     how a GPU is kept busy and the per-round overhead of a run is paid once for them all.
 
-    On warp's CPU device a batch is split into `threads` shares of about equal work, each share one batched run
-    in its own thread (default: one per usable CPU): the fe kernels and the sparse factorisations run outside
-    Python's lock, and every system iterates on its own, so the replays are the same (bit for bit) whatever the
-    split. A GPU device runs one batch (one thread).
+    On warp's CPU device a batch is split into `workers` shares of about equal work, each share batched runs in a
+    worker process of its own (`ReplayWorkers`; default: one per usable CPU; 1: in this process). Every system
+    iterates on its own, so the replays are the same (bit for bit) whatever the split. A GPU device runs one
+    batch, in this process.
     """
 
     def __init__(
         self,
         device: str = "cpu",
         on_replays: Callable[[int, int], None] | None = None,
-        threads: int | None = None,
+        workers: int | None = None,
         held_first: int = HELD_SOLVES_FIRST,
     ) -> None:
         self.device = device
@@ -200,20 +360,16 @@ class Predictor:
         every event, as the plant solves them)."""
         self.on_replays = on_replays
         """Told (done, total) as each replay of a `prefetch_many` without its own `progress` is solved."""
-        if threads is not None and threads > 1 and device != "cpu":
-            raise ValueError(f"replays are split over threads on warp's CPU device only, not {device!r}")
-        self.threads = max(1, threads if threads is not None else usable_cpus() if device == "cpu" else 1)
-        """Batched runs solved at once, each a share of a batch in its own thread (see the class docstring)."""
-        self._readouts: dict[int, SensorReadout] = {}
-        self._models = ModelCache(MODEL_CACHE_SIZE, on_drop=lambda model: self._readouts.pop(id(model), None))
+        if workers is not None and workers > 1 and device != "cpu":
+            raise ValueError(f"replays are split over worker processes on warp's CPU device only, not {device!r}")
+        self.workers = max(1, workers if workers is not None else usable_cpus() if device == "cpu" else 1)
+        """Worker processes a batch is split over (see the class docstring); 1: solved in this process."""
+        self._solver = _ReplaySolver(device)
         self._replays: dict[tuple, Replay] = {}
 
     def inflated(self, skin: SkinParameters, mesh_max_edge: float, inflation: str = "thickness") -> tuple:
         """(fe model, its InflationResult) for these parameters, inflated by `inflation` (built once)."""
-        model, result = self._models.get(skin, mesh_max_edge, inflation)
-        if not result.converged:
-            raise RuntimeError(f"the model did not inflate for {skin}: {result.message}")
-        return model, result
+        return self._solver.inflated(skin, mesh_max_edge, inflation)
 
     def fe_model(self, skin: SkinParameters, mesh_max_edge: float, inflation: str = "thickness") -> BioTacModel:
         """An inflated fe model for these parameters (built once)."""
@@ -221,10 +377,7 @@ class Predictor:
 
     def readout(self, fe: BioTacModel) -> SensorReadout:
         """The nominal sensor read-out of this fe model's inflated skin (read-out gains unknown: nominal)."""
-        key = id(fe)
-        if key not in self._readouts:
-            self._readouts[key] = SensorReadout.of_model(fe)
-        return self._readouts[key]
+        return self._solver.readout(fe)
 
     def _plan(self, model: TwinModel, trajectory: TrajectoryRecord) -> _ReplayPlan:
         """The replay `model` needs for `trajectory` (its key says which cached replay serves it)."""
@@ -264,27 +417,34 @@ class Predictor:
         skin, same path: models that differ only in measurement effects) are solved once. Systems are
         grouped into one run when their skins share a mesh (`fe.batched_runner.can_share_batch`), queued
         through at most `PREFETCH_SLOTS` systems (a system takes the next replay whatever its skin), the
-        longest first. Each replay is what `predict`
-        would solve one at a time: the same events, stopped at the first increment that does not converge.
-        progress(done, total) (default: the predictor's `on_replays`) after each replay solved; returns how many
-        were solved."""
-        pending: dict[tuple, _PendingReplay] = {}
+        longest first; on the CPU with several `workers`, a run per share and worker. Each replay is what
+        `predict` would solve one at a time: the same events, stopped at the first increment that does not
+        converge. progress(done, total) (default: the predictor's `on_replays`) after each replay solved;
+        returns how many were solved."""
+        jobs: dict[tuple, _ReplayJob] = {}
         for model, trajectory, plan in self._missing(requests):
-            if plan.key not in pending:
-                fe = self._model_fe(model)
-                pending[plan.key] = _PendingReplay(trajectory, plan, fe, self.readout(fe))
-        work = list(pending.values())
+            skin = apply_skin(model.skin, model.effects)
+            rotation = np.asarray(trajectory.rotation, dtype=np.float64)
+            jobs.setdefault(
+                plan.key, _ReplayJob(skin, model.mesh_max_edge, model.inflation, trajectory.indenter, rotation, plan)
+            )
+        work = list(jobs.values())
         solved = 0
         progress = progress or self.on_replays
 
-        def done() -> None:
+        def told() -> None:
             nonlocal solved
             solved += 1
             if progress is not None:
                 progress(solved, len(work))
 
-        for batch in _batches(work):
-            self._solve(batch, done)
+        def done(key: tuple, replay: Replay) -> None:
+            self._replays[key] = replay
+
+        if self.workers > 1 and len(work) > 1:
+            replay_workers(self.workers).solve(work, done, told)
+        elif work:
+            self._solver.solve(work, lambda key, replay: (done(key, replay), told()))
         return len(work)
 
     def missing(self, requests: Sequence[tuple[TwinModel, Sequence[TrajectoryRecord]]]) -> int:
@@ -300,47 +460,6 @@ class Predictor:
                 plan = self._plan(model, trajectory)
                 if plan.key not in self._replays:
                     yield model, trajectory, plan
-
-    def _solve(self, batch: list[_PendingReplay], done: Callable[[], None]) -> None:
-        """Solve one batch of pending replays and cache them, done() after each: one batched run per share
-        of the batch (`_shares`, `threads` of them), each in its own thread when there are several."""
-        shares = _shares(batch, self.threads)
-        if len(shares) == 1:
-            self._run(shares[0], done)
-            return
-        wp.force_load(device=self.device)  # every kernel module loaded before the threads launch any (not thread-safe)
-        lock = threading.Lock()
-
-        def locked() -> None:
-            with lock:
-                done()
-
-        with ThreadPoolExecutor(len(shares)) as pool:
-            for future in [pool.submit(self._run, share, locked) for share in shares]:
-                future.result()
-
-    def _run(self, batch: list[_PendingReplay], done: Callable[[], None]) -> None:
-        """Solve pending replays (the longest first) in one batched run and cache them; done() after each. When
-        any skin relaxes the run is timed, and each elastic replay is given its events' times, which a skin that
-        does not relax ignores (its solves are those of an untimed run, tests/test_batched_replay.py): on a GPU
-        the elastic replays then share the run's slots with the relaxing ones instead of waiting for them."""
-        skins = [item.fe.inflated_skin() for item in batch]
-        one_skin = all(item.fe is batch[0].fe for item in batch)
-        timed = any(item.plan.timed for item in batch)
-
-        def finished(index: int, increments: list[IncrementResult]) -> None:
-            item = batch[index]
-            self._replays[item.plan.key] = _replay_of(item.readout, item.plan, increments)
-            increments.clear()  # the displacement fields are read: free them as the run goes on
-            done()
-
-        run_trajectories(
-            skins[0] if one_skin else skins,
-            [_pose_trajectory(item.trajectory, item.plan, timed) for item in batch],
-            self.device,
-            slots=min(len(batch), PREFETCH_SLOTS),
-            on_trajectory=finished,
-        )
 
     def predict(self, model: TwinModel, trajectory: TrajectoryRecord) -> Prediction:
         """The model's prediction of `trajectory` (see the module docstring)."""
@@ -463,11 +582,11 @@ def fill_holds(times: np.ndarray, solved: np.ndarray, values: np.ndarray, relaxa
     return values[after] + weight * (values[before] - values[after])
 
 
-def _pose_trajectory(trajectory: TrajectoryRecord, plan: _ReplayPlan, timed: bool) -> PoseTrajectory:
+def _pose_trajectory(job: _ReplayJob, timed: bool) -> PoseTrajectory:
     """The indenter poses of a replay's solved events for the batched runner, with their times when `timed`."""
-    times, indices = plan.solves
-    rotations = np.repeat(np.asarray(trajectory.rotation, dtype=np.float64)[None], len(times), axis=0)
-    return PoseTrajectory(trajectory.indenter, rotations, plan.tips[indices], times if timed else None)
+    times, indices = job.plan.solves
+    rotations = np.repeat(job.rotation[None], len(times), axis=0)
+    return PoseTrajectory(job.indenter, rotations, job.plan.tips[indices], times if timed else None)
 
 
 def _replay_of(readout: SensorReadout, plan: _ReplayPlan, increments: Iterable[IncrementResult]) -> Replay:
