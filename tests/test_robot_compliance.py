@@ -22,7 +22,7 @@ from twin.plant import Plant, make_plant, rigid_transform
 from twin.readout import ft_load
 
 COMPLIANCE_M_PER_N = 8e-5
-"""The plant's compliance in these cases (0.08 mm/N, the top of the hidden draws)."""
+"""The plant's compliance in these cases (0.08 mm/N, within the hidden draws)."""
 CONFIG = replace(QUICK_CONFIG, sensors=(2,), indenters=("sphere_small",))
 SETTLED_N = 1e-4
 """How far (N) the plant's settled force may be from the force at its settled pose: the plant stops within its pose
