@@ -75,6 +75,20 @@ def test_backlash_trails_each_rest_pose_by_its_lag_and_takes_up_the_slack_at_a_r
     np.testing.assert_allclose(apply_path(tips, both), trailed + [0.0, 0.0, 0.3e-3], atol=1e-15)
 
 
+def test_compliance_shortens_a_press_by_the_compliance_times_the_load() -> None:
+    """A press along (0, 0.6, -0.8) loaded with 2 N into the skin and 0.5 N sideways (the indenter's force on the
+    skin), 0.05 mm/N: the tip stands 0.05 mm/N times that force back from its command; unloaded, where commanded."""
+    direction = np.array([0.0, 0.6, -0.8])
+    tips = np.array([[1e-3, 2e-3, -7e-3], [1e-3, 2.3e-3, -7.4e-3]])
+    loads = np.array([[0.0, 0.0, 0.0], 2.0 * direction + [0.5, 0.0, 0.0]])
+    values = {"robot_compliance": {"compliance": 5e-5}}
+    moved = apply_path(tips, values, loads) - tips
+    np.testing.assert_allclose(moved[0], 0.0, atol=1e-18)
+    np.testing.assert_allclose(moved[1], [-0.025e-3, -0.06e-3, 0.08e-3], atol=1e-15)
+    assert moved[1] @ direction == pytest.approx(-0.1e-3)  # 0.1 mm short of the commanded depth
+    np.testing.assert_array_equal(apply_path(tips, values), tips)  # no loads given: unloaded
+
+
 def test_pdc_drift_grows_linearly_in_time() -> None:
     times = np.array([0.0, 10.0, 20.0])
     np.testing.assert_allclose(read_pdc(times, np.full(3, 1600.0), {"pdc_drift": {"rate": -0.3}}), [1600, 1597, 1594])

@@ -99,8 +99,8 @@ _HAND_WRITTEN_SKIN_EFFECTS = {
 }
 _LIBRARY_ORDER = (
     "skin_thickness", "skin_modulus", "indenter_friction", "skin_relaxation", "skin_stiffening", "trapped_air",
-    "fill_volume", "registration_offset", "robot_backlash", "time_delay", "ft_drift", "ft_crosstalk", "ft_gain",
-    "ft_calibration", "ft_saturation", "pdc_drift",
+    "fill_volume", "registration_offset", "robot_backlash", "robot_compliance", "time_delay", "ft_drift",
+    "ft_crosstalk", "ft_gain", "ft_calibration", "ft_saturation", "pdc_drift",
 )  # fmt: skip
 
 
@@ -114,14 +114,8 @@ def test_each_skin_effect_has_the_hand_written_numbers_texts_and_mapping(name: s
     description, channels, probe, parameters = _HAND_WRITTEN_SKIN_EFFECTS[name]
     effect = EFFECTS[name]
     assert (effect.description, effect.kind, effect.channels, effect.probe) == (description, "physics", channels, probe)
-    assert (effect.starts, effect.linear, effect.path, effect.wrench, effect.reading, effect.pdc) == (
-        (),
-        False,
-        None,
-        None,
-        None,
-        None,
-    )
+    assert (effect.starts, effect.linear) == ((), False)
+    assert (effect.path, effect.deflection, effect.wrench, effect.reading, effect.pdc) == (None,) * 5
     assert [(p.name, p.off, p.lower, p.upper, p.scale, p.units) for p in effect.parameters] == [
         row[:6] for row in parameters
     ]

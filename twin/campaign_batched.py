@@ -26,6 +26,9 @@ batch reaches them), each trajectory's synthesis runs on the workers soon after 
 while the batch goes on with the others, and `twin.campaign.run_campaign` writes a sensor's file as soon as
 its last part is written. One batch for all sensors pays the nearly empty rounds at its end once, not once per sensor.
 
+A plant with `robot_compliance` is refused: where its tip stands depends on the forces, which a schedule is
+recorded without.
+
 A trajectory whose controller goes on past where the batch stopped it (a measurement effect that hides more
 than a third of the force) is solved again, without a force limit, in a second batch.
 """
@@ -57,6 +60,7 @@ from twin.campaign import (
     write_trajectory_part,
 )
 from twin.dataset import read_part, write_part
+from twin.effects import COMPLIANCE
 from twin.executors import Executor
 from twin.lanes import FirstFailure, Lane
 from twin.planning import PlannedTrajectory
@@ -283,6 +287,8 @@ class BatchedRunner:
         # Every task's schedule is recorded again, and a resume keeps a solved one only where the schedule is the
         # same: a plan re-derived in this run may differ by a hair (e.g. an inflation on CUDA, whose sums have no
         # fixed order, moving a touch point and with it the first solve by a controller tick).
+        if plant is not None and COMPLIANCE in plant.effects:
+            raise ValueError(f"a plant with {COMPLIANCE} solves where the loads put the tip: run it one at a time")
         order = fe_order(tasks)
         tasks = sorted(tasks, key=lambda task: order.index(task[0].sensor_id))
         host = Lane("campaign host stages", FirstFailure())

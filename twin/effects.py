@@ -45,9 +45,9 @@ class EffectParameter:
 
 @dataclass(frozen=True)
 class Effect:
-    """A candidate mechanism. Exactly one of `skin`, `path`, `wrench`, `reading`, `pdc` says how it acts: on the
-    skin, the indenter path, the load the F/T gauges carry, the F/T electronics' output (bias and noise
-    included: a range) or the PDC read-out."""
+    """A candidate mechanism. Exactly one of `skin`, `path`, `deflection`, `wrench`, `reading`, `pdc` says how it
+    acts: on the skin, the indenter path, the indenter path under the contact loads, the load the F/T gauges
+    carry, the F/T electronics' output (bias and noise included: a range) or the PDC read-out."""
 
     name: str
     description: str
@@ -56,6 +56,8 @@ class Effect:
     channels: tuple[str, ...]
     skin: Callable[[SkinParameters, dict[str, float]], SkinParameters] | None = None
     path: Callable[[np.ndarray, dict[str, float]], np.ndarray] | None = None
+    deflection: Callable[[np.ndarray, np.ndarray, dict[str, float]], np.ndarray] | None = None
+    """The tips (K, 3) m under the contact loads (K, 3) N, both biotac frame (`apply_path`)."""
     wrench: Callable[[np.ndarray, CleanWrench, dict[str, float]], np.ndarray] | None = None
     reading: Reading | None = None
     pdc: PdcReading | None = None
@@ -151,6 +153,8 @@ REGISTRATION_AXES = ("dx", "dy", "dz")
 
 BACKLASH = "robot_backlash"
 """The effect by which the tip trails its commanded rest poses (`trail`); the plant applies it to each rest pose."""
+COMPLIANCE = "robot_compliance"
+"""The effect by which the tip gives way under the contact load (`deflect`); the plant settles each rest pose."""
 
 
 def registration_vector(values: dict[str, float] | None) -> np.ndarray:
@@ -184,6 +188,17 @@ def _backlash(tips: np.ndarray, v: dict[str, float]) -> np.ndarray:
     for k in range(1, len(out)):
         out[k] = trail(out[k - 1], tips[k], v["lag"])
     return out
+
+
+def deflect(tips: np.ndarray, loads: np.ndarray, compliance: float) -> np.ndarray:
+    """Where tips (..., 3) m stand under the loads (..., 3) N, the indenter's force on the skin (both biotac frame),
+    on an arm and tool of `compliance` m/N: moved by -compliance * load, back along a press (the reaction on the
+    tool pushes it away from the skin)."""
+    return np.asarray(tips, dtype=float) - compliance * np.asarray(loads, dtype=float)
+
+
+def _compliance(tips: np.ndarray, loads: np.ndarray, v: dict[str, float]) -> np.ndarray:
+    return deflect(tips, loads, v["compliance"])
 
 
 def _delay(times: np.ndarray, clean: CleanWrench, v: dict[str, float]) -> np.ndarray:
@@ -258,6 +273,11 @@ FORCE_AXES = ("fx", "fy", "fz")
 SATURATION_OFF_N = 1000.0
 """`ft_saturation`'s off value (N): a range no press of the testbed reaches."""
 
+_COMPLIANCE_UPPER = 2e-4
+"""`robot_compliance`'s upper bound (m/N, 0.2 mm/N): twice the softest arm and tool at the tip that is plausible
+here, a light industrial arm like ABB's YuMi with a tool giving roughly 0.01-0.1 mm/N at the tip (joint and gear
+stiffness dominate). Its search step is 5e-6 m/N: 5 um of tip at the testbed's 1 N."""
+
 _REGISTRATION_STARTS = tuple({axis: sign * 1e-3} for axis in REGISTRATION_AXES for sign in (-1.0, 1.0))
 """A millimetre along each axis, both ways: where a registration search also looks (paper: 0.5-1.5 mm)."""
 
@@ -283,6 +303,16 @@ _DECLARED: dict[str, Effect] = {
             ("force", "pdc", "electrodes"),
             path=_backlash,
             starts=({"lag": 0.1e-3}, {"lag": 0.25e-3}),
+        ),
+        Effect(
+            COMPLIANCE,
+            "The robot's arm and tool give way under the contact load: the tip stands -compliance * F off its "
+            "command, F the indenter's force on the skin (biotac frame), so a press falls short by more the "
+            "harder it presses.",
+            "physics",
+            (EffectParameter("compliance", 0.0, 0.0, _COMPLIANCE_UPPER, 5e-6, "m/N"),),
+            ("force", "pdc", "electrodes"),
+            deflection=_compliance,
         ),
         Effect(
             "time_delay",
@@ -360,6 +390,7 @@ LIBRARY_ORDER = (
     "fill_volume",
     "registration_offset",
     "robot_backlash",
+    "robot_compliance",
     "time_delay",
     "ft_drift",
     "ft_crosstalk",
@@ -421,12 +452,19 @@ def apply_skin(skin: SkinParameters, values: EffectValues) -> SkinParameters:
     return skin
 
 
-def apply_path(tips: np.ndarray, values: EffectValues) -> np.ndarray:
-    """Indenter tip positions (K, 3) m, biotac frame, with path effects applied."""
-    for name, v in check_values(values).items():
+def apply_path(tips: np.ndarray, values: EffectValues, loads: np.ndarray | None = None) -> np.ndarray:
+    """Indenter tip positions (K, 3) m, biotac frame, with path effects applied, then, given the contact loads
+    at the tips (K, 3) N (the indenter's force on the skin, biotac frame; None: unloaded, no deflection), the
+    effects that deflect the path under load."""
+    checked = check_values(values)
+    for name, v in checked.items():
         effect = get_effect(name)
         if effect.path is not None:
             tips = effect.path(tips, v)
+    for name, v in checked.items():
+        effect = get_effect(name)
+        if effect.deflection is not None and loads is not None:
+            tips = effect.deflection(tips, loads, v)
     return tips
 
 

@@ -4,8 +4,8 @@ The analysis never sees what is drawn here: callers put the values into a plant 
 sealed manifest beside the data, which only the final reveal reads. Sizes are drawn well above the
 noise of a quick campaign but within what a real testbed shows (a few tenths of a millimetre of
 registration error, a few percent of calibration error, tens of milliseconds of stream delay, a
-bubble of a fifth to a third of the fluid, a backlash of 0.05-0.15 mm, an F/T range of 1.2-2 N on
-its axial force (bias included), a PDC drift of 0.2-0.5 counts/s).
+bubble of a fifth to a third of the fluid, a backlash of 0.05-0.15 mm, an arm and tool compliance of
+0.05-0.1 mm/N, an F/T range of 1.2-2 N on its axial force (bias included), a PDC drift of 0.2-0.5 counts/s).
 """
 
 from __future__ import annotations
@@ -66,6 +66,7 @@ HIDDEN_DRAWS: dict[str, Callable[[np.random.Generator], dict[str, float]]] = {
 } | {
     "registration_offset": _registration,
     "robot_backlash": lambda rng: {"lag": float(rng.uniform(0.05e-3, 0.15e-3))},
+    "robot_compliance": lambda rng: {"compliance": float(rng.uniform(0.05e-3, 0.1e-3))},
     "time_delay": lambda rng: {"seconds": float(rng.uniform(0.04, 0.12))},
     "ft_drift": lambda rng: {f"f{a}_rate": _signed(rng, 0.002, 0.006) for a in "xyz"},
     "ft_crosstalk": _crosstalk,

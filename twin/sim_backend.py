@@ -25,7 +25,17 @@ from fe.electrodes import N_ELECTRODES, ElectrodeModel
 from fe.indentation import IncrementResult
 from fe.sensor import BioTacModel
 from twin.backend import ARMS, BackendError, Sample, check_arm
-from twin.effects import BACKLASH, EffectValues, check_values, measure_wrench, read_out, read_pdc, trail
+from twin.effects import (
+    BACKLASH,
+    COMPLIANCE,
+    EffectValues,
+    check_values,
+    deflect,
+    measure_wrench,
+    read_out,
+    read_pdc,
+    trail,
+)
 from twin.kinematics import joint_limits, velocity_limits
 from twin.plant import MeasurementNoise, PlantSensor
 from twin.readout import SensorReadout, ft_load
@@ -48,6 +58,9 @@ class SimSettings:
 
 WRENCH_HISTORY_S = 1.0
 """Seconds of clean-wrench history kept for the measurement effects (the longest time delay is 0.5 s)."""
+COMPLIANCE_SOLVES = 8
+"""Solves at most per call for the plant's compliance fixed point (`SimBackend._settle`); one left unsettled goes on
+at the next sample, where the tip is still off its settled pose."""
 RELAXATION_SOLVE_INTERVAL_S = 0.1
 """While the skin relaxes (a viscoelastic skin model), it is re-solved at a held pose this often (s): here
 and in the model's replay (twin.analysis.predict) alike."""
@@ -127,6 +140,8 @@ class SimBackend:
         self._trailing: np.ndarray | None = None
         """Where the tip stands with the plant's backlash (`twin.effects.trail`; m, biotac frame; None: at the next
         rest pose, as commanded)."""
+        self._load = np.zeros(3)
+        """The indenter's force on the skin (N, biotac frame) of the last solve (zero on the rest skin)."""
         self._clean = self._rest_signals()
         self.solve_log: list[tuple[float, IncrementResult]] = []
         """Every fe solve as (simulated time s, result), in time order."""
@@ -143,7 +158,7 @@ class SimBackend:
         if tool is not None and tool != "pin":
             self._stepper = self._solver(tool)
             self._stepper_arm = arm
-            self._last_tip, self._trailing = None, None
+            self._last_tip, self._trailing, self._load = None, None, np.zeros(3)
             self._clean = self._rest_signals()
             self._record_wrench()
 
@@ -234,11 +249,16 @@ class SimBackend:
         return self._tip_poses[arm].copy()
 
     def _solve_if_moved(self, arm: str) -> None:
+        """Solve the skin where the resting tip stands, if it moved or the skin relaxes: its pose with the plant's
+        backlash (`trail`) and, with `robot_compliance`, deflected by the load of the last solve, then settled
+        (`_settle`)."""
         pose = self.tip_pose_biotac(arm)
         if BACKLASH in self.effects:  # the tip trails its rest poses, from none at the first (the standoff)
             start = pose[:3, 3] if self._trailing is None else self._trailing
             self._trailing = trail(start, pose[:3, 3], self.effects[BACKLASH]["lag"])
             pose[:3, 3] = self._trailing
+        commanded = pose[:3, 3].copy()
+        pose[:3, 3] = self._deflected(commanded, self._load)
         moved = self._last_tip is None or _norm(pose[:3, 3] - self._last_tip) > self.settings.pose_tolerance
         relaxing = (
             self._stepper.relaxes
@@ -247,16 +267,56 @@ class SimBackend:
         )
         if not (moved or relaxing):
             return
+        result = self._step(pose)
+        if COMPLIANCE in self.effects:
+            result = self._settle(pose, commanded, result)
+        self._last_tip = pose[:3, 3].copy()
+        self._load = np.array(result.force, dtype=float)
+        self._clean = self._signals(result, pose[:3, 3])
+        self._record_wrench()
+
+    def _deflected(self, commanded: np.ndarray, load: np.ndarray) -> np.ndarray:
+        """Where a tip commanded to `commanded` (3,) m stands under `load` (3,) N, the indenter's force on the skin
+        (both biotac frame): `twin.effects.deflect` by the plant's `robot_compliance`; as commanded without it."""
+        if COMPLIANCE not in self.effects:
+            return commanded
+        return deflect(commanded, load, self.effects[COMPLIANCE]["compliance"])
+
+    def _settle(self, pose: np.ndarray, commanded: np.ndarray, result: IncrementResult) -> IncrementResult:
+        """The compliant tip's equilibrium x = commanded - c F(x) (`twin.effects.deflect`: c the plant's compliance,
+        F(x) the skin's force with the tip at x, both biotac frame), from the first solve's `result` at `pose`
+        (4x4, biotac frame; moved in place to the last pose solved): re-solved at the same time by the
+        Aitken-relaxed fixed point x <- x + w r, r = commanded - c F(x) - x (Irons and Tuck: w from the last two
+        residuals; 1 at first and while the residual stands still) until the next move would be within the pose
+        tolerance or `COMPLIANCE_SOLVES` solves are spent. Returns the last solve's result, the state kept.
+
+        Every solve is an accepted step of the stepper, as the real tip settles through its poses: no time passes
+        after the first (a relaxing skin's branches take the stress change since then as instantaneous), and
+        the friction's stick anchors follow the tip's short travel along the load to its settled pose."""
+        relaxation, previous = 1.0, None
+        for _ in range(COMPLIANCE_SOLVES - 1):
+            residual = self._deflected(commanded, result.force) - pose[:3, 3]
+            if _norm(residual) <= self.settings.pose_tolerance:
+                break
+            change = None if previous is None else residual - previous
+            if change is not None and change.any():
+                relaxation = -relaxation * float(previous.dot(change)) / float(change.dot(change))
+            pose[:3, 3] += relaxation * residual
+            previous = residual
+            result = self._step(pose)
+        return result
+
+    def _step(self, pose: np.ndarray) -> IncrementResult:
+        """Solve the skin at `pose` (4x4 indenter body -> biotac frame, m) now and log the solve; BackendError when
+        the skin model stops or does not converge."""
         try:
             result = self._stepper.step(pose[:3, :3], pose[:3, 3], self.time_s)
         except RuntimeError as exc:  # the stepper refuses to go on after a failed step
             raise BackendError(f"the skin model is stopped: {exc}") from exc
         if not result.converged:
             raise BackendError(f"the skin model did not converge at this pose ({result.message})")
-        self._last_tip = pose[:3, 3].copy()
         self.solve_log.append((self.time_s, result))
-        self._clean = self._signals(result, pose[:3, 3])
-        self._record_wrench()
+        return result
 
     def _record_wrench(self) -> None:
         """Append the clean wrench now to the history the measurement effects read; entries older than

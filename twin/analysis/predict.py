@@ -2,7 +2,8 @@
 
 A `TwinModel` is the nominal skin parameters plus effect values (twin.effects) and a mesh size. The
 prediction of a trajectory re-solves the skin along the trajectory's recorded path (standoff,
-loading, unloading: the same pose sequence the testbed ran), turns each increment's force into the
+loading, unloading: the same pose sequence the testbed ran; with a compliant arm, `robot_compliance`, each pose
+deflected by the force measured at the end of its hold), turns each increment's force into the
 F/T load the mount sees, runs it through the model's measurement effects at the recorded sample
 times (the F/T signal chain; its electronics, which see the bias, taken from the measured first sample; the
 PDC read-out), and then through the very processing the measurements went through (tare, 5 Hz zero-phase
@@ -383,7 +384,8 @@ class Predictor:
         """The replay `model` needs for `trajectory` (its key says which cached replay serves it)."""
         skin = apply_skin(model.skin, model.effects)
         raw = trajectory.raw
-        tips = apply_path(trajectory.touch_point + np.outer(_path_depths(raw), trajectory.direction), model.effects)
+        commanded = trajectory.touch_point + np.outer(_path_depths(raw), trajectory.direction)
+        tips = apply_path(commanded, model.effects, measured_loads(trajectory))
         timed = skin.relaxation_fraction > 0.0
         model_key = (tuple(sorted(asdict(skin).items())), model.mesh_max_edge, model.inflation)
         key = (model_key, trajectory.sensor_id, trajectory.trajectory_id, tips.round(12).tobytes())
@@ -616,6 +618,18 @@ def measured_force_fullrate(trajectory: TrajectoryRecord) -> np.ndarray:
     """(T, 3) measured force on the BioTac (N, biotac frame), tared, unfiltered."""
     wrench = trajectory.raw.wrench
     return (wrench[:, :3] - wrench[0, :3]) @ trajectory.sensor_in_biotac[:3, :3].T
+
+
+def measured_loads(trajectory: TrajectoryRecord) -> np.ndarray:
+    """(K, 3) the measured force on the BioTac (N, biotac frame, tared, unfiltered: `measured_force_fullrate`) at
+    the last sample of each path index's hold, standoff first (NaN at an index without samples): the loads that
+    deflect a model's path (`twin.effects.apply_path`). One sample carries the F/T noise, 10 mN on the testbed,
+    a micrometre of tip at 0.1 mm/N."""
+    increment = trajectory.raw.increment
+    ends = np.r_[np.flatnonzero(np.diff(increment)), len(increment) - 1]
+    loads = np.full((int(increment.max()) + 2, 3), np.nan)
+    loads[increment[ends] + 1] = measured_force_fullrate(trajectory)[ends]
+    return loads
 
 
 def measured_pdc_fullrate(trajectory: TrajectoryRecord) -> np.ndarray:
