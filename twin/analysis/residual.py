@@ -193,12 +193,16 @@ def recentred(values: np.ndarray, group: np.ndarray) -> np.ndarray:
 def whitened(predicted: list[np.ndarray], masks: list[np.ndarray], sigma: np.ndarray) -> np.ndarray:
     """Whitened, offset-projected predictions on the base model's sample set (for differences).
 
-    Samples where this prediction failed (fe not converged) are NaN; fits and scores skip them.
+    Samples where this prediction failed (fe not converged) are NaN; fits and scores skip them (a channel of a
+    trajectory with none left stays NaN).
     """
     out = []
     for p, m in zip(predicted, masks, strict=True):
         w = p[m] / sigma
-        out.append((w - np.nanmean(w, axis=0)).ravel())
+        finite = np.isfinite(w)
+        count = finite.sum(axis=0)
+        mean = np.divide(np.where(finite, w, 0.0).sum(axis=0), count, out=np.full(w.shape[1:], np.nan), where=count > 0)
+        out.append((w - mean).ravel())
     return np.concatenate(out)
 
 
