@@ -3,6 +3,7 @@ one-at-a-time replays, failures included; those of many models as one run (`Pred
 equal the one-model runs; `--device` of the analysis commands (issue 18)."""
 
 import json
+import multiprocessing
 import subprocess
 import sys
 from dataclasses import replace
@@ -18,7 +19,7 @@ from fe.params import NewtonSettings, SkinParameters
 from fe.sensor import BioTacModel
 from twin.analysis import predict
 from twin.analysis.data import CampaignData, load_campaign
-from twin.analysis.predict import Prediction, Predictor, TwinModel, fill_holds, held_solves
+from twin.analysis.predict import Prediction, Predictor, TwinModel, fill_holds, held_solves, replay_workers
 from twin.cli import app
 
 FRICTIONLESS_TOLERANCE = 1e-6
@@ -197,6 +198,23 @@ def test_a_prefetch_split_over_worker_processes_replays_bit_for_bit_like_one_run
             one, split = one_run.predict(model, t), threaded.predict(model, t)
             np.testing.assert_array_equal(split.increment_force, one.increment_force)
             np.testing.assert_array_equal(split.pdc_fullrate, one.pdc_fullrate)
+
+
+def test_a_replay_worker_that_dies_is_one_clear_error_and_the_next_batch_starts_new_workers(
+    data: CampaignData,
+) -> None:
+    nominal = TwinModel(mesh_max_edge=data.mesh_max_edge)
+    predictor = Predictor("cpu", workers=2)
+    replay_workers(2)  # started (or already running in this process)
+    workers = [child for child in multiprocessing.active_children() if child.name.startswith("SpawnProcess")]
+    assert workers
+    for worker in workers:
+        worker.kill()
+        worker.join()
+    with pytest.raises(RuntimeError, match="replay worker process died"):
+        predictor.prefetch(nominal, data.trajectories)
+    assert predictor.prefetch(nominal, data.trajectories) == len(data.trajectories)  # new workers
+    assert np.isfinite(predictor.predict(nominal, data.trajectories[0]).increment_force).all()
 
 
 def test_held_poses_are_solved_at_their_first_events_and_their_last() -> None:

@@ -19,6 +19,7 @@ import queue
 import sys
 from collections.abc import Callable, Iterable, Iterator, Sequence
 from concurrent.futures import ProcessPoolExecutor
+from concurrent.futures.process import BrokenProcessPool
 from contextlib import contextmanager
 from dataclasses import asdict, dataclass, field, replace
 from functools import cache
@@ -307,21 +308,28 @@ class ReplayWorkers:
 
     def solve(self, jobs: list[_ReplayJob], done: Callable[[tuple, Replay], None], told: Callable[[], None]) -> None:
         """Solve the jobs in up to `count` shares (`_shares`), done(key, replay) for each as its share returns and
-        told() as each is solved in a worker (progress)."""
+        told() as each is solved in a worker (progress). A worker that dies loses the batch: RuntimeError, and the
+        next batch starts new workers."""
         self._batches += 1
         batch = self._batches
-        futures = [self._pool.submit(_solve_share, batch, share) for share in _shares(jobs, self.count)]
-        heard = 0
-        while not all(future.done() for future in futures) or heard < len(jobs):
-            try:
-                if self._progress.get(timeout=0.05)[0] == batch:
-                    heard += 1
-                    told()
-            except queue.Empty:
-                if all(future.done() for future in futures):
-                    break
-        for future in futures:
-            for key, replay in future.result():
+        try:
+            futures = [self._pool.submit(_solve_share, batch, share) for share in _shares(jobs, self.count)]
+            heard = 0
+            while not all(future.done() for future in futures) or heard < len(jobs):
+                try:
+                    if self._progress.get(timeout=0.05)[0] == batch:
+                        heard += 1
+                        told()
+                except queue.Empty:
+                    if all(future.done() for future in futures):
+                        break
+            shares = [future.result() for future in futures]
+        except BrokenProcessPool as error:
+            self._pool.shutdown(wait=False, cancel_futures=True)
+            replay_workers.cache_clear()  # the next batch starts new workers
+            raise RuntimeError(f"a replay worker process died (killed, or out of memory?): {error}") from error
+        for share in shares:
+            for key, replay in share:
                 done(key, replay)
         for _ in range(len(jobs) - heard):
             told()
