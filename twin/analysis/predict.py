@@ -54,6 +54,10 @@ from twin.sim_backend import RELAXATION_SOLVE_INTERVAL_S
 
 MODEL_CACHE_SIZE = 24
 """Inflated fe models a Predictor keeps (first built dropped first); replays, small arrays, are all kept."""
+DEFAULT_WORKERS_MAX = 8
+"""Replay worker processes a CPU Predictor starts at most unless told (`Predictor(workers=...)`): each holds its own
+inflated models (up to `MODEL_CACHE_SIZE`) and inflates the skins of its shares, so more workers than a batch has
+skins or a machine has memory for cost more than they give."""
 PREFETCH_SLOTS = 256
 """Systems of one batched prefetch run at most (with one skin, more trajectories queue for the slots that
 free up; with several, more replays make more runs)."""
@@ -352,9 +356,9 @@ class Predictor:
     how a GPU is kept busy and the per-round overhead of a run is paid once for them all.
 
     On warp's CPU device a batch is split into `workers` shares of about equal work, each share batched runs in a
-    worker process of its own (`ReplayWorkers`; default: one per usable CPU; 1: in this process). Every system
-    iterates on its own, so the replays are the same (bit for bit) whatever the split. A GPU device runs one
-    batch, in this process.
+    worker process of its own (`ReplayWorkers`; default: one per usable CPU, at most `DEFAULT_WORKERS_MAX`; 1: in
+    this process). Every system iterates on its own, so the replays are the same (bit for bit) whatever the
+    split. A GPU device runs one batch, in this process.
     """
 
     def __init__(
@@ -372,7 +376,8 @@ class Predictor:
         """Told (done, total) as each replay of a `prefetch_many` without its own `progress` is solved."""
         if workers is not None and workers > 1 and device != "cpu":
             raise ValueError(f"replays are split over worker processes on warp's CPU device only, not {device!r}")
-        self.workers = max(1, workers if workers is not None else usable_cpus() if device == "cpu" else 1)
+        default = min(usable_cpus(), DEFAULT_WORKERS_MAX) if device == "cpu" else 1
+        self.workers = max(1, workers if workers is not None else default)
         """Worker processes a batch is split over (see the class docstring); 1: solved in this process."""
         self._solver = _ReplaySolver(device)
         self._replays: dict[tuple, Replay] = {}
