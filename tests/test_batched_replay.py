@@ -217,6 +217,34 @@ def test_a_replay_worker_that_dies_is_one_clear_error_and_the_next_batch_starts_
     assert np.isfinite(predictor.predict(nominal, data.trajectories[0]).increment_force).all()
 
 
+def _job(skin: int, events: int) -> predict._ReplayJob:
+    """A replay job of skin number `skin` with `events` solves (only what `_shares` reads is real)."""
+    times = (np.zeros(events), np.zeros(events))
+    key = ((skin,), 2e-3, "thickness")
+    plan = predict._ReplayPlan(key, np.zeros((events, 3)), times, False, np.ones(events, bool), 1.0)
+    return predict._ReplayJob(SkinParameters(), 2e-3, "thickness", "sphere_small", np.eye(3), plan)
+
+
+def _each_once(shares: list[list[predict._ReplayJob]], jobs: list[predict._ReplayJob]) -> bool:
+    return sorted(id(job) for share in shares for job in share) == sorted(map(id, jobs))
+
+
+def test_a_batch_is_shared_out_by_whole_skins_when_there_are_enough_else_by_replay() -> None:
+    many = [_job(skin, events) for skin in range(6) for events in (10 + skin, 20)]  # 6 skins, 2 workers: by skin
+    shares = predict._shares(many, 2)
+    assert len(shares) == 2 and _each_once(shares, many)
+    skins = [{job.model_key for job in share} for share in shares]
+    assert not skins[0] & skins[1]  # no skin inflated by both workers
+    loads = [sum(job.events for job in share) for share in shares]
+    assert abs(loads[0] - loads[1]) <= 36  # within the largest skin's solves
+    few = [_job(skin, events) for skin in range(3) for events in (5, 30, 12, 40)]  # 3 skins, 2 workers: by replay
+    shares = predict._shares(few, 2)
+    assert len(shares) == 2 and _each_once(shares, few)
+    loads = [sum(job.events for job in share) for share in shares]
+    assert abs(loads[0] - loads[1]) <= 5  # 261 solves: 132 and 129 (the longest first, each to the lighter share)
+    assert [len(share) for share in predict._shares(few[:1], 4)] == [1]  # never an empty share
+
+
 def test_held_poses_are_solved_at_their_first_events_and_their_last() -> None:
     indices = np.r_[np.full(50, 3), 4, np.full(3, 5)]  # a 5 s pause's 50 events, a move, a short pause
     assert np.flatnonzero(held_solves(indices)).tolist() == [0, 49, 50, 51, 53]
