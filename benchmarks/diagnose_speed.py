@@ -44,7 +44,8 @@ RELAXATION = "skin_relaxation"
 
 def probe_replays(data: CampaignData, device: str, workers: int) -> tuple[float, np.ndarray]:
     """Wall seconds of the relaxation probe's replays of every trajectory (one batched prefetch on `workers`
-    processes, inflation in this process excluded) and their increment forces (N, all trajectories stacked)."""
+    processes; the skin inflated in this process first, not timed, which worker processes do again inside the
+    timed prefetch) and their increment forces (N, all trajectories stacked)."""
     model = TwinModel(mesh_max_edge=data.mesh_max_edge).with_effects({RELAXATION: EFFECTS[RELAXATION].probe})
     predictor = Predictor(device, workers=workers)
     predictor.fe_model(apply_skin(model.skin, model.effects), model.mesh_max_edge, model.inflation)  # kernels loaded
