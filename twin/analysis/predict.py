@@ -296,9 +296,9 @@ class ReplayWorkers:
     """Worker processes that solve shares of a batch of replays on warp's CPU device, each share one batched run
     of its own: the fe kernels, the sparse factorisations and the Python between them all run at once (threads
     shared Python's lock: the demo diagnosis kept 1.6 of 2 cores busy in threads, 1.75 here, 0.92x the wall time;
-    docs/scale.md, session 21). Each worker keeps
-    its own cache of inflated models. Replays are the same bit for bit however a batch is split (every system
-    iterates on its own). Started once per process and count (`replay_workers`), shut down at exit."""
+    docs/scale.md, session 21). Each worker keeps its own cache of inflated models. Replays are the same bit for bit
+    however a batch is split (every system iterates on its own). Started once per process and count
+    (`replay_workers`), shut down at exit."""
 
     def __init__(self, count: int) -> None:
         context = multiprocessing.get_context("spawn")  # never fork a process that holds warp's state
