@@ -48,12 +48,19 @@ def campaign(tmp_path_factory: pytest.TempPathFactory) -> Path:
     return next(iter(result.files.values()))
 
 
-def test_ranking_on_one_trajectory_per_stratum_names_the_hidden_effect_as_the_full_diagnosis(campaign: Path) -> None:
+@pytest.fixture(scope="module")
+def predictor() -> Predictor:
+    """Shared: a subset's or another mesh's diagnosis reuses the full run's replays (same models, same paths)."""
+    return Predictor()
+
+
+def test_ranking_on_one_trajectory_per_stratum_names_the_hidden_effect_as_the_full_diagnosis(
+    campaign: Path, predictor: Predictor
+) -> None:
     data = load_campaign(campaign)
     model = TwinModel(mesh_max_edge=data.mesh_max_edge)
     strata = {stratum(t) for t in data.trajectories}
     assert len(strata) == 4 and len(data.trajectories) >= 7  # the subset below: 4 of them (one may be dropped)
-    predictor = Predictor()  # shared: the subset's replays are the full run's (same models, same paths)
     full = diagnose([data], model, predictor, top=1)
     subset = diagnose([data], model, predictor, top=1, rank_per_stratum=1)
     assert full.verdict == HIDDEN, full.reason
@@ -73,12 +80,43 @@ def test_ranking_on_one_trajectory_per_stratum_names_the_hidden_effect_as_the_fu
     assert subset.base_rms == full.base_rms
 
 
-def test_diagnosing_one_trajectory_per_stratum_names_the_hidden_effect_and_says_which(campaign: Path) -> None:
+RANK_MESH = 3e-3
+"""A coarser mesh (m) than the campaign's 2 mm: the BioTac skin at about half the nodes."""
+
+
+def test_ranking_on_a_coarser_mesh_names_the_hidden_effect_with_the_full_diagnosis_figures(
+    campaign: Path, predictor: Predictor
+) -> None:
+    """`rank_mesh`: the candidates' columns are differences of coarse replays, scored against the campaign mesh's
+    residual; the named effect is refitted and judged on the campaign's mesh, so its figures are the full run's."""
+    data = load_campaign(campaign)
+    model = TwinModel(mesh_max_edge=data.mesh_max_edge)
+    assert RANK_MESH > model.mesh_max_edge
+    full = diagnose([data], model, predictor, top=1)
+    coarse = diagnose([data], model, predictor, top=1, rank_mesh=RANK_MESH)
+    assert coarse.verdict == full.verdict == HIDDEN, coarse.reason
+    assert coarse.to_dict()["ranked_mesh_mm"] == pytest.approx(3.0) and full.to_dict()["ranked_mesh_mm"] is None
+    named, full_named = coarse.candidates[0], full.candidates[0]
+    assert named.name == full_named.name == HIDDEN
+    assert named.refit_rms == pytest.approx(full_named.refit_rms, rel=1e-6)
+    assert named.heldout_rms == pytest.approx(full_named.heldout_rms, rel=1e-6)
+    assert coarse.base_rms == full.base_rms
+    # ranked on other replays: the evidence differs from the full run's, but not by much (the same physics)
+    assert named.evidence != full_named.evidence
+    assert named.evidence == pytest.approx(full_named.evidence, rel=0.1)
+    with pytest.raises(ValueError, match="positive"):
+        diagnose([data], model, predictor, top=1, rank_mesh=0.0)
+    with pytest.raises(ValueError, match="nuisance"):
+        diagnose([data], model, predictor, top=1, rank_mesh=RANK_MESH, nuisances=True)
+
+
+def test_diagnosing_one_trajectory_per_stratum_names_the_hidden_effect_and_says_which(
+    campaign: Path, predictor: Predictor
+) -> None:
     """`per_stratum`: every stage on the sample alone (4 of the campaign's trajectories), the hidden effect named,
     and the same diagnosis as of a campaign that held only those trajectories."""
     data = load_campaign(campaign)
     model = TwinModel(mesh_max_edge=data.mesh_max_edge)
-    predictor = Predictor()
     sample = diagnose([data], model, predictor, top=1, per_stratum=1)
     assert sample.verdict == HIDDEN, sample.reason
     on = sample.sampled

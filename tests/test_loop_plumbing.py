@@ -90,9 +90,18 @@ def test_diagnose_json_strict_refit_count_and_progress_per_candidate(
     calls: dict = {}
 
     def fake_diagnose(
-        data, model, predictor=None, top=3, on_progress=None, nuisances=False, rank_per_stratum=None, per_stratum=None
+        data,
+        model,
+        predictor=None,
+        top=3,
+        on_progress=None,
+        nuisances=False,
+        rank_per_stratum=None,
+        per_stratum=None,
+        rank_mesh=None,
     ):
         calls["top"], calls["rank_per_stratum"] = top, rank_per_stratum
+        calls["rank_mesh"] = rank_mesh
         calls["per_stratum"] = per_stratum
         for name in ("skin_modulus", "time_delay", "ft_gain"):
             on_progress("evidence", name)
@@ -104,7 +113,13 @@ def test_diagnose_json_strict_refit_count_and_progress_per_candidate(
     monkeypatch.setattr(diagnose_module, "diagnose", fake_diagnose)
     result = runner.invoke(app, ["diagnose", str(fake_inputs), "--json", "--refit-top", "1"])
     assert result.exit_code == 0, result.output
-    assert calls == {"top": 1, "rank_per_stratum": None, "per_stratum": None, "refits": ["skin_modulus"]}
+    assert calls == {
+        "top": 1,
+        "rank_per_stratum": None,
+        "per_stratum": None,
+        "rank_mesh": None,
+        "refits": ["skin_modulus"],
+    }
     parsed = json.loads(result.stdout, parse_constant=_raise_on_constant)
     assert parsed["verdict"] == "unexplained" and parsed["ranked_on"] is None and parsed["sampled"] is None
     bad = runner.invoke(app, ["diagnose", str(fake_inputs), "--refit-top", "-1"])
@@ -116,6 +131,10 @@ def test_diagnose_json_strict_refit_count_and_progress_per_candidate(
     sample = runner.invoke(app, ["diagnose", str(fake_inputs), "--json", "--per-stratum", "3"])
     assert sample.exit_code == 0 and calls["per_stratum"] == 3, sample.output
     bad = runner.invoke(app, ["diagnose", str(fake_inputs), "--per-stratum", "0"])
+    assert bad.exit_code == 2 and "Traceback" not in bad.output
+    coarse = runner.invoke(app, ["diagnose", str(fake_inputs), "--json", "--rank-mesh-mm", "1.5"])
+    assert coarse.exit_code == 0 and calls["rank_mesh"] == pytest.approx(1.5e-3), coarse.output
+    bad = runner.invoke(app, ["diagnose", str(fake_inputs), "--rank-mesh-mm", "0"])
     assert bad.exit_code == 2 and "Traceback" not in bad.output
 
 

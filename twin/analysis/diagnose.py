@@ -47,7 +47,7 @@ from twin.analysis.lockstep import run_in_lockstep
 from twin.analysis.nuisances import NUISANCE_EFFECTS, fit_nuisances
 from twin.analysis.predict import Predictor, TwinModel
 from twin.analysis.refit import refit
-from twin.analysis.residual import CHANNELS, Residual, base_residual
+from twin.analysis.residual import CHANNELS, Base, Residual, base_residual
 from twin.analysis.rows_only import RAW_ONLY_EFFECTS
 from twin.analysis.sensitivity import (
     Linearisation,
@@ -76,6 +76,7 @@ class Diagnosis:
     nuisances: dict | None = None  # the nuisance stage's summary (`NuisanceFit.to_dict`) when it ran
     ranked_on: dict | None = None  # the trajectories that ranked the candidates (`subset.RankedOn`); None: all
     sampled: dict | None = None  # the trajectories diagnosed (`subset.RankedOn`), every stage; None: all
+    ranked_mesh: float | None = None  # fe mesh (m) the candidates were ranked on; None: the model's own
 
     def to_dict(self) -> dict:
         """JSON-ready form (the `twin diagnose --json` shape)."""
@@ -90,6 +91,7 @@ class Diagnosis:
             "nuisances": self.nuisances,
             "ranked_on": self.ranked_on,
             "sampled": self.sampled,
+            "ranked_mesh_mm": None if self.ranked_mesh is None else 1e3 * self.ranked_mesh,
         }
 
     def to_json(self) -> str:
@@ -142,6 +144,7 @@ def diagnose(
     nuisances: bool = False,
     rank_per_stratum: int | None = None,
     per_stratum: int | None = None,
+    rank_mesh: float | None = None,
 ) -> Diagnosis:
     """Rank the library's effects (off in `model`) by how well each explains the residual; the first
     `top` of the ranking are refitted and judged held out about their refit (`twin.analysis.verdict`); when none
@@ -156,6 +159,10 @@ def diagnose(
     With `rank_per_stratum`, candidates are linearised and ranked on at most that many trajectories of each
     sensor x indenter x path kind (`twin.analysis.subset`; not with `nuisances`); the top ones are linearised
     again, refitted and judged held out on every trajectory, and `ranked_on` says which trajectories ranked.
+    With `rank_mesh` (m), candidates are linearised and ranked on replays of that fe mesh (a coarser one costs
+    several times less; not with `nuisances`): each column is a difference of two replays of that mesh, scored
+    against the residual of the model's own mesh; the top ones are linearised again, refitted and judged held
+    out on the model's mesh, so a verdict never rests on the coarse replays (`ranking_base`).
     With `per_stratum`, the whole diagnosis runs on at most that many trajectories of each stratum
     (`twin.analysis.subset.sampled`), and `sampled` says which. On row-only data (`twin.analysis.rows_only`) the
     effects those cannot identify (`RAW_ONLY_EFFECTS`) are not candidates (ValueError when asked for)."""
@@ -163,6 +170,10 @@ def diagnose(
         raise ValueError(f"the number of candidates to refit must be >= 0, got {top}")
     if rank_per_stratum is not None and nuisances:
         raise ValueError("ranking on a subset of the trajectories is not combined with the nuisance fit")
+    if rank_mesh is not None and nuisances:
+        raise ValueError("ranking on another fe mesh is not combined with the nuisance fit")
+    if rank_mesh is not None and not rank_mesh > 0:
+        raise ValueError(f"the ranking mesh must be a positive edge length (m), got {rank_mesh}")
     if nuisances and set(candidates or ()) & set(NUISANCE_EFFECTS):
         raise ValueError(f"with the nuisances fitted, {sorted(NUISANCE_EFFECTS)} cannot be candidates")
     report = on_progress or (lambda stage, name: None)
@@ -178,18 +189,20 @@ def diagnose(
     excluded = set(model.effects) | (set(NUISANCE_EFFECTS) if nuisances else set()) | blind
     names = candidates if candidates is not None else [k for k in EFFECTS if k not in excluded]
     ranking_sets, ranked_on = sampled(datasets, rank_per_stratum) if rank_per_stratum is not None else (datasets, None)
+    rank_model = model if rank_mesh is None else replace(model, mesh_max_edge=rank_mesh)
+    ranked_elsewhere = ranked_on is not None or rank_model != model
     if not nuisances:  # the base's replays and the candidates' first linearisations' in one batch (no fit between)
         on_ranking = [t for d in ranking_sets for t in d.trajectories]
-        first = [(m, on_ranking) for m in first_models([EFFECTS[k] for k in names], model)]
+        own = [rank_model] if rank_model != model else []  # the base's replays on the ranking mesh
+        first = [(m, on_ranking) for m in [*own, *first_models([EFFECTS[k] for k in names], rank_model)]]
         predictor.prefetch_many([(model, [t for d in datasets for t in d.trajectories]), *first])
     fitted = fit_nuisances(datasets, model, predictor, lambda text: report("nuisances", text)) if nuisances else None
     base = fitted.base if fitted is not None else base_residual(datasets, model, predictor)
     residual = base.residual
     base_rms = float(np.sqrt(base.nuisance.chi2(residual.values) / len(residual.values)))
     ranked: list[tuple[Candidate, Linearisation]] = []
-    # ranked on a subset: its residual with the noise estimated on every trajectory
-    ranking = base if ranked_on is None else base_residual(ranking_sets, model, predictor, sigma=base.sigma)
-    lins = sensitivities([EFFECTS[name] for name in names], model, predictor, ranking)
+    ranking = ranking_base(base, ranking_sets if ranked_on is not None else None, model, rank_model, predictor)
+    lins = sensitivities([EFFECTS[name] for name in names], rank_model, predictor, ranking)
     r = ranking.residual.values  # the candidates are scored on the ranking trajectories (all, by default)
     n = len(r)
     chi2 = ranking.nuisance.chi2(r)
@@ -222,7 +235,7 @@ def diagnose(
     cannot_tell = set(fitted.cannot_tell_apart()) if fitted is not None else set()
 
     def refit_and_judge(chosen: list[tuple[Candidate, Linearisation]]) -> None:
-        if ranked_on is not None:  # ranked on a subset: linearised again on every trajectory, replays in one batch
+        if ranked_elsewhere:  # linearised again on every trajectory and the model's mesh, replays in one batch
             again = [linearisation_models(EFFECTS[c.name], model, lin.point) for c, lin in chosen]
             base.prefetch(predictor, [m for models in again for m in models])
             chosen = [
@@ -263,4 +276,18 @@ def diagnose(
         summary,
         ranked_on.to_dict() if ranked_on is not None else None,
         sampled_on.to_dict() if sampled_on is not None else None,
+        rank_mesh,
     )
+
+
+def ranking_base(
+    base: Base, subset: list[CampaignData] | None, model: TwinModel, rank_model: TwinModel, predictor: Predictor
+) -> Base:
+    """The residual the candidates are ranked on: `base`'s, or on a `subset` of its trajectories (the noise as
+    estimated on all of them); with `rank_model` on another fe mesh, that residual (data less `model`'s
+    prediction) about `rank_model`'s prediction, so each candidate's column, a difference of two `rank_model`
+    replays, leaves the meshes' discretisation difference out of the score."""
+    ranking = base if subset is None else base_residual(subset, model, predictor, sigma=base.sigma)
+    if rank_model == model:
+        return ranking
+    return replace(ranking.about(predictor, rank_model), residual=ranking.residual)

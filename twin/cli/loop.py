@@ -85,6 +85,15 @@ def diagnose(
             "the campaign (every stage; large campaigns; JSON: sampled).",
         ),
     ] = None,
+    rank_mesh_mm: Annotated[
+        float | None,
+        typer.Option(
+            "--rank-mesh-mm",
+            min=0.1,
+            help="Rank the candidates on fe replays of this mesh size (mm; a coarser one is several times cheaper); "
+            "the top ones are refitted and judged held out on the campaign's mesh (JSON: ranked_mesh_mm).",
+        ),
+    ] = None,
 ) -> None:
     """Rank candidate effects by how much of the model-vs-measurement residual each explains."""
     from twin.analysis.diagnose import diagnose as run_diagnosis
@@ -114,6 +123,7 @@ def diagnose(
                 nuisances=nuisances,
                 rank_per_stratum=rank_per_stratum,
                 per_stratum=per_stratum,
+                rank_mesh=None if rank_mesh_mm is None else 1e-3 * rank_mesh_mm,
             )
         )
     if as_json:
@@ -146,6 +156,11 @@ def diagnose(
         out_console.print(
             f"candidates ranked on {len(on['trajectories'])} of {on['of']} trajectories (at most {on['per_stratum']} "
             "per sensor x indenter x path kind); the refits and held-out judgements on all of them"
+        )
+    if result.ranked_mesh is not None:
+        out_console.print(
+            f"candidates ranked on a {1e3 * result.ranked_mesh:g} mm fe mesh; the refits and held-out judgements on "
+            f"the model's ({1e3 * twin_model.mesh_max_edge:g} mm)"
         )
     out_console.print(table)
     out_console.print(f"verdict: [bold]{result.verdict}[/bold] - {result.reason}")
