@@ -98,10 +98,12 @@ class SensorReadout:
 
 
 def ft_load(force_biotac: np.ndarray, point_biotac: np.ndarray, sensor_in_biotac: np.ndarray) -> np.ndarray:
-    """(6,) wrench (N, N·m) in the F/T sensor frame of a force (N, biotac frame) applied at a point (m).
+    """(..., 6) wrench (N, N·m) in the F/T sensor frame of forces (..., 3; N, biotac frame) applied at points
+    (..., 3; m): one load (6,) or many (K, 6) at once.
 
     sensor_in_biotac: 4x4 pose of the sensor frame in the biotac frame; moments are about its origin.
     """
     rotation = sensor_in_biotac[:3, :3]
-    moment = np.cross(np.asarray(point_biotac) - sensor_in_biotac[:3, 3], np.asarray(force_biotac))
-    return np.concatenate([rotation.T @ force_biotac, rotation.T @ moment])
+    force = np.asarray(force_biotac, dtype=float)
+    moment = np.cross(np.asarray(point_biotac) - sensor_in_biotac[:3, 3], force)
+    return np.concatenate([force @ rotation, moment @ rotation], axis=-1)

@@ -166,14 +166,28 @@ def uncertainty(
 def linear_step(jac: np.ndarray, residual: np.ndarray, at: Parameters, prior: Prior | None = None) -> np.ndarray:
     """The step delta (p,; parameter units) minimising |residual - jac delta|^2 (plus the prior's chi-square
     at `at.values + delta`) with `at.values + delta` within the bounds, solved in scaled units; rows with a
-    non-finite entry are left out."""
-    rows = np.isfinite(jac).all(axis=1) & np.isfinite(residual)
-    matrix, target = jac[rows] * at.scale, residual[rows]
+    non-finite entry are left out. `jac` and `residual` may be a problem already `reduced`."""
+    matrix, target = reduced(jac, residual)
+    matrix = matrix * at.scale
     if prior is not None:
         matrix = np.vstack([matrix, np.diag(at.scale / prior.sigma)])
         target = np.concatenate([target, (prior.mean - at.values) / prior.sigma])
     bounds = ((at.lower - at.values) / at.scale, (at.upper - at.values) / at.scale)
     return lsq_linear(matrix, target, bounds=bounds).x * at.scale
+
+
+def reduced(jac: np.ndarray, residual: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """The least-squares problem |residual - jac x|^2 (jac (n, p)) over its rows without a non-finite entry, in
+    at most p rows when it has many more: with the thin QR factorisation jac = Q R, |residual - jac x|^2 =
+    |Q^T residual - R x|^2 + a constant, so every x (bounded or not) keeps its ranking and a whole residual's
+    samples cost one factorisation, not an iterative solver's passes; stacked, the reductions of disjoint row
+    sets are the reduction of their union (the held-out fits, `twin.analysis.heldout`)."""
+    rows = np.isfinite(jac).all(axis=1) & np.isfinite(residual)
+    matrix, target = jac[rows], residual[rows]
+    if len(target) <= 2 * matrix.shape[1]:
+        return matrix, target
+    q, r = np.linalg.qr(matrix)
+    return r, q.T @ target
 
 
 @dataclass(frozen=True)

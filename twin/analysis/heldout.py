@@ -7,6 +7,7 @@ from collections.abc import Callable
 
 import numpy as np
 
+from twin.analysis.fit import reduced
 from twin.analysis.fit import uncertainty as fit_uncertainty
 from twin.analysis.predict import Predictor, TwinModel
 from twin.analysis.residual import Base, Residual
@@ -27,10 +28,15 @@ def generalises(candidate: Candidate) -> bool:
 
 def heldout_folds(residual: Residual) -> np.ndarray:
     """(N,) the fold each residual sample is held out with: its indenter when the residual has two or more, else
-    its trajectory (a campaign of one indenter holds out one press at a time, fitted on the others)."""
-    if len(np.unique(residual.indenter)) >= 2:
-        return residual.indenter
-    return residual.trajectory_index
+    its trajectory (a campaign of one indenter holds out one press at a time, fitted on the others); folds are
+    integer codes, named per trajectory (each presses with one indenter) rather than sorted sample by sample."""
+    trajectories, first = np.unique(residual.trajectory_index, return_index=True)
+    names, codes = np.unique(residual.indenter[first], return_inverse=True)
+    if len(names) < 2:
+        return residual.trajectory_index
+    fold_of = np.zeros(int(trajectories.max()) + 1, dtype=int)
+    fold_of[trajectories] = codes
+    return fold_of[residual.trajectory_index]
 
 
 def heldout(effect: Effect, lin: Linearisation, r: np.ndarray, folds: np.ndarray) -> tuple[float | None, np.ndarray]:
@@ -42,9 +48,11 @@ def heldout(effect: Effect, lin: Linearisation, r: np.ndarray, folds: np.ndarray
     if len(groups) < 2:
         return None, np.full_like(target, np.nan)
     left_out = np.full_like(target, np.nan)
-    for g in groups:
-        train, test = folds != g, folds == g
-        delta = linear_fit(effect, lin.point, lin.jac[train], target[train])
+    tests = [folds == g for g in groups]
+    parts = [reduced(lin.jac[test], target[test]) for test in tests]  # each fold's rows reduced once
+    for k, test in enumerate(tests):
+        others = [part for j, part in enumerate(parts) if j != k]
+        delta = linear_fit(effect, lin.point, np.vstack([m for m, _ in others]), np.concatenate([t for _, t in others]))
         left_out[test] = target[test] - lin.jac[test] @ delta
     return whitened_rms(left_out), left_out
 

@@ -205,7 +205,7 @@ def onset_estimate(
     full-rate sample (N, biotac frame; x, y, z first). Uses the cached base replays (`Predictor.predict`)."""
     shifts = []
     for model, t in zip(models, trajectories, strict=True):
-        curves = loading_curves(t, predictor.predict(model, t).force_fullrate, np.asarray(sigma)[:3])
+        curves = loading_curves(t, predictor.predict(model, t, rows=False).force_fullrate, np.asarray(sigma)[:3])
         s, std = contact_shift(*curves)
         here = registration_vector(model.effects.get(REGISTRATION))
         shifts.append(PathShift(t.trajectory_id, s, std, contact_normal(predictor, model, t, here), t.direction))

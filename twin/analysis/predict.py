@@ -123,7 +123,7 @@ class Prediction:
     converged: np.ndarray  # (K,) bool; later indices after a failure are NaN-filled
     force_fullrate: np.ndarray  # (T, 3) N, biotac frame, tared, unfiltered (model + measurement effects)
     pdc_fullrate: np.ndarray  # (T,) counts, tared: the PDC read-out (the model's PDC effects) of the pressure change
-    rows: ProcessedRows
+    rows: ProcessedRows | None  # None when predicted with rows=False
 
 
 @dataclass(frozen=True)
@@ -477,8 +477,9 @@ class Predictor:
                 if plan.key not in self._replays:
                     yield model, trajectory, plan
 
-    def predict(self, model: TwinModel, trajectory: TrajectoryRecord) -> Prediction:
-        """The model's prediction of `trajectory` (see the module docstring)."""
+    def predict(self, model: TwinModel, trajectory: TrajectoryRecord, rows: bool = True) -> Prediction:
+        """The model's prediction of `trajectory` (see the module docstring); `rows=False` leaves the processed
+        rows out (None: the residual reads the full-rate signals only)."""
         plan = self._plan(model, trajectory)
         if plan.key not in self._replays:
             fe = self._model_fe(model)
@@ -490,12 +491,7 @@ class Predictor:
         tips, raw = plan.tips, trajectory.raw
         times = raw.time
         sample_event = np.clip(np.searchsorted(replay.time, times, side="right") - 1, 0, None)
-        loads = np.array(
-            [
-                ft_load(f, tips[k], trajectory.sensor_in_biotac)
-                for f, k in zip(replay.force, replay.path_index, strict=True)
-            ]
-        )
+        loads = ft_load(replay.force, tips[replay.path_index], trajectory.sensor_in_biotac)
 
         def clean_at(t: np.ndarray) -> np.ndarray:
             return loads[np.clip(np.searchsorted(replay.time, t, side="right") - 1, 0, None)]
@@ -517,17 +513,23 @@ class Predictor:
             complete=bool(replay.converged.all()),
             message="",
         )
-        rows = process(
-            predicted,
-            trajectory.arm,
-            trajectory.tool_tip,
-            np.linalg.inv(trajectory.registration),
-            trajectory.sensor_in_biotac,
-            trajectory.rate_hz,
+        processed = (
+            process(
+                predicted,
+                trajectory.arm,
+                trajectory.tool_tip,
+                np.linalg.inv(trajectory.registration),
+                trajectory.sensor_in_biotac,
+                trajectory.rate_hz,
+            )
+            if rows
+            else None
         )
         tared = (wrench[:, :3] - wrench[0, :3]) @ trajectory.sensor_in_biotac[:3, :3].T
         last = np.r_[np.flatnonzero(np.diff(replay.path_index)), len(replay.path_index) - 1]  # per path index
-        return Prediction(replay.force[last], replay.pressure[last], replay.converged[last], tared, pdc_change, rows)
+        return Prediction(
+            replay.force[last], replay.pressure[last], replay.converged[last], tared, pdc_change, processed
+        )
 
 
 def _path_depths(raw: Recording) -> np.ndarray:

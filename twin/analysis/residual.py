@@ -62,7 +62,7 @@ def fullrate_prediction(
     predictor.prefetch_many(model_requests([model], trajectories, model_for))
     out = []
     for m, t in zip(models, trajectories, strict=True):
-        p = predictor.predict(m, t)
+        p = predictor.predict(m, t, rows=False)
         force = filtered(p.force_fullrate, t.rate_hz) if t.rows_only else p.force_fullrate  # rows are low-passed
         out.append(np.column_stack([force, p.pdc_fullrate]))
     return out
