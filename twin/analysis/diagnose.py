@@ -180,7 +180,7 @@ def diagnose(
     ranking_sets, ranked_on = sampled(datasets, rank_per_stratum) if rank_per_stratum is not None else (datasets, None)
     if not nuisances:  # the base's replays and the candidates' first linearisations' in one batch (no fit between)
         on_ranking = [t for d in ranking_sets for t in d.trajectories]
-        first = [(m, on_ranking) for m in first_models([EFFECTS[k] for k in names], model)]
+        first = [(m, on_ranking) for m in first_models([EFFECTS[k] for k in names], model, surrogates=True)]
         predictor.prefetch_many([(model, [t for d in datasets for t in d.trajectories]), *first])
     fitted = fit_nuisances(datasets, model, predictor, lambda text: report("nuisances", text)) if nuisances else None
     base = fitted.base if fitted is not None else base_residual(datasets, model, predictor)
@@ -189,7 +189,9 @@ def diagnose(
     ranked: list[tuple[Candidate, Linearisation]] = []
     # ranked on a subset: its residual with the noise estimated on every trajectory
     ranking = base if ranked_on is None else base_residual(ranking_sets, model, predictor, sigma=base.sigma)
-    lins = sensitivities([EFFECTS[name] for name in names], model, predictor, ranking)
+    # ranked on surrogates where an effect has one (`SURROGATES`; not about the nuisances: their confounding test
+    # reads the columns, and a verdict never rests on a surrogate), linearised again before any refit
+    lins = sensitivities([EFFECTS[name] for name in names], model, predictor, ranking, surrogates=fitted is None)
     r = ranking.residual.values  # the candidates are scored on the ranking trajectories (all, by default)
     n = len(r)
     chi2 = ranking.nuisance.chi2(r)
@@ -222,13 +224,16 @@ def diagnose(
     cannot_tell = set(fitted.cannot_tell_apart()) if fitted is not None else set()
 
     def refit_and_judge(chosen: list[tuple[Candidate, Linearisation]]) -> None:
-        if ranked_on is not None:  # ranked on a subset: linearised again on every trajectory, replays in one batch
-            again = [linearisation_models(EFFECTS[c.name], model, lin.point) for c, lin in chosen]
-            base.prefetch(predictor, [m for models in again for m in models])
-            chosen = [
-                (c, replace(linearise(EFFECTS[c.name], model, lin.point, predictor, base), data_start=lin.data_start))
-                for c, lin in chosen
-            ]
+        # ranked on a subset or a surrogate: linearised again (every trajectory, own replays), replays in one batch
+        again = [ranked_on is not None or lin.surrogate for _, lin in chosen]
+        redo = [(EFFECTS[c.name], lin) for (c, lin), fresh in zip(chosen, again, strict=True) if fresh]
+        base.prefetch(predictor, [m for e, lin in redo for m in linearisation_models(e, model, lin.point)])
+        chosen = [
+            (c, replace(linearise(EFFECTS[c.name], model, lin.point, predictor, base), data_start=lin.data_start))
+            if fresh
+            else (c, lin)
+            for (c, lin), fresh in zip(chosen, again, strict=True)
+        ]
         for candidate, lin in chosen:
             report("refit", candidate.name)
             identifiability(candidate, lin)

@@ -1,0 +1,110 @@
+"""Stand-ins for an effect's own fe replays in its first, ranking linearisation (`twin.analysis.sensitivity`,
+`SURROGATES`), built from elastic replays that a diagnosis solves anyway.
+
+The one here is the skin's viscoelastic relaxation (`skin_relaxation`: one Prony branch of fraction g and time tau,
+`fe.viscoelastic`). Off in the model, it is linearised at its probe (g = 0.15), where its own replays are timed:
+every hold time-stepped, 2.7x the first batch's wall on an H100 (docs/scale.md, issue 18). To first order in g its
+prediction change follows from the sensitivity S(t) = dPred/d(ln mu_nh) of the elastic skin alone. Quasi-linear
+viscoelasticity makes the skin's stress (1 - g) sigma_e(t) + h(t), about the long-term (relaxed) state it is
+inflated in, with the branch's memory h(t) = g sum_k gamma_k dsigma_e,k exp(-(t - t_k) / tau) of the elastic stress
+changes dsigma_e,k, each ramped over the dt_k before the pose's solve at t_k (gamma_k = (1 - e^(-x)) / x,
+x = dt_k / tau: `fe.viscoelastic.step_factors`). Mapping a stress change to the prediction through S (the response
+of the elastic skin at t to its own stress, taken for the response to each earlier increment's: exact while the
+contact's response changes little between the poses), the change per unit g is
+
+    dPred(t) / g = -S(t) + sum_k gamma_k [S(t_k) - S(t_k-)] exp(-(t - t_k) / tau),
+
+the first term the softer (relaxed) skin, exact to first order, the second the memory of every pose change since
+the inflated start, evaluated at the events a timed replay solves (`twin.analysis.predict.solve_events`) and held
+from each to the next sample, as a timed replay's samples are. S is the finite difference of the skin modulus's
+elastic replay (mu_nh x (1 + `MODULUS_STEP`): the `skin_modulus` candidate's own column replay while that effect is
+off) from the base's. The change is linear in g, so the g column (differenced back to off, as the real one) is
+exact to that order; the tau column is the same forward difference as the real one's, of this change.
+
+Only the ranking uses it: `twin.analysis.diagnose` linearises a candidate ranked on it again with its own replays
+before refitting and judging it (`Linearisation.surrogate`). Measured against the timed finite-difference columns,
+docs/analysis.md (issue 18) and tests/test_surrogate.py.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+from dataclasses import dataclass, replace
+
+import numpy as np
+
+from fe.viscoelastic import step_factors
+from twin.analysis.predict import Predictor, TwinModel, solve_events
+from twin.analysis.residual import Base, fullrate_prediction
+from twin.controller import Recording
+from twin.effects import EFFECTS
+from twin.sim_backend import RELAXATION_SOLVE_INTERVAL_S
+
+Shift = Callable[[TwinModel], np.ndarray]
+"""The profiled whitened change (N,) of the prediction from the base to a model (`Base.shifted`'s form)."""
+
+RELAXATION = "skin_relaxation"
+"""The effect whose first linearisation `RELAXATION_SURROGATE` stands in for."""
+MODULUS_STEP = EFFECTS["skin_modulus"].parameters[0].scale
+"""Relative step of the skin modulus mu_nh whose elastic replay gives S (the `skin_modulus` column's step)."""
+
+
+@dataclass(frozen=True)
+class Surrogate:
+    """A stand-in for an effect's replays in its first linearisation while it is off in the model: `models(model)`,
+    the models whose replays it needs (elastic: solved with the base's), and `shift(model, predictor, base)`, the
+    change (`Shift`) of the prediction to `model` with the effect at given values, from those replays."""
+
+    models: Callable[[TwinModel], list[TwinModel]]
+    shift: Callable[[TwinModel, Predictor, Base], Shift]
+
+
+def modulus_stepped(model: TwinModel) -> TwinModel:
+    """`model` with its nominal skin modulus mu_nh times 1 + `MODULUS_STEP`: with `skin_modulus` off, the skin of that
+    effect's column (its replays the same); a step of the nominal skin, which a `ModelFor` (which sets effects: a
+    sensor's own skin modulus) keeps."""
+    return replace(model, skin=replace(model.skin, mu_nh=model.skin.mu_nh * (1.0 + MODULUS_STEP)))
+
+
+def relaxation_response(raw: Recording, slope: np.ndarray, time_s: float) -> np.ndarray:
+    """(T, 4) the change per unit relaxing fraction g of a trajectory's full-rate prediction (tared force N, PDC
+    counts) with relaxation time `time_s` (s), to first order in g (module docstring), from the elastic sensitivity
+    `slope` (T, 4) = dPred/d(ln mu_nh) on the recording `raw`'s samples (NaN where the replays failed: NaN from the
+    first pose change that reads one on)."""
+    times, indices = solve_events(raw, RELAXATION_SOLVE_INTERVAL_S)
+    moved = np.r_[True, np.diff(indices) != 0]  # each pose's first event, where the indenter moves
+    first_sample = np.r_[0, np.flatnonzero(np.diff(raw.increment)) + 1]
+    sample_of = dict(zip(raw.increment[first_sample] + 1, first_sample, strict=True))  # path index -> first sample
+    at = np.array([sample_of[i] for i in indices[moved]])
+    before = np.where((at > 0)[:, None], slope[np.maximum(at - 1, 0)], 0.0)  # the inflated start: no change yet
+    jumps = slope[at] - before
+    ramps = np.diff(times, prepend=times[0])[moved]
+    _, gamma = step_factors(np.ones(len(ramps)), np.full(len(ramps), time_s), ramps)
+    age = times[:, None] - times[moved][None, :]
+    after = age >= 0.0
+    weight = np.where(after, np.exp(-np.clip(age, 0.0, None) / time_s), 0.0) * gamma
+    failed = np.isnan(jumps)
+    memory = weight @ np.where(failed, 0.0, jumps)
+    memory[(after.astype(float) @ failed.astype(float)) > 0] = np.nan
+    event = np.clip(np.searchsorted(times, raw.time, side="right") - 1, 0, None)
+    return memory[event] - slope
+
+
+def _relaxation_shift(model: TwinModel, predictor: Predictor, base: Base) -> Shift:
+    """The relaxation's `Shift` about `model` (its skin elastic) from the base's and `modulus_stepped`'s replays."""
+    trajectories, model_for = base.trajectories, base.model_for
+    elastic = fullrate_prediction(predictor, model, trajectories, model_for)
+    stiffer = fullrate_prediction(predictor, modulus_stepped(model), trajectories, model_for)
+    slopes = [(s - e) / np.log1p(MODULUS_STEP) for s, e in zip(stiffer, elastic, strict=True)]
+    effect = EFFECTS[RELAXATION]
+
+    def shift(changed: TwinModel) -> np.ndarray:
+        values = effect.values(changed.effects.get(RELAXATION))
+        responses = [relaxation_response(t.raw, s, values["time_s"]) for t, s in zip(trajectories, slopes, strict=True)]
+        return base.shift_of([e + values["fraction"] * r for e, r in zip(elastic, responses, strict=True)])
+
+    return shift
+
+
+RELAXATION_SURROGATE = Surrogate(lambda model: [modulus_stepped(model)], _relaxation_shift)
+"""`skin_relaxation`'s first linearisation from the skin modulus's elastic replays (module docstring)."""
