@@ -7,19 +7,20 @@ every hold time-stepped, 2.7x the first batch's wall on an H100 (docs/scale.md, 
 prediction change follows from the sensitivity S(t) = dPred/d(ln mu_nh) of the elastic skin alone. Quasi-linear
 viscoelasticity makes the skin's stress (1 - g) sigma_e(t) + h(t), about the long-term (relaxed) state it is
 inflated in, with the branch's memory h(t) = g sum_k gamma_k dsigma_e,k exp(-(t - t_k) / tau) of the elastic stress
-changes dsigma_e,k, each ramped over the dt_k before the pose's solve at t_k (gamma_k = (1 - e^(-x)) / x,
-x = dt_k / tau: `fe.viscoelastic.step_factors`). Mapping a stress change to the prediction through S (the response
-of the elastic skin at t to its own stress, taken for the response to each earlier increment's: exact while the
-contact's response changes little between the poses), the change per unit g is
+changes dsigma_e,k since, each ramped over the dt_k before the pose's solve at t_k (gamma_k = (1 - e^(-x)) / x,
+x = dt_k / tau: `fe.viscoelastic.step_factors`). The first term is the elastic skin at (1 - g) mu_nh: -g S(t),
+exact to first order. The memory holds only what the indentation adds to the inflation's prestress, whose own share
+of S (`PRESTRESS_SHARE`, measured: every stiffness scales with mu_nh, so S cannot tell it apart) is relaxed from the
+start. Taking the response at t to each earlier pose change for that change of S (exact while the contact changes
+little between poses), the change per unit g is
 
-    dPred(t) / g = -S(t) + sum_k gamma_k [S(t_k) - S(t_k-)] exp(-(t - t_k) / tau),
+    dPred(t) / g = -S(t) + (1 - PRESTRESS_SHARE) sum_k gamma_k [S(t_k) - S(t_k-)] exp(-(t - t_k) / tau),
 
-the first term the softer (relaxed) skin, exact to first order, the second the memory of every pose change since
-the inflated start, evaluated at the events a timed replay solves (`twin.analysis.predict.solve_events`) and held
-from each to the next sample, as a timed replay's samples are. S is the finite difference of the skin modulus's
-elastic replay (mu_nh x (1 + `MODULUS_STEP`): the `skin_modulus` candidate's own column replay while that effect is
-off) from the base's. The change is linear in g, so the g column (differenced back to off, as the real one) is
-exact to that order; the tau column is the same forward difference as the real one's, of this change.
+evaluated at the events a timed replay solves (`twin.analysis.predict.solve_events`) and held from each to the next
+sample, as a timed replay's samples are. S is the finite difference of the skin modulus's elastic replay
+(mu_nh x (1 + `MODULUS_STEP`): the `skin_modulus` candidate's own column replay while that effect is off) from the
+base's. The change is linear in g, so the g column (differenced back to off, as the real one) is that of the formula;
+the tau column is the same forward difference as the real one's, of this change.
 
 Only the ranking uses it: `twin.analysis.diagnose` linearises a candidate ranked on it again with its own replays
 before refitting and judging it (`Linearisation.surrogate`). Measured against the timed finite-difference columns,
@@ -98,7 +99,8 @@ def relaxation_response(raw: Recording, slope: np.ndarray, time_s: float) -> np.
 
 
 def _relaxation_shift(model: TwinModel, predictor: Predictor, base: Base) -> Shift:
-    """The relaxation's `Shift` about `model` (its skin elastic) from the base's and `modulus_stepped`'s replays."""
+    """The relaxation's `Shift` about `model` (its skin elastic) from the base's and `modulus_stepped`'s replays, on
+    full-rate trajectories (a row-only file, low-passed, never has this candidate: `rows_only.RAW_ONLY_EFFECTS`)."""
     trajectories, model_for = base.trajectories, base.model_for
     elastic = fullrate_prediction(predictor, model, trajectories, model_for)
     stiffer = fullrate_prediction(predictor, modulus_stepped(model), trajectories, model_for)
