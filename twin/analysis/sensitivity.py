@@ -175,7 +175,7 @@ def first_models(
     `surrogates` those of the effects' stand-ins where they have one (`sensitivities`): known before any residual,
     so they may be solved with the base model's replays."""
     points = first_points(effects, model) if points is None else points
-    models = []
+    models: list[TwinModel] = []
     for effect, point in zip(effects, points, strict=True):
         surrogate = _surrogate(effect, model) if surrogates else None
         models += surrogate.models(model) if surrogate is not None else linearisation_models(effect, model, point)
