@@ -10,11 +10,12 @@ inflated in, with the branch's memory h(t) = g sum_k gamma_k dsigma_e,k exp(-(t 
 changes dsigma_e,k since, each ramped over the dt_k before the pose's solve at t_k (gamma_k = (1 - e^(-x)) / x,
 x = dt_k / tau: `fe.viscoelastic.step_factors`). The first term is the elastic skin at (1 - g) mu_nh: -g S(t),
 exact to first order. The memory holds only what the indentation adds to the inflation's prestress, whose own share
-of S (`PRESTRESS_SHARE`, measured: every stiffness scales with mu_nh, so S cannot tell it apart) is relaxed from the
-start. Taking the response at t to each earlier pose change for that change of S (exact while the contact changes
-little between poses), the change per unit g is
+of S (a, `PRESTRESS_SHARE`, measured: every stiffness scales with mu_nh, so S cannot tell it apart) is relaxed from the
+start. Taking the response at t to each earlier pose change for that change of S, through the share of its contact
+left at t (c: the size of the force's sensitivity; the skin can only push, so what the indenter has let go of reads
+no memory), the change per unit g is
 
-    dPred(t) / g = -S(t) + (1 - PRESTRESS_SHARE) sum_k gamma_k [S(t_k) - S(t_k-)] exp(-(t - t_k) / tau),
+    dPred(t) / g = -S(t) + (1 - a) sum_k gamma_k min(1, c(t) / c(t_k)) [S(t_k) - S(t_k-)] e^(-(t - t_k) / tau),
 
 evaluated at the events a timed replay solves (`twin.analysis.predict.solve_events`) and held from each to the next
 sample, as a timed replay's samples are. S is the finite difference of the skin modulus's elastic replay
@@ -35,6 +36,7 @@ from dataclasses import dataclass, replace
 import numpy as np
 
 from fe.viscoelastic import step_factors
+from twin.analysis.compare import FORCE_CHANNELS
 from twin.analysis.predict import Predictor, TwinModel, solve_events
 from twin.analysis.residual import Base, fullrate_prediction
 from twin.controller import Recording
@@ -52,9 +54,10 @@ PRESTRESS_SHARE = 0.6
 """The share of the elastic skin's modulus sensitivity S borne by its inflation prestress, which a relaxing skin holds
 at its long-term moduli from the start (it is inflated relaxed): only the rest, what the indentation's stresses add,
 has a memory that decays (module docstring). Every stiffness of the skin scales with mu_nh, so S alone cannot split
-the two: measured, the share that brings the fraction's prediction change closest to the timed replays' at
-g = 0.15, tau = 1 s on the demo campaign (flat between 0.6 and 0.7: 4-5 % RMS per channel, against 20 % with no
-share; 0.3 s: 3 %), the same on a tiny one of 1.6 s pauses (docs/analysis.md, issue 18)."""
+the two: measured, the share that brings the full-rate change at g = 0.15, tau = 1 s closest to the timed replays'
+on the demo campaign: 2.7-4.2 % RMS per channel at 0.6 (0.5: 2.8-4.6 %, 0.7: 4.0-6.0 %; with no share and no
+contact scaling, `relaxation_response`, 20-22 %); the same share is best on a tiny campaign of 1.6 s pauses
+(docs/analysis.md, issue 18)."""
 
 
 @dataclass(frozen=True)
@@ -78,19 +81,25 @@ def relaxation_response(raw: Recording, slope: np.ndarray, time_s: float) -> np.
     """(T, 4) the change per unit relaxing fraction g of a trajectory's full-rate prediction (tared force N, PDC
     counts) with relaxation time `time_s` (s), to first order in g (module docstring), from the elastic sensitivity
     `slope` (T, 4) = dPred/d(ln mu_nh) on the recording `raw`'s samples (NaN where the replays failed: NaN from the
-    first pose change that reads one on)."""
+    first pose change that reads one on). A pose change's memory acts on the indenter through the contact that is
+    left of it: it is scaled by min(1, c(t) / c(t_k)), c the size of the force's sensitivity (the contact force's, the
+    skin being homogeneous in mu_nh) at t and at the change's pose (0 at a pose out of contact), so a skin the
+    indenter has let go of reads no memory, as a skin that can only push reads none."""
     times, indices = solve_events(raw, RELAXATION_SOLVE_INTERVAL_S)
     moved = np.r_[True, np.diff(indices) != 0]  # each pose's first event, where the indenter moves
     first_sample = np.r_[0, np.flatnonzero(np.diff(raw.increment)) + 1]
     sample_of = dict(zip(raw.increment[first_sample] + 1, first_sample, strict=True))  # path index -> first sample
-    at = np.array([sample_of[i] for i in indices[moved]])
+    pose = np.array([sample_of[i] for i in indices])  # each event's pose, by its first sample
+    at = pose[moved]
     before = np.where((at > 0)[:, None], slope[np.maximum(at - 1, 0)], 0.0)  # the inflated start: no change yet
     jumps = slope[at] - before
     ramps = np.diff(times, prepend=times[0])[moved]
     _, gamma = step_factors(np.ones(len(ramps)), np.full(len(ramps), time_s), ramps)
     age = times[:, None] - times[moved][None, :]
     after = age >= 0.0
-    weight = np.where(after, np.exp(-np.clip(age, 0.0, None) / time_s), 0.0) * gamma
+    contact = np.nan_to_num(np.linalg.norm(slope[:, : len(FORCE_CHANNELS)], axis=1))
+    left = np.divide(contact[pose][:, None], contact[at][None, :], out=np.zeros(age.shape), where=contact[at] > 0.0)
+    weight = np.where(after, np.exp(-np.clip(age, 0.0, None) / time_s), 0.0) * gamma * np.minimum(left, 1.0)
     failed = np.isnan(jumps)
     memory = weight @ np.where(failed, 0.0, jumps)
     memory[(after.astype(float) @ failed.astype(float)) > 0] = np.nan
