@@ -153,6 +153,9 @@ def diagnose(
     on_progress(stage, effect) is called before each candidate is scored ("evidence"; every candidate's
     sensitivity is solved first, their replays batched, `sensitivities`) and refitted
     ("refit"), and with ("nuisances", what) during the nuisance fit.
+    Without `nuisances`, an effect with a surrogate (`sensitivity.SURROGATES`: a relaxing skin, from the skin
+    modulus's elastic replays, `twin.analysis.surrogate`) is ranked on it, and linearised again on its own replays
+    before it is refitted: no verdict rests on a surrogate.
     With `rank_per_stratum`, candidates are linearised and ranked on at most that many trajectories of each
     sensor x indenter x path kind (`twin.analysis.subset`; not with `nuisances`); the top ones are linearised
     again, refitted and judged held out on every trajectory, and `ranked_on` says which trajectories ranked.

@@ -125,4 +125,6 @@ def _relaxation_shift(model: TwinModel, predictor: Predictor, base: Base) -> Shi
 
 
 RELAXATION_SURROGATE = Surrogate(lambda model: [modulus_stepped(model)], _relaxation_shift)
-"""`skin_relaxation`'s first linearisation from the skin modulus's elastic replays (module docstring)."""
+"""`skin_relaxation`'s first linearisation from the skin modulus's elastic replays (module docstring). They are asked
+for whether or not `skin_modulus` is a candidate: with it off and a candidate they are its column's; otherwise (not a
+candidate, or on in the model) one elastic replay a trajectory more in the first batch, still no timed one."""
