@@ -7,6 +7,7 @@ import numpy as np
 import pytest
 
 from twin.analysis.data import load_campaign
+from twin.analysis.diagnose import diagnose
 from twin.analysis.predict import Predictor, TwinModel
 from twin.analysis.residual import base_residual
 from twin.analysis.sensitivity import first_models, first_points, linearisation_models, linearise
@@ -63,3 +64,21 @@ def test_the_surrogate_columns_agree_with_the_timed_finite_differences(long_paus
         difference, correlation = _agreement(surrogate.jac[:, column], timed.jac[:, column])
         assert difference < most and correlation > least, (effect.parameters[column].name, difference, correlation)
     assert _agreement(surrogate.offset, timed.offset)[0] < FRACTION_COLUMN[0], "linear in the fraction: its column"
+
+
+def test_a_candidate_ranked_on_the_surrogate_is_linearised_again_on_its_own_replays(long_pauses: Path) -> None:
+    data = load_campaign(long_pauses)
+    model, predictor = TwinModel(mesh_max_edge=data.mesh_max_edge), Predictor(workers=1)
+    timed: list[int] = []
+    solve = predictor.prefetch_many
+
+    def counted(requests, progress=None) -> int:  # noqa: ANN001 (Predictor.prefetch_many's)
+        timed.append(sum(plan.timed for _, _, plan in predictor._missing(requests)))
+        return solve(requests, progress)
+
+    predictor.prefetch_many = counted
+    diagnosis = diagnose([data], model, predictor, [RELAXATION], top=1)
+    assert timed[0] == 0, "the first batch (the base's and the surrogate's replays) holds no timed replay"
+    probe = model.with_effects({RELAXATION: first_points([EFFECTS[RELAXATION]], model)[0]})
+    assert sum(timed) > 0 and predictor.missing([(probe, data.trajectories)]) == 0, "its refit began on its own replays"
+    assert diagnosis.candidates[0].refit_parameters is not None
