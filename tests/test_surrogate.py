@@ -1,6 +1,7 @@
 """The ranking linearisation of a relaxing skin from the skin modulus's elastic replays (`twin.analysis.surrogate`,
 issue 18): no timed replay in the first batch, and its columns against the timed finite-difference ones."""
 
+from collections.abc import Callable
 from pathlib import Path
 
 import numpy as np
@@ -72,7 +73,7 @@ def test_a_candidate_ranked_on_the_surrogate_is_linearised_again_on_its_own_repl
     timed: list[int] = []
     solve = predictor.prefetch_many
 
-    def counted(requests, progress=None) -> int:  # noqa: ANN001 (Predictor.prefetch_many's)
+    def counted(requests: list, progress: Callable[[int, int], None] | None = None) -> int:
         timed.append(sum(plan.timed for _, _, plan in predictor._missing(requests)))
         return solve(requests, progress)
 
