@@ -83,8 +83,8 @@ def relaxation_response(raw: Recording, slope: np.ndarray, time_s: float) -> np.
     `slope` (T, 4) = dPred/d(ln mu_nh) on the recording `raw`'s samples (NaN where the replays failed: NaN from the
     first pose change that reads one on). A pose change's memory acts on the indenter through the contact that is
     left of it: it is scaled by min(1, c(t) / c(t_k)), c the size of the force's sensitivity (the contact force's, the
-    skin being homogeneous in mu_nh) at t and at the change's pose (0 at a pose out of contact), so a skin the
-    indenter has let go of reads no memory, as a skin that can only push reads none."""
+    skin being homogeneous in mu_nh) at t and at the change's pose (0 at a pose out of contact): the skin can only
+    push, so once the indenter has let go of it no memory reaches the readings."""
     times, indices = solve_events(raw, RELAXATION_SOLVE_INTERVAL_S)
     moved = np.r_[True, np.diff(indices) != 0]  # each pose's first event, where the indenter moves
     first_sample = np.r_[0, np.flatnonzero(np.diff(raw.increment)) + 1]
