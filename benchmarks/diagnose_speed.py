@@ -8,7 +8,8 @@ process's. (Session 15 compared the creep warm start of held poses here, session
 their figures are in docs/scale.md.)
 
 Part 1 replays every trajectory of the file under the `skin_relaxation` probe's skin (timed replays, the largest
-batch of the diagnosis; `Predictor.prefetch`, one batch, as diagnose does) both ways and prints wall seconds, their
+batch of the diagnosis until it ranked the relaxation on elastic replays, `twin.analysis.surrogate`; now solved only
+for a relaxation it refits; `Predictor.prefetch`, one batch, as diagnose does) both ways and prints wall seconds, their
 ratio and the largest difference of the predicted increment forces (N; 0 expected: each system
 iterates on its own). Part 2 (`--diagnose`) runs the whole `twin diagnose` (nominal model, 3 refits, as the CLI)
 both ways: wall per stage, ratio, and whether the two diagnoses agree (verdict, ranking, largest relative

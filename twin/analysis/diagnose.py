@@ -156,6 +156,9 @@ def diagnose(
     on_progress(stage, effect) is called before each candidate is scored ("evidence"; every candidate's
     sensitivity is solved first, their replays batched, `sensitivities`) and refitted
     ("refit"), and with ("nuisances", what) during the nuisance fit.
+    Without `nuisances`, an effect with a surrogate (`sensitivity.SURROGATES`: a relaxing skin, from the skin
+    modulus's elastic replays, `twin.analysis.surrogate`) is ranked on it, and linearised again on its own replays
+    before it is refitted: no verdict rests on a surrogate.
     With `rank_per_stratum`, candidates are linearised and ranked on at most that many trajectories of each
     sensor x indenter x path kind (`twin.analysis.subset`; not with `nuisances`); the top ones are linearised
     again, refitted and judged held out on every trajectory, and `ranked_on` says which trajectories ranked.
@@ -194,7 +197,8 @@ def diagnose(
     if not nuisances:  # the base's replays and the candidates' first linearisations' in one batch (no fit between)
         on_ranking = [t for d in ranking_sets for t in d.trajectories]
         own = [rank_model] if rank_model != model else []  # the base's replays on the ranking mesh
-        first = [(m, on_ranking) for m in [*own, *first_models([EFFECTS[k] for k in names], rank_model)]]
+        first_lins = first_models([EFFECTS[k] for k in names], rank_model, surrogates=True)
+        first = [(m, on_ranking) for m in [*own, *first_lins]]
         predictor.prefetch_many([(model, [t for d in datasets for t in d.trajectories]), *first])
     fitted = fit_nuisances(datasets, model, predictor, lambda text: report("nuisances", text)) if nuisances else None
     base = fitted.base if fitted is not None else base_residual(datasets, model, predictor)
@@ -202,7 +206,9 @@ def diagnose(
     base_rms = float(np.sqrt(base.nuisance.chi2(residual.values) / len(residual.values)))
     ranked: list[tuple[Candidate, Linearisation]] = []
     ranking = ranking_base(base, ranking_sets if ranked_on is not None else None, model, rank_model, predictor)
-    lins = sensitivities([EFFECTS[name] for name in names], rank_model, predictor, ranking)
+    # ranked on surrogates where an effect has one (`SURROGATES`; not about the nuisances: their confounding test
+    # reads the columns, and a verdict never rests on a surrogate), linearised again before any refit
+    lins = sensitivities([EFFECTS[name] for name in names], rank_model, predictor, ranking, surrogates=fitted is None)
     r = ranking.residual.values  # the candidates are scored on the ranking trajectories (all, by default)
     n = len(r)
     chi2 = ranking.nuisance.chi2(r)
@@ -235,13 +241,17 @@ def diagnose(
     cannot_tell = set(fitted.cannot_tell_apart()) if fitted is not None else set()
 
     def refit_and_judge(chosen: list[tuple[Candidate, Linearisation]]) -> None:
-        if ranked_elsewhere:  # linearised again on every trajectory and the model's mesh, replays in one batch
-            again = [linearisation_models(EFFECTS[c.name], model, lin.point) for c, lin in chosen]
-            base.prefetch(predictor, [m for models in again for m in models])
-            chosen = [
-                (c, replace(linearise(EFFECTS[c.name], model, lin.point, predictor, base), data_start=lin.data_start))
-                for c, lin in chosen
-            ]
+        # ranked on a subset, another mesh or a surrogate: linearised again (every trajectory, the model's mesh,
+        # own replays), replays in one batch
+        again = [ranked_elsewhere or lin.surrogate for _, lin in chosen]
+        redo = [(EFFECTS[c.name], lin) for (c, lin), fresh in zip(chosen, again, strict=True) if fresh]
+        base.prefetch(predictor, [m for e, lin in redo for m in linearisation_models(e, model, lin.point)])
+        chosen = [
+            (c, replace(linearise(EFFECTS[c.name], model, lin.point, predictor, base), data_start=lin.data_start))
+            if fresh
+            else (c, lin)
+            for (c, lin), fresh in zip(chosen, again, strict=True)
+        ]
         for candidate, lin in chosen:
             report("refit", candidate.name)
             identifiability(candidate, lin)

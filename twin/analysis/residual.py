@@ -250,7 +250,12 @@ class Base:
     def shifted(self, predictor: Predictor, model: TwinModel) -> np.ndarray:
         """Profiled change of the whitened prediction from the base to `model` (NaN where it failed): the residual
         less `model`'s `misfit`, so each trajectory's offsets are projected over the samples `model` reached."""
-        predicted = fullrate_prediction(predictor, model, self.trajectories, self.model_for)
+        return self.shift_of(fullrate_prediction(predictor, model, self.trajectories, self.model_for))
+
+    def shift_of(self, predicted: list[np.ndarray]) -> np.ndarray:
+        """Profiled change of the whitened prediction from the base to the per-trajectory full-rate predictions
+        `predicted` ((T, 4) each, `fullrate_prediction`'s form: N and counts; NaN where there is none), as
+        `shifted` makes it of a model's."""
         changed = whitened(predicted, self.masks, self.sigma)
         return self.nuisance.project(self.misfit(self.prediction) - self.misfit(changed))
 

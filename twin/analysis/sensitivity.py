@@ -6,6 +6,7 @@ from __future__ import annotations
 
 from collections.abc import Callable
 from dataclasses import dataclass, replace
+from functools import partial
 from typing import Protocol
 
 import numpy as np
@@ -15,6 +16,7 @@ from twin.analysis.onset import onset_start
 from twin.analysis.predict import Predictor, TwinModel
 from twin.analysis.reading_starts import range_start
 from twin.analysis.residual import Base
+from twin.analysis.surrogate import RELAXATION, RELAXATION_SURROGATE, Surrogate
 from twin.effects import REGISTRATION, Effect
 
 
@@ -40,6 +42,10 @@ DATA_STARTS: dict[str, DataStart] = {
 registration offset from the contact onsets, `twin.analysis.onset`; an F/T range from the readings' plateaus,
 `twin.analysis.reading_starts`); effects not listed have the declared starts only.
 Kept here, not in the effect library: the library knows nothing of the analysis."""
+SURROGATES: dict[str, Surrogate] = {RELAXATION: RELAXATION_SURROGATE}
+"""Effect name -> what stands in for its own replays in its first linearisation while it is off in the model, when
+`sensitivities` is asked to rank on surrogates (a relaxing skin's probe from the skin modulus's elastic replays,
+`twin.analysis.surrogate`: no timed replay); a refit linearises it again on its own replays."""
 
 
 @dataclass(frozen=True)
@@ -51,20 +57,31 @@ class Linearisation:
     offset: np.ndarray  # (N,) profiled change of the prediction from the base model to `point`
     jac: np.ndarray  # (N, k) finite-difference sensitivity at `point`
     data_start: StartEstimate | None = None  # the effect's start from the data (`DATA_STARTS`), if any
+    surrogate: bool = False  # from its `SURROGATES` stand-in, not its own replays: for ranking only
 
 
 def linearise(
-    effect: Effect, model: TwinModel, point: dict[str, float], predictor: Predictor, base: Base
+    effect: Effect,
+    model: TwinModel,
+    point: dict[str, float],
+    predictor: Predictor,
+    base: Base,
+    surrogate: Surrogate | None = None,
 ) -> Linearisation:
     """Linearise the profiled whitened prediction change from the base to `model` with the effect at
     `point`, by forward differences of each parameter's scale (backward at its upper bound; see
-    `_column_steps`). The replays of the point and of every column are solved as one batch."""
+    `_column_steps`). The replays of the point and of every column are solved as one batch; with a `surrogate`
+    (`SURROGATES`, the effect off in `model`), the changes are its stand-ins instead (its replays already solved)."""
     steps = _column_steps(effect, model, point)
     at_point = model.with_effects({effect.name: point})
-    base.prefetch(predictor, [at_point, *(changed for _, changed in steps)])
-    offset = base.shifted(predictor, at_point)
-    columns = [(base.shifted(predictor, changed) - offset) / step for step, changed in steps]
-    return Linearisation(point, offset, np.column_stack(columns))
+    if surrogate is None:
+        base.prefetch(predictor, [at_point, *(changed for _, changed in steps)])
+        shifted = partial(base.shifted, predictor)
+    else:
+        shifted = surrogate.shift(model, predictor, base)
+    offset = shifted(at_point)
+    columns = [(shifted(changed) - offset) / step for step, changed in steps]
+    return Linearisation(point, offset, np.column_stack(columns), surrogate=surrogate is not None)
 
 
 def _column_steps(effect: Effect, model: TwinModel, point: dict[str, float]) -> list[tuple[float, TwinModel]]:
@@ -92,7 +109,9 @@ def sensitivity(effect: Effect, model: TwinModel, predictor: Predictor, base: Ba
     return sensitivities([effect], model, predictor, base)[0]
 
 
-def sensitivities(effects: list[Effect], model: TwinModel, predictor: Predictor, base: Base) -> list[Linearisation]:
+def sensitivities(
+    effects: list[Effect], model: TwinModel, predictor: Predictor, base: Base, surrogates: bool = False
+) -> list[Linearisation]:
     """Linearise each effect where its fit is best begun: at the model's values, or, when the effect is
     off there and declares a probe (parameters that act only once it is on), at the probe; and when it is
     off and declares starts (values across its range, or one from the data), at the start or the first
@@ -101,10 +120,14 @@ def sensitivities(effects: list[Effect], model: TwinModel, predictor: Predictor,
     data-driven start (`DATA_STARTS`: a registration offset's contact onsets, `twin.analysis.onset`, no fe
     replay) tries what that gives (when it gives one) before its declared starts; its Linearisation keeps
     the estimate either way. Each stage's replays, over all the effects (the first linearisations, the
-    trials, the second linearisations), are solved as one batch."""
+    trials, the second linearisations), are solved as one batch. With `surrogates`, an effect off in the model that
+    has a `SURROGATES` stand-in is first linearised on it (for ranking: no replay of its own)."""
     points = first_points(effects, model)
-    base.prefetch(predictor, first_models(effects, model, points))
-    lins = [linearise(e, model, p, predictor, base) for e, p in zip(effects, points, strict=True)]
+    base.prefetch(predictor, first_models(effects, model, points, surrogates))
+    lins = [
+        linearise(e, model, p, predictor, base, _surrogate(e, model) if surrogates else None)
+        for e, p in zip(effects, points, strict=True)
+    ]
     r = base.residual.values
     trials: list[list[dict[str, float]]] = []
     for i, (effect, lin) in enumerate(zip(effects, lins, strict=True)):
@@ -146,12 +169,22 @@ def first_points(effects: list[Effect], model: TwinModel) -> list[dict[str, floa
 
 
 def first_models(
-    effects: list[Effect], model: TwinModel, points: list[dict[str, float]] | None = None
+    effects: list[Effect], model: TwinModel, points: list[dict[str, float]] | None = None, surrogates: bool = False
 ) -> list[TwinModel]:
-    """The models whose replays the effects' first linearisations at `points` (default `first_points`) need: known
-    before any residual, so they may be solved with the base model's replays."""
+    """The models whose replays the effects' first linearisations at `points` (default `first_points`) need, with
+    `surrogates` those of the effects' stand-ins where they have one (`sensitivities`): known before any residual,
+    so they may be solved with the base model's replays."""
     points = first_points(effects, model) if points is None else points
-    return [m for e, p in zip(effects, points, strict=True) for m in linearisation_models(e, model, p)]
+    models: list[TwinModel] = []
+    for effect, point in zip(effects, points, strict=True):
+        surrogate = _surrogate(effect, model) if surrogates else None
+        models += surrogate.models(model) if surrogate is not None else linearisation_models(effect, model, point)
+    return models
+
+
+def _surrogate(effect: Effect, model: TwinModel) -> Surrogate | None:
+    """The effect's `SURROGATES` stand-in while it is off in `model`; None when it has none or is on."""
+    return SURROGATES.get(effect.name) if effect.is_off(model.effects.get(effect.name)) else None
 
 
 def effect_parameters(effect: Effect, point: dict[str, float]) -> Parameters:
