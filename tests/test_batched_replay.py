@@ -281,3 +281,23 @@ def test_a_relaxing_replay_solving_its_holds_sparsely_matches_solving_every_even
         assert np.abs(every.force_fullrate - every.force_fullrate[0]).max() > 0.05  # it presses
         np.testing.assert_allclose(few.force_fullrate, every.force_fullrate, atol=HOLD_FILL_TOLERANCE_N)
         np.testing.assert_allclose(few.pdc_fullrate, every.pdc_fullrate, atol=HOLD_FILL_TOLERANCE_COUNTS)
+
+
+def test_a_predictor_without_electrodes_predicts_force_and_pdc_alike_and_gives_no_rows(data: CampaignData) -> None:
+    """`Predictor(electrodes=False)` (the residual's analyses): the same replays, force and PDC bit for bit, in one
+    batch (on worker processes: the flag travels with each job) and one at a time, but no electrode counts, and
+    asking it for rows is a one-line error rather than NaN electrodes."""
+    model = TwinModel(mesh_max_edge=data.mesh_max_edge)
+    reading, blind = Predictor("cpu", workers=1), Predictor("cpu", workers=2, electrodes=False)
+    assert blind.prefetch(model, data.trajectories) == len(data.trajectories)
+    alone = Predictor("cpu", workers=1, electrodes=False)
+    for t in data.trajectories:
+        full = reading.predict(model, t)
+        for other in (blind.predict(model, t, rows=False), alone.predict(model, t, rows=False)):
+            np.testing.assert_array_equal(other.force_fullrate, full.force_fullrate)
+            np.testing.assert_array_equal(other.pdc_fullrate, full.pdc_fullrate)
+        assert np.isfinite(full.rows.electrode_vals).all()
+        key = blind._plan(model, t).key
+        assert np.isnan(blind._replays[key].electrodes).all() and np.isfinite(reading._replays[key].electrodes).all()
+        with pytest.raises(ValueError, match="reads no electrodes"):
+            blind.predict(model, t)

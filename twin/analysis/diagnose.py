@@ -183,7 +183,7 @@ def diagnose(
     sampled_on = None
     if per_stratum is not None:
         datasets, sampled_on = sampled(datasets, per_stratum)
-    predictor = predictor or Predictor()
+    predictor = predictor or Predictor(electrodes=False)  # the residual has force and PDC only
     rows_only = any(t.rows_only for d in datasets for t in d.trajectories)
     blind = set(RAW_ONLY_EFFECTS) if rows_only else set()
     if blind & set(candidates or ()):

@@ -148,7 +148,8 @@ class _ReplayPlan:
 @dataclass(frozen=True)
 class _ReplayJob:
     """A replay to solve, small enough to send to a worker process: the skin of its model (effects applied),
-    mesh (m) and inflation rule, the indenter, its rotation (3, 3) body -> sensor frame and the plan."""
+    mesh (m) and inflation rule, the indenter, its rotation (3, 3) body -> sensor frame, the plan and whether its
+    replay reads the electrodes (`Predictor.electrodes`)."""
 
     skin: SkinParameters
     mesh_max_edge: float
@@ -156,6 +157,7 @@ class _ReplayJob:
     indenter: str
     rotation: np.ndarray
     plan: _ReplayPlan
+    electrodes: bool = True
 
     @property
     def model_key(self) -> tuple:
@@ -219,7 +221,7 @@ class _ReplaySolver:
 
         def finished(index: int, increments: list[IncrementResult]) -> None:
             job = jobs[index]
-            replay = _replay_of(self.readout(fes[index]), job.plan, increments)
+            replay = _replay_of(self.readout(fes[index]), job.plan, increments, job.electrodes)
             increments.clear()  # the displacement fields are read: free them as the run goes on
             done(job.plan.key, replay)
 
@@ -359,6 +361,10 @@ class Predictor:
     worker process of its own (`ReplayWorkers`; default: one per usable CPU, at most `DEFAULT_WORKERS_MAX`; 1: in
     this process). Every system iterates on its own, so the replays are the same (bit for bit) whatever the
     split. A GPU device runs one batch, in this process.
+
+    With `electrodes=False` replays read no electrodes (NaN counts) and predictions have no processed rows: for
+    the residual's analyses (diagnose, improve), which compare force and PDC only; reading the 19 electrodes at
+    every solve is ~8 % of a paper-mesh diagnosis on a GPU (docs/scale.md, session 22).
     """
 
     def __init__(
@@ -367,8 +373,11 @@ class Predictor:
         on_replays: Callable[[int, int], None] | None = None,
         workers: int | None = None,
         held_first: int = HELD_SOLVES_FIRST,
+        electrodes: bool = True,
     ) -> None:
         self.device = device
+        self.electrodes = electrodes
+        """Whether replays read the electrodes (False: NaN counts, and `predict` gives no rows)."""
         self.held_first = held_first
         """Events solved at the start of each held pose besides its last (`held_solves`; more than a hold has:
         every event, as the plant solves them)."""
@@ -441,9 +450,10 @@ class Predictor:
         for model, trajectory, plan in self._missing(requests):
             skin = apply_skin(model.skin, model.effects)
             rotation = np.asarray(trajectory.rotation, dtype=np.float64)
-            jobs.setdefault(
-                plan.key, _ReplayJob(skin, model.mesh_max_edge, model.inflation, trajectory.indenter, rotation, plan)
+            job = _ReplayJob(
+                skin, model.mesh_max_edge, model.inflation, trajectory.indenter, rotation, plan, self.electrodes
             )
+            jobs.setdefault(plan.key, job)
         work = list(jobs.values())
         solved = 0
         progress = progress or self.on_replays
@@ -479,14 +489,17 @@ class Predictor:
 
     def predict(self, model: TwinModel, trajectory: TrajectoryRecord, rows: bool = True) -> Prediction:
         """The model's prediction of `trajectory` (see the module docstring); `rows=False` leaves the processed
-        rows out (None: the residual reads the full-rate signals only)."""
+        rows out (None: the residual reads the full-rate signals only); a predictor without electrodes gives none.
+        """
+        if rows and not self.electrodes:
+            raise ValueError("this predictor reads no electrodes (electrodes=False): ask for predictions without rows")
         plan = self._plan(model, trajectory)
         if plan.key not in self._replays:
             fe = self._model_fe(model)
             stepper = fe.stepper(trajectory.indenter, self.device)
             times, indices = plan.solves
             increments = step_through(stepper, trajectory.rotation, plan.tips[indices], times if plan.timed else None)
-            self._replays[plan.key] = _replay_of(self.readout(fe), plan, increments)
+            self._replays[plan.key] = _replay_of(self.readout(fe), plan, increments, self.electrodes)
         replay = self._replays[plan.key]
         tips, raw = plan.tips, trajectory.raw
         times = raw.time
@@ -607,17 +620,21 @@ def _pose_trajectory(job: _ReplayJob, timed: bool) -> PoseTrajectory:
     return PoseTrajectory(job.indenter, rotations, job.plan.tips[indices], times if timed else None)
 
 
-def _replay_of(readout: SensorReadout, plan: _ReplayPlan, increments: Iterable[IncrementResult]) -> Replay:
+def _replay_of(
+    readout: SensorReadout, plan: _ReplayPlan, increments: Iterable[IncrementResult], electrodes: bool = True
+) -> Replay:
     """The replay of the plan's events (see `solve_events`) from the increments of its solved ones in order
     (read one by one), which end at the first that did not converge: that event, the later ones and those
-    filled from it are NaN and not converged; the unsolved events filled (`fill_holds`)."""
+    filled from it are NaN and not converged; the unsolved events filled (`fill_holds`). The PDC, and with
+    `electrodes` the electrodes (else NaN), read by `readout`."""
     n = int(plan.solved.sum())
-    force, pressure, electrodes = np.full((n, 3), np.nan), np.full(n, np.nan), np.full((n, 19), np.nan)
+    force, pressure, counts = np.full((n, 3), np.nan), np.full(n, np.nan), np.full((n, 19), np.nan)
     for s, result in enumerate(increments):
         if not result.converged:
             break
         force[s], pressure[s] = result.force, result.pressure
-        electrodes[s] = readout.electrode_counts(result.displacement)
+        if electrodes:
+            counts[s] = readout.electrode_counts(result.displacement)
     times, indices = plan.events
 
     def every_event(values: np.ndarray) -> np.ndarray:
@@ -625,9 +642,9 @@ def _replay_of(readout: SensorReadout, plan: _ReplayPlan, increments: Iterable[I
         full[plan.solved] = values
         return fill_holds(times, plan.solved, full, plan.relaxation_time_s)
 
-    force, pressure, electrodes = every_event(force), every_event(pressure), every_event(electrodes)
+    force, pressure, counts = every_event(force), every_event(pressure), every_event(counts)
     pdc_change = readout.pdc_change(pressure - pressure[0])
-    return Replay(times, indices, force, pressure, electrodes, pdc_change, np.isfinite(pressure))
+    return Replay(times, indices, force, pressure, counts, pdc_change, np.isfinite(pressure))
 
 
 def measured_force_fullrate(trajectory: TrajectoryRecord) -> np.ndarray:

@@ -230,13 +230,13 @@ DeviceOption = Annotated[
 """The --device option of compare, validate, calibrate, diagnose and improve (`analysis_predictor`)."""
 
 
-def analysis_predictor(device: str) -> Predictor:
-    """A `twin.analysis.predict.Predictor` replaying on the warp `device`; a device warp cannot use here is a
-    one-line message and exit code 2."""
+def analysis_predictor(device: str, electrodes: bool = True) -> Predictor:
+    """A `twin.analysis.predict.Predictor` replaying on the warp `device`, reading the electrodes unless told not to
+    (the residual's analyses); a device warp cannot use here is a one-line message and exit code 2."""
     from twin.analysis.predict import Predictor
 
     guarded(lambda: check_device(device))
-    return Predictor(device)
+    return Predictor(device, electrodes=electrodes)
 
 
 @contextmanager

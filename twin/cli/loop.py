@@ -99,7 +99,7 @@ def diagnose(
     from twin.analysis.diagnose import diagnose as run_diagnosis
     from twin.effects import EFFECTS
 
-    predictor = analysis_predictor(device)
+    predictor = analysis_predictor(device, electrodes=False)  # force and PDC only
     data, twin_model = _inputs(datasets, model)
     err_console.print("diagnosing (replaying every trajectory per candidate parameter) ...")
     steps = sum(1 for k in EFFECTS if k not in twin_model.effects)
@@ -198,7 +198,7 @@ def improve(
     from twin.analysis.history import append_entry, history_beside
     from twin.analysis.refit import fit_jointly
 
-    predictor = analysis_predictor(device)
+    predictor = analysis_predictor(device, electrodes=False)  # force and PDC only
     data, twin_model = _inputs(datasets, model)
     history = history if history is not None else history_beside(datasets, model)
     with replay_progress(predictor):
