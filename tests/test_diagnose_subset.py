@@ -88,7 +88,8 @@ def test_ranking_on_a_coarser_mesh_names_the_hidden_effect_with_the_full_diagnos
     campaign: Path, predictor: Predictor
 ) -> None:
     """`rank_mesh`: the candidates' columns are differences of coarse replays, scored against the campaign mesh's
-    residual; the named effect is refitted and judged on the campaign's mesh, so its figures are the full run's."""
+    residual, and the refits run on the coarse mesh too; the named effect is judged on the campaign's mesh, so its
+    held-out figure is the full run's to 1 %."""
     data = load_campaign(campaign)
     model = TwinModel(mesh_max_edge=data.mesh_max_edge)
     assert RANK_MESH > model.mesh_max_edge
@@ -98,8 +99,12 @@ def test_ranking_on_a_coarser_mesh_names_the_hidden_effect_with_the_full_diagnos
     assert coarse.to_dict()["ranked_mesh_mm"] == pytest.approx(3.0) and full.to_dict()["ranked_mesh_mm"] is None
     named, full_named = coarse.candidates[0], full.candidates[0]
     assert named.name == full_named.name == HIDDEN
-    assert named.refit_rms == pytest.approx(full_named.refit_rms, rel=1e-6)
-    assert named.heldout_rms == pytest.approx(full_named.heldout_rms, rel=1e-6)
+    # refitted on the coarse mesh: the thickness a little off the campaign mesh's fit (measured 0.867 against 0.880),
+    # which the judgement on the campaign's mesh (linear fits about it, held out) takes up: held out 0.99415 vs 0.99412
+    scale, full_scale = named.refit_parameters["scale"], full_named.refit_parameters["scale"]
+    assert scale != full_scale and scale == pytest.approx(full_scale, rel=0.03)
+    assert named.heldout_rms == pytest.approx(full_named.heldout_rms, rel=0.01)
+    assert named.refit_rms == pytest.approx(full_named.refit_rms, rel=0.01)  # the campaign mesh's, at the coarse fit
     assert coarse.base_rms == full.base_rms
     # ranked on other replays: the evidence differs from the full run's, but not by much (the same physics)
     assert named.evidence != full_named.evidence

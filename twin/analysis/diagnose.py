@@ -42,7 +42,14 @@ from functools import partial
 import numpy as np
 
 from twin.analysis.data import CampaignData
-from twin.analysis.heldout import generalises, heldout, heldout_folds, identifiability, judge_heldout
+from twin.analysis.heldout import (
+    generalises,
+    heldout,
+    heldout_folds,
+    identifiability,
+    judge_heldout,
+    whitened_rms,
+)
 from twin.analysis.lockstep import run_in_lockstep
 from twin.analysis.nuisances import NUISANCE_EFFECTS, fit_nuisances
 from twin.analysis.predict import Predictor, TwinModel
@@ -162,10 +169,10 @@ def diagnose(
     With `rank_per_stratum`, candidates are linearised and ranked on at most that many trajectories of each
     sensor x indenter x path kind (`twin.analysis.subset`; not with `nuisances`); the top ones are linearised
     again, refitted and judged held out on every trajectory, and `ranked_on` says which trajectories ranked.
-    With `rank_mesh` (m), candidates are linearised and ranked on replays of that fe mesh (a coarser one costs
-    several times less; not with `nuisances`): each column is a difference of two replays of that mesh, scored
-    against the residual of the model's own mesh; the top ones are linearised again, refitted and judged held
-    out on the model's mesh, so a verdict never rests on the coarse replays (`ranking_base`).
+    With `rank_mesh` (m), candidates are linearised, ranked and refitted on replays of that fe mesh (a coarser one
+    costs several times less; not with `nuisances`): each column is a difference of two replays of that mesh, scored
+    against the residual of the model's own mesh (`ranking_base`); each refitted one is judged held out, and its
+    `refit_rms` taken, on the model's mesh, so a verdict rests on the model mesh's replays.
     With `per_stratum`, the whole diagnosis runs on at most that many trajectories of each stratum
     (`twin.analysis.subset.sampled`), and `sampled` says which. On row-only data (`twin.analysis.rows_only`) the
     effects those cannot identify (`RAW_ONLY_EFFECTS`) are not candidates (ValueError when asked for)."""
@@ -193,13 +200,12 @@ def diagnose(
     names = candidates if candidates is not None else [k for k in EFFECTS if k not in excluded]
     ranking_sets, ranked_on = sampled(datasets, rank_per_stratum) if rank_per_stratum is not None else (datasets, None)
     rank_model = model if rank_mesh is None else replace(model, mesh_max_edge=rank_mesh)
-    ranked_elsewhere = ranked_on is not None or rank_model != model
     if not nuisances:  # the base's replays and the candidates' first linearisations' in one batch (no fit between)
         on_ranking = [t for d in ranking_sets for t in d.trajectories]
-        own = [rank_model] if rank_model != model else []  # the base's replays on the ranking mesh
-        first_lins = first_models([EFFECTS[k] for k in names], rank_model, surrogates=True)
-        first = [(m, on_ranking) for m in [*own, *first_lins]]
-        predictor.prefetch_many([(model, [t for d in datasets for t in d.trajectories]), *first])
+        every = [t for d in datasets for t in d.trajectories]
+        own = [(rank_model, every)] if rank_model != model else []  # the base on the ranking (and refitting) mesh
+        first = [(m, on_ranking) for m in first_models([EFFECTS[k] for k in names], rank_model, surrogates=True)]
+        predictor.prefetch_many([(model, every), *own, *first])
     fitted = fit_nuisances(datasets, model, predictor, lambda text: report("nuisances", text)) if nuisances else None
     base = fitted.base if fitted is not None else base_residual(datasets, model, predictor)
     residual = base.residual
@@ -240,14 +246,22 @@ def diagnose(
     is_noise = base_test.is_noise and (fitted is None or fitted.heldout_is_noise)
     cannot_tell = set(fitted.cannot_tell_apart()) if fitted is not None else set()
 
+    # refitted on the ranking mesh (every trajectory), judged on the model's
+    fit_base = ranking if ranked_on is None else ranking_base(base, None, model, rank_model, predictor)
+
     def refit_and_judge(chosen: list[tuple[Candidate, Linearisation]]) -> None:
-        # ranked on a subset, another mesh or a surrogate: linearised again (every trajectory, the model's mesh,
-        # own replays), replays in one batch
-        again = [ranked_elsewhere or lin.surrogate for _, lin in chosen]
+        # ranked on a subset or a surrogate: linearised again (every trajectory, own replays, the refits' mesh),
+        # replays in one batch
+        again = [ranked_on is not None or lin.surrogate for _, lin in chosen]
         redo = [(EFFECTS[c.name], lin) for (c, lin), fresh in zip(chosen, again, strict=True) if fresh]
-        base.prefetch(predictor, [m for e, lin in redo for m in linearisation_models(e, model, lin.point)])
+        fit_base.prefetch(predictor, [m for e, lin in redo for m in linearisation_models(e, rank_model, lin.point)])
         chosen = [
-            (c, replace(linearise(EFFECTS[c.name], model, lin.point, predictor, base), data_start=lin.data_start))
+            (
+                c,
+                replace(
+                    linearise(EFFECTS[c.name], rank_model, lin.point, predictor, fit_base), data_start=lin.data_start
+                ),
+            )
             if fresh
             else (c, lin)
             for (c, lin), fresh in zip(chosen, again, strict=True)
@@ -258,11 +272,14 @@ def diagnose(
             if candidate.name in cannot_tell:
                 candidate.identifiable = False  # never named: the nuisances could be what it fits
         # side by side, their replays solved together (`twin.analysis.lockstep`): the same fits, fewer waves
-        run_in_lockstep(predictor, [partial(refit, c, model, base=base, lin=lin) for c, lin in chosen])
+        run_in_lockstep(predictor, [partial(refit, c, rank_model, base=fit_base, lin=lin) for c, lin in chosen])
         at_fits = [linearisation_models(EFFECTS[c.name], model, c.refit_parameters) for c, _ in chosen]
         base.prefetch(predictor, [m for models in at_fits for m in models])  # the held-out judgements in one batch
         for candidate, _ in chosen:
             judge_heldout(candidate, model, predictor, base)
+            if rank_model != model:  # the refit's own figure on the model's mesh (its replays the judgement's)
+                at_fit = model.with_effects({candidate.name: candidate.refit_parameters})
+                candidate.refit_rms = whitened_rms(base.about(predictor, at_fit).residual.values)
 
     refit_and_judge(ranked[:top])
     # When none of those is supported held out, the next ones whose linearised fits come close to the best's are

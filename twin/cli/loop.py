@@ -90,8 +90,8 @@ def diagnose(
         typer.Option(
             "--rank-mesh-mm",
             min=0.1,
-            help="Rank the candidates on fe replays of this mesh size (mm; a coarser one is several times cheaper); "
-            "the top ones are refitted and judged held out on the campaign's mesh (JSON: ranked_mesh_mm).",
+            help="Rank and refit the candidates on fe replays of this mesh size (mm; a coarser one is several times "
+            "cheaper); each refitted one is judged held out on the campaign's mesh (JSON: ranked_mesh_mm).",
         ),
     ] = None,
 ) -> None:
@@ -159,7 +159,7 @@ def diagnose(
         )
     if result.ranked_mesh is not None:
         out_console.print(
-            f"candidates ranked on a {1e3 * result.ranked_mesh:g} mm fe mesh; the refits and held-out judgements on "
+            f"candidates ranked and refitted on a {1e3 * result.ranked_mesh:g} mm fe mesh; the held-out judgements on "
             f"the model's ({1e3 * twin_model.mesh_max_edge:g} mm)"
         )
     out_console.print(table)
