@@ -5,6 +5,7 @@ No fe work here: the residual and the model's response are stand-ins with known 
 """
 
 import json
+from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
@@ -22,6 +23,7 @@ from twin.analysis.sensitivity import Linearisation, sensitivity
 from twin.analysis.verdict import Candidate
 from twin.cli import app
 from twin.cli.common import out_console
+from twin.cli.loop import partial_step
 from twin.effects import EFFECTS
 
 runner = CliRunner()
@@ -215,3 +217,15 @@ def test_an_effect_far_from_its_off_value_is_found_from_its_starts() -> None:
     refit(candidate, TwinModel(), None, base, lin)
     assert candidate.refit_parameters["seconds"] == pytest.approx(0.25, abs=0.01)
     assert candidate.refit_rms < 1.1
+
+
+def test_an_unexplained_verdict_points_to_its_closest_candidate_only_when_it_explains_part_held_out() -> None:
+    """Two effects missing: the first refitted candidate, when it lowers the held-out residual below the base's, is
+    the user's next step (`twin diagnose` prints it); not when it does not, nor on any other verdict."""
+    helps = Candidate("registration_offset", "physics", {}, 900.0, 800.0, 0.8, heldout_rms=2.95, refit_rms=2.92)
+    unrefitted = Candidate("ft_gain", "measurement", {}, 950.0, 850.0, 0.85, heldout_rms=1.5)
+    unexplained = Diagnosis(7.84, {}, [unrefitted, helps], "unexplained", "no refitted candidate ...")
+    assert partial_step(unexplained) is helps
+    worse = replace(helps, heldout_rms=8.0)
+    assert partial_step(replace(unexplained, candidates=[worse])) is None
+    assert partial_step(replace(unexplained, verdict="registration_offset")) is None
