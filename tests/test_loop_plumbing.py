@@ -23,7 +23,7 @@ from twin.analysis.sensitivity import Linearisation, sensitivity
 from twin.analysis.verdict import Candidate
 from twin.cli import app
 from twin.cli.common import out_console
-from twin.cli.loop import partial_step
+from twin.cli.loop import LARGE_CAMPAIGN, large_campaign_hint, partial_step
 from twin.effects import EFFECTS
 
 runner = CliRunner()
@@ -229,3 +229,15 @@ def test_an_unexplained_verdict_points_to_its_closest_candidate_only_when_it_exp
     worse = replace(helps, heldout_rms=8.0)
     assert partial_step(replace(unexplained, candidates=[worse])) is None
     assert partial_step(replace(unexplained, verdict="registration_offset")) is None
+
+
+def test_a_large_campaign_diagnosed_whole_gets_a_one_line_hint_to_sample_it() -> None:
+    """Above `LARGE_CAMPAIGN` trajectories without `--per-stratum`: how to take a sample (and a coarser ranking mesh
+    for a mesh under 1 mm); nothing for a small or already sampled campaign."""
+    paper = TwinModel(mesh_max_edge=0.5e-3)
+    hint = large_campaign_hint(905, paper, None, None)
+    assert "905 trajectories" in hint and "--per-stratum 1" in hint and "--rank-mesh-mm 1" in hint
+    assert "--rank-mesh-mm" not in large_campaign_hint(905, TwinModel(mesh_max_edge=2e-3), None, None)
+    assert "--rank-mesh-mm" not in large_campaign_hint(905, paper, None, 1.0)
+    assert large_campaign_hint(LARGE_CAMPAIGN, paper, None, None) == ""
+    assert large_campaign_hint(905, paper, 1, None) == ""

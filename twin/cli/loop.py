@@ -19,6 +19,7 @@ from twin.cli.common import (
 
 if TYPE_CHECKING:
     from twin.analysis.diagnose import Diagnosis
+    from twin.analysis.predict import TwinModel
     from twin.analysis.refit import EffectFit
     from twin.analysis.verdict import Candidate
 
@@ -104,6 +105,8 @@ def diagnose(
     predictor = analysis_predictor(device, electrodes=False)  # force and PDC only
     data, twin_model = _inputs(datasets, model)
     err_console.print("diagnosing (replaying every trajectory per candidate parameter) ...")
+    if hint := large_campaign_hint(sum(len(d.trajectories) for d in data), twin_model, per_stratum, rank_mesh_mm):
+        err_console.print(hint)
     steps = sum(1 for k in EFFECTS if k not in twin_model.effects)
     with replay_progress(predictor) as progress:
         total, done = steps + min(refit_top, steps), 0
@@ -172,6 +175,24 @@ def diagnose(
             f"the noise); with two effects missing, add it (`twin improve ... --add {step.name}`) and diagnose the "
             "improved model (docs/analysis.md, two effects at once)"
         )
+
+
+LARGE_CAMPAIGN = 100
+"""Trajectories above which `twin diagnose` without a sample says how to take one (the paper campaign: 905)."""
+
+
+def large_campaign_hint(
+    trajectories: int, model: "TwinModel", per_stratum: int | None, rank_mesh_mm: float | None
+) -> str:
+    """A one-line hint for a large campaign diagnosed whole (every trajectory replayed per candidate parameter: hours
+    for the paper campaign), or "" when it is small or already sampled."""
+    if trajectories <= LARGE_CAMPAIGN or per_stratum is not None:
+        return ""
+    coarse = " and `--rank-mesh-mm 1`" if rank_mesh_mm is None and model.mesh_max_edge < 1e-3 else ""
+    return (
+        f"{trajectories} trajectories: the whole campaign is replayed per candidate parameter; for a first look "
+        f"diagnose a sample with `--per-stratum 1`{coarse} (docs/scale.md, the paper diagnose)"
+    )
 
 
 def partial_step(result: "Diagnosis") -> "Candidate | None":
