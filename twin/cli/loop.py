@@ -172,8 +172,9 @@ def diagnose(
     if (step := partial_step(result)) is not None:
         out_console.print(
             f"next: {step.name} explains part of it held out ({result.base_rms:.2f} -> {step.heldout_rms:.2f}x "
-            f"the noise); with two effects missing, add it (`twin improve ... --add {step.name}`) and diagnose the "
-            "improved model (docs/analysis.md, two effects at once)"
+            f"the noise); if two effects are missing, add it (`twin improve ... --add {step.name}`) and diagnose the "
+            "improved model: keep it only if the effect named next brings the held-out residual to the noise; a "
+            "'nothing' there is no proof (docs/analysis.md, two effects at once)"
         )
 
 
