@@ -83,7 +83,7 @@ class Diagnosis:
     nuisances: dict | None = None  # the nuisance stage's summary (`NuisanceFit.to_dict`) when it ran
     ranked_on: dict | None = None  # the trajectories that ranked the candidates (`subset.RankedOn`); None: all
     sampled: dict | None = None  # the trajectories diagnosed (`subset.RankedOn`), every stage; None: all
-    ranked_mesh: float | None = None  # fe mesh (m) the candidates were ranked on; None: the model's own
+    ranked_mesh: float | None = None  # fe mesh (m) the candidates were ranked and refitted on; None: the model's
 
     def to_dict(self) -> dict:
         """JSON-ready form (the `twin diagnose --json` shape)."""
