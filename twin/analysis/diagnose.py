@@ -48,6 +48,7 @@ from twin.analysis.heldout import (
     heldout_folds,
     identifiability,
     judge_heldout,
+    judge_model_effects,
     whitened_rms,
 )
 from twin.analysis.lockstep import run_in_lockstep
@@ -65,7 +66,14 @@ from twin.analysis.sensitivity import (
     sensitivities,
 )
 from twin.analysis.subset import sampled
-from twin.analysis.verdict import Candidate, order_candidates, to_refit, verdict
+from twin.analysis.verdict import (
+    NOTHING_BEYOND_NUISANCES,
+    Candidate,
+    candidate_figures,
+    order_candidates,
+    to_refit,
+    verdict,
+)
 from twin.effects import EFFECTS
 
 
@@ -289,6 +297,15 @@ def diagnose(
     ordered = order_candidates([c for c, _ in ranked])
     threshold = base_test.rms_threshold
     outcome, reason, tied = verdict(base_rms, is_noise, threshold, ordered, fitted is not None)
+    if outcome in ("nothing", NOTHING_BEYOND_NUISANCES):  # a residual at the noise rests on the model's own fits
+        unheld = [c for c in judge_model_effects(model, predictor, base) if c.heldout_is_noise is False]
+        if unheld:
+            outcome, tied = "unexplained", []
+            shown = "; ".join(map(candidate_figures, unheld))
+            reason += (
+                f", but the model's own {shown} does not hold out: fitted to these data without generalising, it is "
+                "no explanation, so nothing is claimed"
+            )
     if cannot_tell:
         reason += f"; these data cannot tell {', '.join(fitted.cannot_tell_apart())} from the nuisances"
     summary = fitted.to_dict() if fitted is not None else None

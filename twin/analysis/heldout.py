@@ -11,7 +11,7 @@ from twin.analysis.fit import reduced
 from twin.analysis.fit import uncertainty as fit_uncertainty
 from twin.analysis.predict import Predictor, TwinModel
 from twin.analysis.residual import Base, Residual
-from twin.analysis.sensitivity import Linearisation, linear_fit, linearise
+from twin.analysis.sensitivity import Linearisation, linear_fit, linearisation_models, linearise
 from twin.analysis.significance import NoiseTest, out_of_fold_excess
 from twin.analysis.verdict import Candidate, parameters_at_bound
 from twin.effects import EFFECTS, Effect
@@ -74,6 +74,31 @@ def judge_heldout(candidate: Candidate, model: TwinModel, predictor: Predictor, 
         candidate, rms, left_out, base.residual.values, lambda r: about.noise_test(r, out_of_fold=out_of_fold)
     )
     candidate.at_bound = parameters_at_bound(candidate.name, candidate.refit_parameters)
+
+
+def judge_model_effects(model: TwinModel, predictor: Predictor, base: Base) -> list[Candidate]:
+    """Each library effect `model` carries (fitted earlier, e.g. by `twin improve`), judged held out as a refitted
+    candidate is (`judge_heldout` at the model's own values: fitted linearly on the other indenters, each left-out one
+    predicted), their replays solved as one batch. A residual that passes the noise test in sample rests on these
+    fits; one that does not hold out was fitted to these data without generalising."""
+    named = [name for name in model.effects if name in EFFECTS]
+    values = {name: EFFECTS[name].values(model.effects[name]) for name in named}
+    base.prefetch(predictor, [m for name in named for m in linearisation_models(EFFECTS[name], model, values[name])])
+    judged = []
+    for name in named:
+        candidate = Candidate(
+            name,
+            EFFECTS[name].kind,
+            values[name],
+            0.0,
+            0.0,
+            0.0,
+            refit_rms=whitened_rms(base.residual.values),
+            refit_parameters=values[name],
+        )
+        judge_heldout(candidate, model, predictor, base)
+        judged.append(candidate)
+    return judged
 
 
 def record_heldout(

@@ -91,7 +91,8 @@ def parameters_at_bound(name: str, values: dict[str, float], tolerance: float = 
     return [p.name for p, flag in zip(given, near, strict=True) if flag]
 
 
-def _figures(c: Candidate) -> str:
+def candidate_figures(c: Candidate) -> str:
+    """A candidate's figures as a reason quotes them: held out (with its test), refit, parameters at a bound."""
     held = "-" if c.heldout_rms is None else f"{c.heldout_rms:.2f}x"
     if c.heldout_rms_threshold is not None:
         held += f", its noise test {c.heldout_rms_threshold:.3f}x"
@@ -154,7 +155,7 @@ def verdict(
     named = [c for c in candidates if c.refitted and c.supported_heldout and c.identifiable]
     if not named:
         closest = sorted((c for c in candidates if c.refitted), key=lambda c: c.heldout_rms or float("inf"))
-        shown = "; ".join(_figures(c) for c in closest[:CLOSEST_SHOWN]) or "none refitted"
+        shown = "; ".join(candidate_figures(c) for c in closest[:CLOSEST_SHOWN]) or "none refitted"
         why = ["no refitted candidate brings the held-out residual to the noise"]
         if closest and all(c.heldout_rms is None for c in closest):
             why = ["nothing can be held out (one trajectory of one indenter), so no effect is named"]
@@ -176,14 +177,14 @@ def verdict(
         return (
             "ambiguous",
             f"{' and '.join(tied)} explain the residual about equally well (evidence behind {best.name}: {margins}; "
-            f"{EVIDENCE_MARGIN:g} is needed); {_figures(best)} ranks first",
+            f"{EVIDENCE_MARGIN:g} is needed); {candidate_figures(best)} ranks first",
             tied,
         )
     also = ", ".join(f"{c.name} ({best.evidence - c.evidence:.1f} behind)" for c in named[1:])
     return (
         best.name,
         f"{best.name} explains {best.explained_fraction:.0%} of the excess residual (noise test {rms_threshold:.3f}x); "
-        f"{_figures(best)}: held out within its noise test, which the base residual fails "
+        f"{candidate_figures(best)}: held out within its noise test, which the base residual fails "
         f"({best.heldout_base_rms:.2f}x on the same samples)"
         + (f"; also held out within theirs, further behind in evidence: {also}" if also else ""),
         [],
