@@ -193,11 +193,9 @@ def _pair_case(out: Path, pair: str, seed: int, predictor: Predictor) -> dict:
         diagnosis = diagnose([data], model, predictor, top=1)
         named = diagnosis.candidates[0].name if diagnosis.verdict == "ambiguous" else diagnosis.verdict
         step = {"verdict": diagnosis.verdict, "added": named, "rms_before": diagnosis.base_rms}
-        closest = next((c for c in diagnosis.candidates if c.refitted), None)
-        if not steps and named == "unexplained" and closest is not None and closest.heldout_rms is not None:
-            if closest.heldout_rms < diagnosis.base_rms:  # it explains part, held out: the user adds it and goes on
-                named = step["added"] = closest.name
-                step["via"] = "closest"
+        if not steps and (closest := diagnosis.next_step()) is not None:  # it explains part: the user adds it
+            named = step["added"] = closest.name
+            step["via"] = "closest"
         steps.append(step)
         if named in NAMED:
             break

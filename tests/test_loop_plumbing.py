@@ -23,7 +23,7 @@ from twin.analysis.sensitivity import Linearisation, sensitivity
 from twin.analysis.verdict import Candidate
 from twin.cli import app
 from twin.cli.common import out_console
-from twin.cli.loop import LARGE_CAMPAIGN, large_campaign_hint, partial_step
+from twin.cli.loop import LARGE_CAMPAIGN, large_campaign_hint
 from twin.effects import EFFECTS
 
 runner = CliRunner()
@@ -225,10 +225,10 @@ def test_an_unexplained_verdict_points_to_its_closest_candidate_only_when_it_exp
     helps = Candidate("registration_offset", "physics", {}, 900.0, 800.0, 0.8, heldout_rms=2.95, refit_rms=2.92)
     unrefitted = Candidate("ft_gain", "measurement", {}, 950.0, 850.0, 0.85, heldout_rms=1.5)
     unexplained = Diagnosis(7.84, {}, [unrefitted, helps], "unexplained", "no refitted candidate ...")
-    assert partial_step(unexplained) is helps
+    assert unexplained.next_step() is helps
     worse = replace(helps, heldout_rms=8.0)
-    assert partial_step(replace(unexplained, candidates=[worse])) is None
-    assert partial_step(replace(unexplained, verdict="registration_offset")) is None
+    assert replace(unexplained, candidates=[worse]).next_step() is None
+    assert replace(unexplained, verdict="registration_offset").next_step() is None
 
 
 def test_a_large_campaign_diagnosed_whole_gets_a_one_line_hint_to_sample_it() -> None:

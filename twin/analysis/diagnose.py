@@ -109,6 +109,17 @@ class Diagnosis:
             "ranked_mesh_mm": None if self.ranked_mesh is None else 1e3 * self.ranked_mesh,
         }
 
+    def next_step(self) -> Candidate | None:
+        """On an "unexplained" verdict, its closest candidate (the first refitted one) when that lowers the held-out
+        residual below the base residual: the step a user takes when two effects are missing (neither alone reaches
+        the noise); never a cause. None otherwise."""
+        if self.verdict != "unexplained":
+            return None
+        closest = next((c for c in self.candidates if c.refitted), None)
+        if closest is None or closest.heldout_rms is None or not closest.heldout_rms < self.base_rms:
+            return None
+        return closest
+
     def to_json(self) -> str:
         """Strict JSON text of `to_dict` (a NaN or infinite number becomes null)."""
         return json.dumps(strict_json(self.to_dict()), allow_nan=False)

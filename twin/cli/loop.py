@@ -18,10 +18,8 @@ from twin.cli.common import (
 )
 
 if TYPE_CHECKING:
-    from twin.analysis.diagnose import Diagnosis
     from twin.analysis.predict import TwinModel
     from twin.analysis.refit import EffectFit
-    from twin.analysis.verdict import Candidate
 
 loop_app = typer.Typer()
 
@@ -169,7 +167,7 @@ def diagnose(
         )
     out_console.print(table)
     out_console.print(f"verdict: [bold]{result.verdict}[/bold] - {result.reason}")
-    if (step := partial_step(result)) is not None:
+    if (step := result.next_step()) is not None:
         out_console.print(
             f"next: {step.name} explains part of it held out ({result.base_rms:.2f} -> {step.heldout_rms:.2f}x "
             f"the noise); if two effects are missing, add it (`twin improve ... --add {step.name}`) and diagnose the "
@@ -194,18 +192,6 @@ def large_campaign_hint(
         f"{trajectories} trajectories: the whole campaign is replayed per candidate parameter; for a first look "
         f"diagnose a sample with `--per-stratum 1`{coarse} (docs/scale.md, the paper diagnose)"
     )
-
-
-def partial_step(result: "Diagnosis") -> "Candidate | None":
-    """On an "unexplained" verdict, its closest candidate (the first refitted one) when that lowers the held-out
-    residual below the base residual: the step a user takes when two effects are missing (neither alone reaches the
-    noise); None otherwise."""
-    if result.verdict != "unexplained":
-        return None
-    closest = next((c for c in result.candidates if c.refitted), None)
-    if closest is None or closest.heldout_rms is None or not closest.heldout_rms < result.base_rms:
-        return None
-    return closest
 
 
 def _print_nuisances(fit: dict) -> None:
