@@ -9,11 +9,13 @@ import pytest
 
 from twin.analysis.data import load_campaign
 from twin.analysis.diagnose import diagnose
-from twin.analysis.predict import Predictor, TwinModel
+from twin.analysis.predict import Predictor, TwinModel, solve_events
 from twin.analysis.residual import base_residual
 from twin.analysis.sensitivity import first_models, first_points, linearisation_models, linearise
-from twin.analysis.surrogate import RELAXATION, RELAXATION_SURROGATE, modulus_stepped
+from twin.analysis.surrogate import RELAXATION, RELAXATION_SURROGATE, modulus_stepped, relaxation_response
+from twin.controller import Recording
 from twin.effects import EFFECTS, apply_skin
+from twin.sim_backend import RELAXATION_SOLVE_INTERVAL_S
 
 FRACTION_COLUMN = (0.08, 0.995)
 """The fraction's surrogate column against the timed one: largest |difference| / |timed|, least correlation
@@ -83,3 +85,33 @@ def test_a_candidate_ranked_on_the_surrogate_is_linearised_again_on_its_own_repl
     probe = model.with_effects({RELAXATION: first_points([EFFECTS[RELAXATION]], model)[0]})
     assert sum(timed) > 0 and predictor.missing([(probe, data.trajectories)]) == 0, "its refit began on its own replays"
     assert diagnosis.candidates[0].refit_parameters is not None
+
+
+def _recording(time: np.ndarray, increment: np.ndarray) -> Recording:
+    count = len(time)
+    return Recording(
+        time=time,
+        joints=np.zeros((count, 7)),
+        wrench=np.zeros((count, 6)),
+        electrodes=np.zeros((count, 19)),
+        pdc=np.zeros(count),
+        depth_command=np.zeros(count),
+        increment=increment,
+        complete=False,
+        message="stopped",
+    )
+
+
+def test_a_pose_reached_at_the_last_sample_is_solved_once_and_relaxes_nothing_yet() -> None:
+    """A trajectory stopped as it reached a pose (one sample there, or one sample in all: found on a paper campaign,
+    where the surrogate then failed) solves that pose once, and the relaxation's first-order response is defined
+    there: nothing at a standoff out of contact."""
+    single = _recording(np.array([3.0]), np.array([-1]))
+    times, indices = solve_events(single, RELAXATION_SOLVE_INTERVAL_S)
+    assert times.tolist() == [3.0] and indices.tolist() == [0]
+    out_of_contact = np.zeros((1, 4))  # at the standoff the skin's modulus moves no reading
+    assert np.array_equal(relaxation_response(single, out_of_contact, 1.0), out_of_contact)
+    stopped = _recording(np.array([0.0, 0.5, 1.0, 1.5]), np.array([-1, -1, 0, 1]))
+    times, indices = solve_events(stopped, RELAXATION_SOLVE_INTERVAL_S)
+    assert indices[-1] == 2 and times[-1] == 1.5, "the last pose, reached at the last sample"
+    assert np.all(np.isfinite(relaxation_response(stopped, np.ones((4, 4)), 1.0)))

@@ -570,13 +570,14 @@ class Replay:
 
 def solve_events(raw: Recording, interval_s: float | None) -> tuple[np.ndarray, np.ndarray]:
     """(times s, path indices) at which the skin is solved: each path index when its increment starts,
-    and, with `interval_s`, again every `interval_s` while the pose is held (relaxation)."""
+    and, with `interval_s`, again every `interval_s` while the pose is held (relaxation); a pose reached at the
+    recording's last sample (a trajectory stopped there, or of one sample) is solved once, when it is reached."""
     starts = np.r_[0, np.flatnonzero(np.diff(raw.increment)) + 1]
     ends = np.r_[raw.time[starts[1:]], raw.time[-1]]
     times, indices = [], []
     for start, end in zip(starts, ends, strict=True):
         held = [raw.time[start]]
-        if interval_s is not None:
+        if interval_s is not None and end > raw.time[start]:
             held = np.arange(raw.time[start], end, interval_s)
         times.extend(held)
         indices.extend([raw.increment[start] + 1] * len(held))
