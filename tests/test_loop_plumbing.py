@@ -220,11 +220,13 @@ def test_an_effect_far_from_its_off_value_is_found_from_its_starts() -> None:
 
 
 def test_an_unexplained_verdict_points_to_its_closest_candidate_only_when_it_explains_part_held_out() -> None:
-    """Two effects missing: the first refitted candidate, when it lowers the held-out residual below the base's, is
-    the user's next step (`twin diagnose` prints it); not when it does not, nor on any other verdict."""
+    """Two effects missing: the refitted candidate of least held-out residual (the reason's first "closest"), when
+    it lowers the held-out residual below the base's, is the user's next step (`twin diagnose` prints it); not when
+    it does not, nor on any other verdict."""
     helps = Candidate("registration_offset", "physics", {}, 900.0, 800.0, 0.8, heldout_rms=2.95, refit_rms=2.92)
     unrefitted = Candidate("ft_gain", "measurement", {}, 950.0, 850.0, 0.85, heldout_rms=1.5)
-    unexplained = Diagnosis(7.84, {}, [unrefitted, helps], "unexplained", "no refitted candidate ...")
+    ranked_first = Candidate("skin_thickness", "physics", {}, 990.0, 870.0, 0.9, heldout_rms=4.1, refit_rms=1.2)
+    unexplained = Diagnosis(7.84, {}, [unrefitted, ranked_first, helps], "unexplained", "no refitted candidate ...")
     assert unexplained.next_step() is helps
     worse = replace(helps, heldout_rms=8.0)
     assert replace(unexplained, candidates=[worse]).next_step() is None

@@ -49,6 +49,7 @@ from twin.analysis.heldout import (
     identifiability,
     judge_heldout,
     judge_model_effects,
+    judgement_models,
     whitened_rms,
 )
 from twin.analysis.lockstep import run_in_lockstep
@@ -110,13 +111,14 @@ class Diagnosis:
         }
 
     def next_step(self) -> Candidate | None:
-        """On an "unexplained" verdict, its closest candidate (the first refitted one) when that lowers the held-out
-        residual below the base residual: the step a user takes when two effects are missing (neither alone reaches
-        the noise); never a cause. None otherwise."""
+        """On an "unexplained" verdict, its closest candidate (the refitted one of least held-out RMS, the first the
+        reason shows) when that lowers the held-out residual below the base residual: the step a user takes when two
+        effects are missing (neither alone reaches the noise); never a cause. None otherwise."""
         if self.verdict != "unexplained":
             return None
-        closest = next((c for c in self.candidates if c.refitted), None)
-        if closest is None or closest.heldout_rms is None or not closest.heldout_rms < self.base_rms:
+        judged = [c for c in self.candidates if c.refitted and c.heldout_rms is not None]
+        closest = min(judged, key=lambda c: c.heldout_rms, default=None)
+        if closest is None or not closest.heldout_rms < self.base_rms:
             return None
         return closest
 
@@ -292,10 +294,11 @@ def diagnose(
                 candidate.identifiable = False  # never named: the nuisances could be what it fits
         # side by side, their replays solved together (`twin.analysis.lockstep`): the same fits, fewer waves
         run_in_lockstep(predictor, [partial(refit, c, rank_model, base=fit_base, lin=lin) for c, lin in chosen])
-        at_fits = [linearisation_models(EFFECTS[c.name], model, c.refit_parameters) for c, _ in chosen]
-        base.prefetch(predictor, [m for models in at_fits for m in models])  # the held-out judgements in one batch
+        # the held-out judgements in one batch: about each fit on the model's mesh, columns on the ranking mesh
+        columns = rank_model if rank_model != model else None
+        base.prefetch(predictor, judgement_models([c for c, _ in chosen], model, columns))
         for candidate, _ in chosen:
-            judge_heldout(candidate, model, predictor, base)
+            judge_heldout(candidate, model, predictor, base, columns)
             if rank_model != model:  # the refit's own figure on the model's mesh (its replays the judgement's)
                 at_fit = model.with_effects({candidate.name: candidate.refit_parameters})
                 candidate.refit_rms = whitened_rms(base.about(predictor, at_fit).residual.values)

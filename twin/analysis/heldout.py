@@ -4,6 +4,7 @@ they leave (`twin.analysis.significance`), and whether the fit's parameters are 
 from __future__ import annotations
 
 from collections.abc import Callable
+from dataclasses import replace
 
 import numpy as np
 
@@ -57,16 +58,25 @@ def heldout(effect: Effect, lin: Linearisation, r: np.ndarray, folds: np.ndarray
     return whitened_rms(left_out), left_out
 
 
-def judge_heldout(candidate: Candidate, model: TwinModel, predictor: Predictor, base: Base) -> None:
+def judge_heldout(
+    candidate: Candidate, model: TwinModel, predictor: Predictor, base: Base, columns: TwinModel | None = None
+) -> None:
     """Held-out RMS about the refitted values (the residual about the refitted model, each sensor's PDC gain
     profiled about that model's own PDC, `Base.about`; the effect linearised again there: one fe replay per
     parameter for a physics effect), whether that held-out residual passes the noise test, which allows
     for the error the fits on the other indenters carry into it (`significance.out_of_fold_excess`; the
     parameter bounds of the fits are not modelled), and whether that test has power (`record_heldout`: the
-    base residual on the same samples); and which refitted parameters sit at a bound."""
+    base residual on the same samples); and which refitted parameters sit at a bound. With `columns` (the model on
+    another fe mesh, `judgement_models`), the linearisation's columns are differences of that mesh's replays about
+    its own prediction at the fit; the residual about the fit stays `model`'s."""
     effect = EFFECTS[candidate.name]
     about = base.about(predictor, model.with_effects({candidate.name: candidate.refit_parameters}))
-    at_fit = linearise(effect, model, candidate.refit_parameters, predictor, about)
+    if columns is None or columns == model:
+        at_fit = linearise(effect, model, candidate.refit_parameters, predictor, about)
+    else:
+        on_columns = about.about(predictor, columns.with_effects({candidate.name: candidate.refit_parameters}))
+        columns_base = replace(on_columns, residual=about.residual)
+        at_fit = linearise(effect, columns, candidate.refit_parameters, predictor, columns_base)
     folds = heldout_folds(about.residual)
     rms, left_out = heldout(effect, at_fit, about.residual.values, folds)
     out_of_fold = out_of_fold_excess(at_fit.jac, folds)
@@ -74,6 +84,18 @@ def judge_heldout(candidate: Candidate, model: TwinModel, predictor: Predictor, 
         candidate, rms, left_out, base.residual.values, lambda r: about.noise_test(r, out_of_fold=out_of_fold)
     )
     candidate.at_bound = parameters_at_bound(candidate.name, candidate.refit_parameters)
+
+
+def judgement_models(
+    candidates: list[Candidate], model: TwinModel, columns: TwinModel | None = None
+) -> list[TwinModel]:
+    """The models whose replays `judge_heldout` of each candidate needs: the fit and each column's step on `model`,
+    or, with `columns` on another mesh, the fit on `model` and the whole linearisation on `columns`."""
+    models = []
+    for c in candidates:
+        models.append(model.with_effects({c.name: c.refit_parameters}))
+        models += linearisation_models(EFFECTS[c.name], columns or model, c.refit_parameters)[columns is None :]
+    return models
 
 
 def judge_model_effects(model: TwinModel, predictor: Predictor, base: Base) -> list[Candidate]:
