@@ -19,7 +19,7 @@ from twin.analysis.diagnose import Diagnosis
 from twin.analysis.history import read_history
 from twin.analysis.predict import TwinModel
 from twin.analysis.refit import EffectFit, refit
-from twin.analysis.sensitivity import Linearisation, sensitivity
+from twin.analysis.sensitivity import Linearisation, sensitivity, start_models
 from twin.analysis.verdict import Candidate
 from twin.cli import app
 from twin.cli.common import out_console
@@ -243,3 +243,16 @@ def test_a_large_campaign_diagnosed_whole_gets_a_one_line_hint_to_sample_it() ->
     assert "--rank-mesh-mm" not in large_campaign_hint(905, paper, None, 1.0)
     assert large_campaign_hint(LARGE_CAMPAIGN, paper, None, None) == ""
     assert large_campaign_hint(905, paper, 1, None) == ""
+
+
+def test_the_declared_starts_are_known_before_any_residual_and_tried_only_for_effects_off_in_the_model() -> None:
+    """`start_models`: the models of each off effect's declared starts (solved with the first batch of a diagnosis),
+    the very models `sensitivities` tries among its starts; none for an effect the model already carries."""
+    model = TwinModel()
+    registration, delay, thickness = (EFFECTS[n] for n in ("registration_offset", "time_delay", "skin_thickness"))
+    models = start_models([registration, delay, thickness], model)
+    assert len(models) == len(registration.starts) + len(delay.starts) and not thickness.starts
+    offsets = {tuple(m.effects["registration_offset"].values()) for m in models if "registration_offset" in m.effects}
+    assert len(offsets) == len(registration.starts), "each start its own model"
+    on = model.with_effects({"registration_offset": {"dx": 1e-4, "dy": 0.0, "dz": 0.0}})
+    assert start_models([registration], on) == []

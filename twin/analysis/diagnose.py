@@ -65,6 +65,7 @@ from twin.analysis.sensitivity import (
     linearisation_models,
     linearise,
     sensitivities,
+    start_models,
 )
 from twin.analysis.subset import sampled
 from twin.analysis.verdict import (
@@ -225,7 +226,12 @@ def diagnose(
         on_ranking = [t for d in ranking_sets for t in d.trajectories]
         every = [t for d in datasets for t in d.trajectories]
         own = [(rank_model, every)] if rank_model != model else []  # the base on the ranking (and refitting) mesh
-        first = [(m, on_ranking) for m in first_models([EFFECTS[k] for k in names], rank_model, surrogates=True)]
+        effects = [EFFECTS[k] for k in names]
+        # with the trials' declared starts, which do not depend on the residual either: fewer waves of replays
+        first = [
+            (m, on_ranking)
+            for m in [*first_models(effects, rank_model, None, True), *start_models(effects, rank_model)]
+        ]
         predictor.prefetch_many([(model, every), *own, *first])
     fitted = fit_nuisances(datasets, model, predictor, lambda text: report("nuisances", text)) if nuisances else None
     base = fitted.base if fitted is not None else base_residual(datasets, model, predictor)

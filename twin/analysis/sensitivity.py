@@ -141,7 +141,7 @@ def sensitivities(
         if data_start is not None:
             lins[i] = replace(lin, data_start=data_start(predictor, model, base))
             first = [start] if (start := lins[i].data_start.start(lin.point)) is not None else []
-        trials.append([fitted, *first, *(effect.values({**lin.point, **start}) for start in effect.starts)])
+        trials.append([fitted, *first, *declared_starts(effect, lin.point)])
     tried = [model.with_effects({e.name: t}) for e, ts in zip(effects, trials, strict=True) for t in ts]
     base.prefetch(predictor, tried)
     again: dict[int, dict[str, float]] = {}
@@ -156,6 +156,21 @@ def sensitivities(
     for i, point in again.items():
         lins[i] = replace(linearise(effects[i], model, point, predictor, base), data_start=lins[i].data_start)
     return lins
+
+
+def declared_starts(effect: Effect, point: dict[str, float]) -> list[dict[str, float]]:
+    """The effect's declared starts (values across its range) about its first linearisation's `point`."""
+    return [effect.values({**point, **start}) for start in effect.starts]
+
+
+def start_models(effects: list[Effect], model: TwinModel) -> list[TwinModel]:
+    """The models of the declared starts `sensitivities` tries for each effect off in `model`: known before any
+    residual (unlike the fitted and data-driven starts), so they may be solved with the first batch."""
+    models = []
+    for effect, point in zip(effects, first_points(effects, model), strict=True):
+        if effect.is_off(effect.values(model.effects.get(effect.name))):
+            models += [model.with_effects({effect.name: start}) for start in declared_starts(effect, point)]
+    return models
 
 
 def first_points(effects: list[Effect], model: TwinModel) -> list[dict[str, float]]:
