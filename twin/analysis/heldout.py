@@ -93,8 +93,9 @@ def judgement_models(
     or, with `columns` on another mesh, the fit on `model` and the whole linearisation on `columns`."""
     models = []
     for c in candidates:
-        models.append(model.with_effects({c.name: c.refit_parameters}))
-        models += linearisation_models(EFFECTS[c.name], columns or model, c.refit_parameters)[columns is None :]
+        at_fit = model.with_effects({c.name: c.refit_parameters})
+        linearisation = linearisation_models(EFFECTS[c.name], columns or model, c.refit_parameters)
+        models += linearisation if columns is None else [at_fit, *linearisation]  # its first model: the fit
     return models
 
 
