@@ -48,15 +48,15 @@ from twin.analysis.diagnose import diagnose
 from twin.analysis.predict import Predictor, TwinModel
 from twin.analysis.refit import fit_jointly
 from twin.analysis.residual import base_residual
-from twin.campaign import QUICK_CONFIG, run_campaign
-from twin.demo import LoopResult, loop_setup, run_loop
+from twin.campaign import run_campaign
+from twin.demo import CHECK_CONFIG, LoopResult, loop_setup, run_loop
 from twin.effects import EFFECTS, UNLISTED_EFFECTS
 from twin.hidden import draw_hidden, read_sealed_manifest
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "tests"))
 import effect_generator  # noqa: E402  (the independent generator lives with the tests)
 
-CONFIG = replace(QUICK_CONFIG, sensors=(2,), indenters=("sphere_small", "cylinder_long"))
+CONFIG = CHECK_CONFIG
 NONE = "none"
 QUICK_EFFECTS = "none,time_delay,registration_offset"
 """The default cases: nothing hidden, one measurement effect, one physics effect."""

@@ -12,7 +12,6 @@ for its campaign and its refits.
 
 import json
 import os
-from dataclasses import replace
 from pathlib import Path
 
 import h5py
@@ -27,12 +26,11 @@ from twin.analysis.diagnose import diagnose
 from twin.analysis.heldout import NOISE_TOLERANCE
 from twin.analysis.predict import Predictor, TwinModel
 from twin.analysis.refit import fit_effect, fit_jointly
-from twin.campaign import QUICK_CONFIG
-from twin.demo import LoopResult, run_loop
+from twin.demo import CHECK_CONFIG, LoopResult, run_loop
 from twin.effects import COMPLIANCE, EFFECTS, UNLISTED_EFFECTS
 from twin.hidden import draw_hidden
 
-CONFIG = replace(QUICK_CONFIG, sensors=(2,), indenters=("sphere_small", "cylinder_long"))
+CONFIG = CHECK_CONFIG
 SEED = int(os.environ.get("BIOTAC_TWIN_HIDDEN_SEED", "5"))
 
 

@@ -6,7 +6,6 @@ The case (measured, docs/analysis.md, session 22): an F/T nonlinearity outside t
 diagnoses again: the improved model's residual passes the noise test in sample (1.006x), which alone would say
 "nothing". A model whose effect does hold out (the hidden skin thickness, added) still gets "nothing"."""
 
-from dataclasses import replace
 from pathlib import Path
 
 import pytest
@@ -15,10 +14,10 @@ from twin.analysis.data import load_campaign
 from twin.analysis.diagnose import diagnose
 from twin.analysis.predict import Predictor, TwinModel
 from twin.analysis.refit import fit_jointly
-from twin.campaign import QUICK_CONFIG, run_campaign
-from twin.demo import loop_setup
+from twin.campaign import run_campaign
+from twin.demo import CHECK_CONFIG, loop_setup
 
-CONFIG = replace(QUICK_CONFIG, sensors=(2,), indenters=("sphere_small", "cylinder_long"))
+CONFIG = CHECK_CONFIG
 """The confusion bench's campaign (benchmarks/diagnose_bench.py)."""
 
 

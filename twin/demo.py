@@ -39,6 +39,9 @@ DEMO_EFFECTS = (
 
 DEMO_CONFIG = replace(QUICK_CONFIG, sensors=(2,), indenters=("sphere_small", "sphere_large", "cylinder_long"))
 """The demo's campaign: one sensor, three indenter sizes, normal and angled paths with unloading."""
+CHECK_CONFIG = replace(QUICK_CONFIG, sensors=(2,), indenters=("sphere_small", "cylinder_long"))
+"""The hidden-effect checks' campaign (tests, `benchmarks/diagnose_bench.py`): one sensor, the small sphere and the
+long cylinder, normal and angled paths with unloading."""
 
 
 @dataclass(frozen=True)
