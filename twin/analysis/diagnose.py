@@ -304,10 +304,9 @@ def diagnose(
         columns = rank_model if rank_model != model else None
         base.prefetch(predictor, judgement_models([c for c, _ in chosen], model, columns))
         for candidate, _ in chosen:
-            judge_heldout(candidate, model, predictor, base, columns)
-            if rank_model != model:  # the refit's own figure on the model's mesh (its replays the judgement's)
-                at_fit = model.with_effects({candidate.name: candidate.refit_parameters})
-                candidate.refit_rms = whitened_rms(base.about(predictor, at_fit).residual.values)
+            about_fit = judge_heldout(candidate, model, predictor, base, columns)
+            if rank_model != model:  # the refit's own figure on the model's mesh (the judgement's residual)
+                candidate.refit_rms = whitened_rms(about_fit.residual.values)
 
     refit_and_judge(ranked[:top])
     # When none of those is supported held out, the next ones whose linearised fits come close to the best's are

@@ -60,7 +60,7 @@ def heldout(effect: Effect, lin: Linearisation, r: np.ndarray, folds: np.ndarray
 
 def judge_heldout(
     candidate: Candidate, model: TwinModel, predictor: Predictor, base: Base, columns: TwinModel | None = None
-) -> None:
+) -> Base:
     """Held-out RMS about the refitted values (the residual about the refitted model, each sensor's PDC gain
     profiled about that model's own PDC, `Base.about`; the effect linearised again there: one fe replay per
     parameter for a physics effect), whether that held-out residual passes the noise test, which allows
@@ -68,7 +68,7 @@ def judge_heldout(
     parameter bounds of the fits are not modelled), and whether that test has power (`record_heldout`: the
     base residual on the same samples); and which refitted parameters sit at a bound. With `columns` (the model on
     another fe mesh, `judgement_models`), the linearisation's columns are differences of that mesh's replays about
-    its own prediction at the fit; the residual about the fit stays `model`'s."""
+    its own prediction at the fit; the residual about the fit stays `model`'s. Returns the residual about the fit."""
     effect = EFFECTS[candidate.name]
     about = base.about(predictor, model.with_effects({candidate.name: candidate.refit_parameters}))
     if columns is None or columns == model:
@@ -84,6 +84,7 @@ def judge_heldout(
         candidate, rms, left_out, base.residual.values, lambda r: about.noise_test(r, out_of_fold=out_of_fold)
     )
     candidate.at_bound = parameters_at_bound(candidate.name, candidate.refit_parameters)
+    return about
 
 
 def judgement_models(
