@@ -19,10 +19,10 @@ quantised F/T reading (expected "nothing"); each is diagnosed (one refit) and co
 With `--pairs a+b,c+d`, each seed's plant hides two library effects at once (each drawn from the seed as alone), and
 the loop runs twice in turn, as a user would: diagnose, `improve` (`fit_jointly`) with what it names, diagnose again
 with the improved model, improve again (the effects found so far refitted jointly). When the first diagnosis is
-"unexplained", the user's next move is its closest candidate (the first refitted one, named in the reason) when that
-one lowers the held-out residual below the base's: it is added (`via: closest`) and the loop goes on. A pair is right
-when both effects end in the model, in either order, and the last diagnosis named its effect (not only closest); the
-RMS / noise before, after each step and held out is printed.
+"unexplained", the user's next move is its closest candidate (`Diagnosis.next_step`: the refitted one of least held-out
+RMS, the first the reason names) when that one lowers the held-out residual below the base's: it is added (`via:
+closest`) and the loop goes on. A pair is right when both effects end in the model, in either order, and the last
+diagnosis named its effect (not only closest); the RMS / noise before, after each step and held out is printed.
 
     python benchmarks/diagnose_bench.py [--seeds 5,6,7] [--effects a,b|all|""] [--generated] [--pairs a+b,...]
         [--out runs/diagnose_bench] [--json FILE]

@@ -92,7 +92,8 @@ def diagnose(
             "--rank-mesh-mm",
             min=0.1,
             help="Rank and refit the candidates on fe replays of this mesh size (mm; a coarser one is several times "
-            "cheaper); each refitted one is judged held out on the campaign's mesh (JSON: ranked_mesh_mm).",
+            "cheaper); each refitted one is judged held out about the campaign mesh's residual at its fit (JSON: "
+            "ranked_mesh_mm).",
         ),
     ] = None,
 ) -> None:
@@ -162,8 +163,8 @@ def diagnose(
         )
     if result.ranked_mesh is not None:
         out_console.print(
-            f"candidates ranked and refitted on a {1e3 * result.ranked_mesh:g} mm fe mesh; the held-out judgements on "
-            f"the model's ({1e3 * twin_model.mesh_max_edge:g} mm)"
+            f"candidates ranked and refitted on a {1e3 * result.ranked_mesh:g} mm fe mesh; the held-out judgements "
+            f"about the residual at each fit on the model's ({1e3 * twin_model.mesh_max_edge:g} mm)"
         )
     out_console.print(table)
     out_console.print(f"verdict: [bold]{result.verdict}[/bold] - {result.reason}")
