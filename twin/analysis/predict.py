@@ -365,6 +365,11 @@ class Predictor:
     With `electrodes=False` replays read no electrodes (NaN counts) and predictions have no processed rows: for
     the residual's analyses (diagnose, improve), which compare force and PDC only; reading the 19 electrodes at
     every solve is ~8 % of a paper-mesh diagnosis on a GPU (docs/scale.md, session 22).
+
+    `solve_ahead` (default: on any device but warp's CPU) asks the analyses to solve, with each replay set whose
+    result may call for a linearisation at its point, that linearisation's replays too (`sensitivity.point_models`):
+    on a GPU a batch costs about its longest replay's chain of solves, not its size, so a set solved ahead is a
+    wave saved; on the CPU a batch costs its solves, so the replays a fit does not use are time lost.
     """
 
     def __init__(
@@ -374,8 +379,11 @@ class Predictor:
         workers: int | None = None,
         held_first: int = HELD_SOLVES_FIRST,
         electrodes: bool = True,
+        solve_ahead: bool | None = None,
     ) -> None:
         self.device = device
+        self.solve_ahead = device != "cpu" if solve_ahead is None else solve_ahead
+        """Whether the analyses solve linearisations' replays ahead, with their point's (see the class docstring)."""
         self.electrodes = electrodes
         """Whether replays read the electrodes (False: NaN counts, and `predict` gives no rows)."""
         self.held_first = held_first

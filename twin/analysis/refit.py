@@ -15,7 +15,7 @@ from twin.analysis.fit import Fit, GaussNewtonHooks, GaussNewtonSettings, Parame
 from twin.analysis.heldout import judge_heldout, whitened_rms
 from twin.analysis.predict import Predictor, TwinModel
 from twin.analysis.residual import Base, base_residual
-from twin.analysis.sensitivity import Linearisation, effect_parameters, linearise, sensitivity
+from twin.analysis.sensitivity import Linearisation, effect_parameters, linearise, point_models, sensitivity
 from twin.analysis.verdict import Candidate
 from twin.effects import EFFECTS, Effect, EffectParameter
 
@@ -48,6 +48,12 @@ def refit(
     def misfit(trial: dict[str, float]) -> np.ndarray:
         return base.residual.values - base.shifted(predictor, model.with_effects({candidate.name: trial}))
 
+    ahead = effect.kind == "physics" and predictor.solve_ahead
+
+    def stepped(trial: dict[str, float]) -> np.ndarray:  # a step's misfit; ahead, its linearisation's replays too
+        base.prefetch(predictor, point_models(effect, model, trial, ahead))
+        return misfit(trial)
+
     def relinearised(at: Parameters) -> np.ndarray:
         return linearise(effect, model, at.as_dict(), predictor, base).jac
 
@@ -60,7 +66,7 @@ def refit(
     )
     settings = GaussNewtonSettings(iterations, BACKTRACKS, STEP_TOLERANCE)
     fitted = gauss_newton(
-        lambda at: misfit(at.as_dict()),
+        lambda at: stepped(at.as_dict()),
         effect_parameters(effect, lin.point),
         hooks,
         settings,
@@ -69,7 +75,7 @@ def refit(
     )
     if effect.kind == "physics" and not base.noise_test(fitted.residual).is_noise:
         fitted = _from_starts(
-            effect, fitted, misfit, lambda models: base.prefetch(predictor, models), model, hooks, settings
+            effect, fitted, stepped, lambda models: base.prefetch(predictor, models), model, hooks, settings, ahead
         )
     values, rms = fitted.parameters, fitted.cost
     if effect.kind == "measurement" and not effect.linear:
@@ -115,12 +121,14 @@ def _from_starts(
     model: TwinModel,
     hooks: GaussNewtonHooks,
     settings: GaussNewtonSettings,
+    ahead: bool = False,
 ) -> Fit:
     """A refit that ended above the noise, tried again from across the effect's range (a cost can have several
-    basins): the misfit at each of `starts_across` (their replays solved as one batch), then damped Gauss-Newton from
-    the best of them when it fits better than `fitted`; whichever of the two fits better."""
+    basins): the misfit at each of `starts_across` (their replays solved as one batch; `ahead`, with their
+    linearisations', `point_models`), then damped Gauss-Newton from the best of them when it fits better than
+    `fitted`; whichever of the two fits better."""
     starts = starts_across(effect, fitted.parameters.as_dict())
-    prefetch([model.with_effects({effect.name: start}) for start in starts])
+    prefetch([m for start in starts for m in point_models(effect, model, start, ahead)])
     costs = np.array([hooks.cost(misfit(start), None) for start in starts])
     if not np.isfinite(costs).any():  # no start's replays reached a sample
         return fitted

@@ -104,6 +104,13 @@ def linearisation_models(effect: Effect, model: TwinModel, point: dict[str, floa
     return [model.with_effects({effect.name: point}), *(changed for _, changed in _column_steps(effect, model, point))]
 
 
+def point_models(effect: Effect, model: TwinModel, point: dict[str, float], ahead: bool) -> list[TwinModel]:
+    """The models to solve for `model` with the effect at `point`: that one, and with `ahead`
+    (`Predictor.solve_ahead`) every model of a linearisation there (`linearisation_models`), so that linearising
+    at the point, should its result call for it, needs no batch of its own."""
+    return linearisation_models(effect, model, point) if ahead else [model.with_effects({effect.name: point})]
+
+
 def sensitivity(effect: Effect, model: TwinModel, predictor: Predictor, base: Base) -> Linearisation:
     """Linearise the effect where its fit is best begun (`sensitivities` of this one effect)."""
     return sensitivities([effect], model, predictor, base)[0]
@@ -142,8 +149,9 @@ def sensitivities(
             lins[i] = replace(lin, data_start=data_start(predictor, model, base))
             first = [start] if (start := lins[i].data_start.start(lin.point)) is not None else []
         trials.append([fitted, *first, *declared_starts(effect, lin.point)])
-    tried = [model.with_effects({e.name: t}) for e, ts in zip(effects, trials, strict=True) for t in ts]
-    base.prefetch(predictor, tried)
+    ahead = predictor.solve_ahead  # the best trial's linearisation solved with the trials
+    pairs = [(e, t) for e, ts in zip(effects, trials, strict=True) for t in ts]
+    base.prefetch(predictor, [m for e, t in pairs for m in point_models(e, model, t, ahead)])
     again: dict[int, dict[str, float]] = {}
     for i, (effect, ts) in enumerate(zip(effects, trials, strict=True)):
         if not ts:
@@ -163,13 +171,14 @@ def declared_starts(effect: Effect, point: dict[str, float]) -> list[dict[str, f
     return [effect.values({**point, **start}) for start in effect.starts]
 
 
-def start_models(effects: list[Effect], model: TwinModel) -> list[TwinModel]:
-    """The models of the declared starts `sensitivities` tries for each effect off in `model`: known before any
-    residual (unlike the fitted and data-driven starts), so they may be solved with the first batch."""
+def start_models(effects: list[Effect], model: TwinModel, ahead: bool = False) -> list[TwinModel]:
+    """The models of the declared starts `sensitivities` tries for each effect off in `model` (with `ahead`, each
+    with its linearisation's, `point_models`): known before any residual (unlike the fitted and data-driven starts),
+    so they may be solved with the first batch."""
     models = []
     for effect, point in zip(effects, first_points(effects, model), strict=True):
         if effect.is_off(effect.values(model.effects.get(effect.name))):
-            models += [model.with_effects({effect.name: start}) for start in declared_starts(effect, point)]
+            models += [m for start in declared_starts(effect, point) for m in point_models(effect, model, start, ahead)]
     return models
 
 
