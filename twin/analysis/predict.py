@@ -58,9 +58,15 @@ DEFAULT_WORKERS_MAX = 8
 """Replay worker processes a CPU Predictor starts at most unless told (`Predictor(workers=...)`): each holds its own
 inflated models (up to `MODEL_CACHE_SIZE`) and inflates the skins of its shares, so more workers than a batch has
 skins or a machine has memory for cost more than they give."""
-PREFETCH_SLOTS = 256
-"""Systems of one batched prefetch run at most (with one skin, more trajectories queue for the slots that
-free up; with several, more replays make more runs)."""
+PREFETCH_NODES = 256 * 3675
+"""Skin nodes of the systems of one batched prefetch run at most: 256 systems of the paper's 0.5 mm mesh (3675
+nodes), 945 of a 1 mm mesh (995), so a coarser mesh's wave is not queued through the slots a fine one needs (more
+replays queue for the slots that free up)."""
+
+
+def prefetch_slots(nodes: int) -> int:
+    """Systems of a batched prefetch run of skins of `nodes` nodes (`PREFETCH_NODES`)."""
+    return max(1, PREFETCH_NODES // nodes)
 
 
 HELD_SOLVES_FIRST = 1
@@ -229,7 +235,7 @@ class _ReplaySolver:
             skins[0] if one_skin else skins,
             [_pose_trajectory(job, timed) for job in jobs],
             self.device,
-            slots=min(len(jobs), PREFETCH_SLOTS),
+            slots=min(len(jobs), prefetch_slots(len(fes[0].reference))),
             on_trajectory=finished,
         )
 
@@ -449,7 +455,7 @@ class Predictor:
         finds them cached. Each system carries its own model's inflated skin; replays that models share (same
         skin, same path: models that differ only in measurement effects) are solved once. Systems are
         grouped into one run when their skins share a mesh (`fe.batched_runner.can_share_batch`), queued
-        through at most `PREFETCH_SLOTS` systems (a system takes the next replay whatever its skin), the
+        through at most `prefetch_slots` systems (a system takes the next replay whatever its skin), the
         longest first; on the CPU with several `workers`, a run per share and worker. Each replay is what
         `predict` would solve one at a time: the same events, stopped at the first increment that does not
         converge. progress(done, total) (default: the predictor's `on_replays`) after each replay solved;
