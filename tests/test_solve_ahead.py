@@ -11,9 +11,10 @@ from types import SimpleNamespace
 import numpy as np
 import pytest
 
+from twin.analysis import sensitivity
 from twin.analysis.predict import Predictor, TwinModel
 from twin.analysis.refit import refit
-from twin.analysis.sensitivity import linearise, sensitivities, start_models
+from twin.analysis.sensitivity import linearise, sensitivities
 from twin.analysis.verdict import Candidate
 from twin.effects import EFFECTS
 
@@ -64,20 +65,41 @@ def test_a_predictor_solves_ahead_on_a_gpu_only_unless_told() -> None:
     assert Predictor("cuda:0", workers=1).solve_ahead  # no device is touched until a replay is solved
 
 
-def test_the_trials_best_linearisation_comes_with_the_trials_and_the_declared_starts_with_the_first_batch() -> None:
+class _DataStart:
+    """A data-driven start (`sensitivity.DATA_STARTS`) that proposes a backlash of `lag` (m)."""
+
+    def __init__(self, lag: float) -> None:
+        self.lag = lag
+
+    def start(self, current: dict[str, float]) -> dict[str, float]:
+        return {"lag": self.lag}
+
+    def to_dict(self) -> dict:
+        return {"lag": self.lag}
+
+
+@pytest.mark.parametrize(
+    ("proposed", "batches"),
+    [(LAG_TRUE * 1.02, (3, 2)), (None, (3, 3))],  # the data-driven start best; a declared start (0.25 mm) best
+)
+def test_a_data_driven_starts_linearisation_comes_with_the_trials(
+    proposed: float | None, batches: tuple[int, int], monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """The trials of an off backlash: the linear fit's step, a data-driven start when there is one, the declared
+    starts (0.1, 0.25 mm). Ahead, the data-driven start's linearisation comes with the trials (no batch after them
+    where it is best); the declared starts' does not (many, and far: a batch after them where one is best)."""
+    starts = {BACKLASH.name: lambda predictor, model, base: _DataStart(proposed)} if proposed else {}
+    monkeypatch.setattr(sensitivity, "DATA_STARTS", starts)
     out = {}
     for ahead in (False, True):
         base = _Response()
         (lin,) = sensitivities([BACKLASH], TwinModel(), _predictor(ahead), base)
-        out[ahead] = (lin, base.batches)
+        out[ahead] = (lin, len(base.batches))
     (plain, plain_batches), (ahead, ahead_batches) = out[False], out[True]
-    assert plain.point == ahead.point and plain.point["lag"] > 0.0  # moved to a trial: linearised again there
+    assert plain.point == ahead.point == {"lag": proposed or 2.5e-4}  # moved to that trial: linearised again there
     np.testing.assert_array_equal(plain.jac, ahead.jac)
     np.testing.assert_array_equal(plain.offset, ahead.offset)
-    assert len(plain_batches) == 3 and len(ahead_batches) == 2  # first, trials (, the best trial's linearisation)
-    # what a diagnosis puts in its first batch ahead: every declared start's linearisation, before any residual
-    first = {m.key() for m in start_models([BACKLASH], TwinModel(), ahead=True)}
-    assert len(first) == 2 * len(BACKLASH.starts) and first <= set().union(*ahead_batches)
+    assert (plain_batches, ahead_batches) == batches  # first, trials (, the best trial's linearisation)
 
 
 @pytest.mark.parametrize("start", [0.0, 2.5e-4])

@@ -229,8 +229,10 @@ def diagnose(
         own = [(rank_model, every)] if rank_model != model else []  # the base on the ranking (and refitting) mesh
         effects = [EFFECTS[k] for k in names]
         # with the trials' declared starts, which do not depend on the residual either: fewer waves of replays
-        starts = start_models(effects, rank_model, predictor.solve_ahead)
-        first = [(m, on_ranking) for m in [*first_models(effects, rank_model, None, True), *starts]]
+        first = [
+            (m, on_ranking)
+            for m in [*first_models(effects, rank_model, None, True), *start_models(effects, rank_model)]
+        ]
         predictor.prefetch_many([(model, every), *own, *first])
     fitted = fit_nuisances(datasets, model, predictor, lambda text: report("nuisances", text)) if nuisances else None
     base = fitted.base if fitted is not None else base_residual(datasets, model, predictor)

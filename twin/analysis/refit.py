@@ -75,7 +75,7 @@ def refit(
     )
     if effect.kind == "physics" and not base.noise_test(fitted.residual).is_noise:
         fitted = _from_starts(
-            effect, fitted, stepped, lambda models: base.prefetch(predictor, models), model, hooks, settings, ahead
+            effect, fitted, (misfit, stepped), lambda models: base.prefetch(predictor, models), model, hooks, settings
         )
     values, rms = fitted.parameters, fitted.cost
     if effect.kind == "measurement" and not effect.linear:
@@ -116,26 +116,27 @@ def _across(parameter: EffectParameter, count: int) -> np.ndarray:
 def _from_starts(
     effect: Effect,
     fitted: Fit,
-    misfit: Callable[[dict[str, float]], np.ndarray],
+    misfits: tuple[Callable[[dict[str, float]], np.ndarray], Callable[[dict[str, float]], np.ndarray]],
     prefetch: Callable[[list[TwinModel]], int],
     model: TwinModel,
     hooks: GaussNewtonHooks,
     settings: GaussNewtonSettings,
-    ahead: bool = False,
 ) -> Fit:
     """A refit that ended above the noise, tried again from across the effect's range (a cost can have several
-    basins): the misfit at each of `starts_across` (their replays solved as one batch; `ahead`, with their
-    linearisations', `point_models`), then damped Gauss-Newton from the best of them when it fits better than
-    `fitted`; whichever of the two fits better."""
+    basins): the misfit at each of `starts_across` (their replays solved as one batch; not their linearisations,
+    even ahead: many, and far), then damped Gauss-Newton from the best of them when it fits better than `fitted`;
+    whichever of the two fits better. `misfits`: the misfit of values, and of a Gauss-Newton step's values (`refit`:
+    ahead, with the step's linearisation's replays)."""
+    misfit, stepped = misfits
     starts = starts_across(effect, fitted.parameters.as_dict())
-    prefetch([m for start in starts for m in point_models(effect, model, start, ahead)])
+    prefetch([model.with_effects({effect.name: start}) for start in starts])
     costs = np.array([hooks.cost(misfit(start), None) for start in starts])
     if not np.isfinite(costs).any():  # no start's replays reached a sample
         return fitted
     best = int(np.nanargmin(costs))
     if not costs[best] < fitted.cost:
         return fitted
-    again = gauss_newton(lambda at: misfit(at.as_dict()), effect_parameters(effect, starts[best]), hooks, settings)
+    again = gauss_newton(lambda at: stepped(at.as_dict()), effect_parameters(effect, starts[best]), hooks, settings)
     return again if again.cost < fitted.cost else fitted
 
 

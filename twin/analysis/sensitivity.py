@@ -137,6 +137,7 @@ def sensitivities(
     ]
     r = base.residual.values
     trials: list[list[dict[str, float]]] = []
+    ahead: list[TwinModel] = []
     for i, (effect, lin) in enumerate(zip(effects, lins, strict=True)):
         data_start = DATA_STARTS.get(effect.name)
         if not (effect.is_off(effect.values(model.effects.get(effect.name))) and (effect.starts or data_start)):
@@ -149,9 +150,11 @@ def sensitivities(
             lins[i] = replace(lin, data_start=data_start(predictor, model, base))
             first = [start] if (start := lins[i].data_start.start(lin.point)) is not None else []
         trials.append([fitted, *first, *declared_starts(effect, lin.point)])
-    ahead = predictor.solve_ahead  # the best trial's linearisation solved with the trials
-    pairs = [(e, t) for e, ts in zip(effects, trials, strict=True) for t in ts]
-    base.prefetch(predictor, [m for e, t in pairs for m in point_models(e, model, t, ahead)])
+        # ahead, the linearisation at the data-driven start (where the fitted step is best the first linearisation
+        # stands; the declared starts are many, and far)
+        ahead += [m for t in first for m in point_models(effect, model, t, predictor.solve_ahead)]
+    tried = [model.with_effects({e.name: t}) for e, ts in zip(effects, trials, strict=True) for t in ts]
+    base.prefetch(predictor, [*tried, *ahead])
     again: dict[int, dict[str, float]] = {}
     for i, (effect, ts) in enumerate(zip(effects, trials, strict=True)):
         if not ts:
@@ -171,14 +174,13 @@ def declared_starts(effect: Effect, point: dict[str, float]) -> list[dict[str, f
     return [effect.values({**point, **start}) for start in effect.starts]
 
 
-def start_models(effects: list[Effect], model: TwinModel, ahead: bool = False) -> list[TwinModel]:
-    """The models of the declared starts `sensitivities` tries for each effect off in `model` (with `ahead`, each
-    with its linearisation's, `point_models`): known before any residual (unlike the fitted and data-driven starts),
-    so they may be solved with the first batch."""
+def start_models(effects: list[Effect], model: TwinModel) -> list[TwinModel]:
+    """The models of the declared starts `sensitivities` tries for each effect off in `model`: known before any
+    residual (unlike the fitted and data-driven starts), so they may be solved with the first batch."""
     models = []
     for effect, point in zip(effects, first_points(effects, model), strict=True):
         if effect.is_off(effect.values(model.effects.get(effect.name))):
-            models += [m for start in declared_starts(effect, point) for m in point_models(effect, model, start, ahead)]
+            models += [model.with_effects({effect.name: start}) for start in declared_starts(effect, point)]
     return models
 
 
