@@ -12,6 +12,8 @@ are queued.
 A trajectory ends after its last pose, at its first increment that does not converge even in smaller
 steps (cut-backs through midpoints of the failed step, whose results are not reported), or at its first
 increment whose indenter force exceeds `force_limit` (N), as the campaign controller stops a press.
+A trajectory may solve a pose at other tips than its own, and more than once at its time (`PoseTrajectory.settle`:
+a compliant robot's tip, where the loads put it; its force limit is judged once the pose is done).
 Poses: rotation (3,3) indenter body -> sensor frame, tip position (3,) m; results are
 `fe.indentation.IncrementResult`s (forces in N, sensor frame; `wall_s` from a pose's admission to its result).
 """
@@ -40,6 +42,11 @@ class PoseTrajectory:
     rotations: np.ndarray
     translations: np.ndarray
     times: np.ndarray | None = None
+    settle: Callable[[int, IncrementResult | None], np.ndarray | None] | None = None
+    """Where the tip (3,) m of pose k is solved, when not at `translations[k]` (e.g. a compliant robot,
+    `twin.campaign_batched`): `settle(k, None)` gives its first tip; `settle(k, result)`, after each converged
+    solve of pose k, the next tip to solve at its time and rotation, or None when pose k is done. Every solve
+    is reported, in order."""
 
     def __post_init__(self) -> None:
         rotations, translations = np.asarray(self.rotations), np.asarray(self.translations)
@@ -63,10 +70,11 @@ class PoseTrajectory:
 
 @dataclass
 class BatchedRun:
-    """Outcome of `run_trajectories`: per trajectory its increments (in pose order, ending where the
-    trajectory stopped), the number of rounds (one `advance` each), the wall time (s), the slots, the
-    shell's work counters (`fe.batched.BatchedShell.counters`), whether every trajectory ended (False after
-    a time limit), and per round the time it ended (s from the start) and the systems it iterated."""
+    """Outcome of `run_trajectories`: per trajectory its increments (in pose order, every solve of a pose with a
+    `PoseTrajectory.settle`, ending where the trajectory stopped), the number of rounds (one `advance` each),
+    the wall time (s), the slots, the shell's work counters (`fe.batched.BatchedShell.counters`), whether every
+    trajectory ended (False after a time limit), and per round the time it ended (s from the start) and the
+    systems it iterated."""
 
     results: list[list[IncrementResult]]
     iterations: int
@@ -130,11 +138,7 @@ def run_trajectories(
     schedule = _Schedule(trajectories, skins, order, force_limit, on_trajectory, stepper, max_cuts)
     round_end_s: list[float] = []
     round_systems: list[int] = []
-    complete = True
-    while True:
-        if time.perf_counter() - start > time_limit_s:
-            complete = False
-            break
+    while complete := time.perf_counter() - start <= time_limit_s:  # complete: not stopped by the time limit
         while schedule.waiting.any():
             rotation, translation, times = schedule.poses()
             admitted = schedule.waiting.copy()
@@ -146,17 +150,8 @@ def run_trajectories(
         schedule.record(stepper.advance())
         round_end_s.append(time.perf_counter() - start)
     counters = dict(stepper.shell.counters) | {"cut_backs": sum(plan.total for plan in schedule.cut_back)}
-    wall = time.perf_counter() - start
-    return BatchedRun(
-        schedule.results,
-        len(round_end_s),
-        wall,
-        slots,
-        counters,
-        complete,
-        np.array(round_end_s),
-        np.array(round_systems, dtype=int),
-    )
+    wall, rounds = time.perf_counter() - start, (np.array(round_end_s), np.array(round_systems, dtype=int))
+    return BatchedRun(schedule.results, len(round_end_s), wall, slots, counters, complete, *rounds)
 
 
 class _Schedule:
@@ -177,10 +172,11 @@ class _Schedule:
         self.force_limit, self.on_trajectory, self.stepper = force_limit, on_trajectory, stepper
         n = stepper.batch
         self.results: list[list[IncrementResult]] = [[] for _ in range(len(trajectories))]
-        self.current = np.full(n, -1)
-        self.pose = np.zeros(n, dtype=int)
+        self.current, self.pose = np.full(n, -1), np.zeros(n, dtype=int)
         self.waiting = np.zeros(n, dtype=bool)
         """Slots whose next pose is to be admitted."""
+        self.tip = np.zeros((n, 3))
+        """Per slot, the tip (m) its pose is solved at where its trajectory has a `settle`."""
         self.timed = trajectories[0].times is not None
         self.cut_back = [CutBack(max_cuts) for _ in range(n)]
         """Per slot, the way to its trajectory's next pose after failed steps."""
@@ -200,15 +196,22 @@ class _Schedule:
                 self.current[slot] = index
             elif self.on_trajectory is not None:
                 self.on_trajectory(index, self.results[index])
+        self.pose[slot] = 0
+        self.cut_back[slot].restart()
         if self.current[slot] >= 0:
             name, skin = self.trajectories[self.current[slot]].indenter, self.skins[self.current[slot]]
             if self.stepper.indenters[slot] != name:
                 self.stepper.set_indenter(slot, name)
             if self.stepper.skins[slot] is not skin:
                 self.stepper.set_skin(slot, skin)
-        self.pose[slot] = 0
-        self.cut_back[slot].restart()
-        self.waiting[slot] = self.current[slot] >= 0
+            self._next_pose(slot)
+
+    def _next_pose(self, slot: int) -> None:
+        """Queue the slot's pose `self.pose[slot]` (at the first tip of its trajectory's `settle`, if any)."""
+        self.waiting[slot] = True
+        settle = self.trajectories[self.current[slot]].settle
+        if settle is not None:
+            self.tip[slot] = settle(int(self.pose[slot]), None)
 
     def poses(self) -> tuple[np.ndarray, np.ndarray, np.ndarray | None]:
         """Rotations (S,3,3), tip positions (S,3) m and times (S,) s (None: untimed) of the waiting slots'
@@ -220,10 +223,11 @@ class _Schedule:
         return rotation, translation, times if self.timed else None
 
     def _target(self, slot: int) -> Pose:
-        """The slot's trajectory's next pose and its time (0 when untimed)."""
+        """The slot's trajectory's next pose (at its `settle` tip, if any) and its time (0 when untimed)."""
         trajectory, k = self.trajectories[self.current[slot]], self.pose[slot]
         time_s = 0.0 if trajectory.times is None else float(trajectory.times[k])
-        return trajectory.rotations[k], trajectory.translations[k], time_s
+        tip = trajectory.translations[k] if trajectory.settle is None else self.tip[slot]
+        return trajectory.rotations[k], tip, time_s
 
     def record(self, finished: dict[int, IncrementResult]) -> None:
         """File the slots' finished increments; queue their next poses, cut failed steps back, or end their
@@ -234,10 +238,14 @@ class _Schedule:
                 continue
             index = int(self.current[slot])
             self.results[index].append(result)
+            settle = self.trajectories[index].settle
+            if result.converged and settle is not None and (tip := settle(int(self.pose[slot]), result)) is not None:
+                self.tip[slot], self.waiting[slot] = tip, True  # pose k again, at another tip
+                continue
             self.pose[slot] += 1
             pressed = float(np.linalg.norm(result.force)) > self.force_limit
             if result.converged and not pressed and self.pose[slot] < len(self.trajectories[index].rotations):
-                self.waiting[slot] = True
+                self._next_pose(slot)
                 continue
             if self.on_trajectory is not None:
                 self.on_trajectory(index, self.results[index])

@@ -7,6 +7,10 @@ skin (relaxation re-solves at held poses, each system on its own clock), a contr
 retreat after it leaves the recorded schedule) and an F/T gain of 0.5 that hides half the force, so the
 controller needs solves past the batch's fe force limit and the trajectory is solved again without one.
 Also: the backend's held electrode impedance (computed once per skin state) changes no count.
+
+Each campaign runs on the plant as well with `robot_compliance` (0.08 mm/N): the batch then solves every pose
+where the load of the last solve puts the tip and settles it by more solves at the same time, as the one-at-a-time
+backend does, and writes the solves it made, which the synthesis replays.
 """
 
 from collections.abc import Callable, Iterator, Sequence
@@ -27,12 +31,15 @@ from twin.campaign_batched import (
     BatchedRunner,
     SolveSchedule,
     _kept,
+    read_solves,
     solves_path,
     write_solves,
 )
+from twin.effects import COMPLIANCE
 from twin.executors import Executor
-from twin.plant import make_plant
+from twin.plant import Plant, make_plant
 from twin.protocol import QUICK_SETTINGS
+from twin.sim_backend import SimSettings
 
 CONFIG = replace(
     QUICK_CONFIG,
@@ -53,6 +60,10 @@ PLANT = make_plant(
     effects={"skin_relaxation": {"fraction": 0.3, "time_s": 0.2}, "ft_gain": {"scale": 0.5}},
 )
 """Exact registration (the tip reaches the skin where planned), a relaxing skin, an F/T reading of half the force."""
+COMPLIANCE_M_PER_N = 8e-5
+"""The compliant plant's robot compliance (0.08 mm/N, as tests/test_robot_compliance.py)."""
+COMPLIANT_PLANT = replace(PLANT, effects=PLANT.effects | {COMPLIANCE: {"compliance": COMPLIANCE_M_PER_N}})
+"""`PLANT` on an arm and tool that give way under the load."""
 FORCE_TOLERANCE = 1e-3
 """Forces agree within this share of the largest force (docs/scale.md: with friction, the batched and the
 one-system engine agree within 1e-3 of |F|); on warp's CPU device they are in fact the same bits."""
@@ -123,18 +134,23 @@ def _spy_on_batches(monkeypatch: pytest.MonkeyPatch) -> list[float]:
     return limits
 
 
+@pytest.fixture(scope="module", params=[PLANT, COMPLIANT_PLANT], ids=["rigid", "compliant"])
+def plant(request: pytest.FixtureRequest) -> Plant:
+    return request.param
+
+
 @pytest.fixture(scope="module")
-def one_at_a_time(tmp_path_factory: pytest.TempPathFactory) -> dict[str, np.ndarray]:
+def one_at_a_time(plant: Plant, tmp_path_factory: pytest.TempPathFactory) -> dict[str, np.ndarray]:
     out = tmp_path_factory.mktemp("one_at_a_time")
-    run_campaign(CONFIG, out, plant=PLANT, executor=InProcess())
+    run_campaign(CONFIG, out, plant=plant, executor=InProcess())
     return _read_all(out / "biotac2.hdf5")
 
 
 def test_batched_campaign_equals_the_one_at_a_time_campaign(
-    one_at_a_time: dict[str, np.ndarray], tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+    plant: Plant, one_at_a_time: dict[str, np.ndarray], tmp_path: Path, monkeypatch: pytest.MonkeyPatch
 ) -> None:
     limits = _spy_on_batches(monkeypatch)
-    result = run_campaign(CONFIG, tmp_path, plant=PLANT, executor=InProcess(), runner=BatchedRunner("cpu"))
+    result = run_campaign(CONFIG, tmp_path, plant=plant, executor=InProcess(), runner=BatchedRunner("cpu"))
     # the normal press ran past the batch's fe force limit (half the force measured) and was solved again
     assert limits == [FE_FORCE_LIMIT_FACTOR * CONFIG.settings.force_limit, np.inf]
     assert result.ran == 2 and result.incomplete == 1
@@ -147,7 +163,7 @@ def test_batched_campaign_equals_the_one_at_a_time_campaign(
 
 
 def test_an_interrupted_batched_campaign_resumes_to_the_same_file(
-    one_at_a_time: dict[str, np.ndarray], tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+    plant: Plant, one_at_a_time: dict[str, np.ndarray], tmp_path: Path, monkeypatch: pytest.MonkeyPatch
 ) -> None:
     def interrupt_after_the_first_part(done: int, total: int) -> None:
         if done == 1:
@@ -157,7 +173,7 @@ def test_an_interrupted_batched_campaign_resumes_to_the_same_file(
         run_campaign(
             CONFIG,
             tmp_path,
-            plant=PLANT,
+            plant=plant,
             executor=InProcess(),
             runner=BatchedRunner("cpu"),
             on_progress=interrupt_after_the_first_part,
@@ -166,7 +182,7 @@ def test_an_interrupted_batched_campaign_resumes_to_the_same_file(
     assert len(list((tmp_path / "parts" / SOLVES_DIR).rglob("solves_*.npz"))) == 1  # solved, not yet synthesised
     assert not (tmp_path / "biotac2.hdf5").exists()
     limits = _spy_on_batches(monkeypatch)
-    resumed = run_campaign(CONFIG, tmp_path, plant=PLANT, executor=InProcess(), runner=BatchedRunner("cpu"))
+    resumed = run_campaign(CONFIG, tmp_path, plant=plant, executor=InProcess(), runner=BatchedRunner("cpu"))
     assert (resumed.ran, resumed.skipped) == (1, 1)
     assert limits == [np.inf]  # its batched solves were kept: only the normal press's re-solve without a limit
     assert not list((tmp_path / "parts" / SOLVES_DIR).rglob("*.npz"))
@@ -186,3 +202,38 @@ def test_a_resume_keeps_solves_only_for_the_schedule_they_were_solved_for(tmp_pa
     assert not _kept(task, replace(schedule, times=schedule.times + 0.01))
     assert not _kept(task, replace(schedule, translations=schedule.translations + 1e-12))
     assert not _kept(task, replace(schedule, indenter="sphere_large"))
+    settled = replace(schedule.at(np.array([0, 0, 1]), np.ones((3, 3))), times=np.array([0.5, 0.5, 0.6]))
+    write_solves(solves_path(task), schedule, [], settled)  # a compliant plant's solves: kept for the schedule
+    assert _kept(task, schedule) and not _kept(task, settled)
+    written, solved, _ = read_solves(solves_path(task))
+    assert written.same_as(schedule) and solved.same_as(settled)
+
+
+def test_a_compliant_plants_batch_settles_each_tip_where_its_force_puts_it(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """The solves the batch writes for a compliant plant: the poses' commanded tips deflected by the skin's force
+    (tens of um on these presses), repeated at the same time until the tip stands within the backend's pose
+    tolerance of where its force puts it."""
+    written: list[tuple[SolveSchedule, SolveSchedule, np.ndarray]] = []
+
+    def spy(path: Path, schedule: SolveSchedule, increments: list, solved: SolveSchedule | None = None) -> None:
+        written.append((schedule, solved, np.array([r.force for r in increments])))
+        write_solves(path, schedule, increments, solved)
+
+    monkeypatch.setattr(campaign_batched, "write_solves", spy)
+    run_campaign(CONFIG, tmp_path, plant=COMPLIANT_PLANT, executor=InProcess(), runner=BatchedRunner("cpu"))
+    assert len(written) == 3  # both presses, then the normal one again without a force limit
+    settles, deflection = 0, 0.0
+    for schedule, solved, forces in written:
+        assert len(np.unique(schedule.times)) == len(schedule.times)
+        pose = np.searchsorted(schedule.times, solved.times[: len(forces)])
+        np.testing.assert_array_equal(solved.rotations[: len(forces)], schedule.rotations[pose])
+        commanded, tips = schedule.translations[pose], solved.translations[: len(forces)]
+        last = np.append(solved.times[1 : len(forces)] != solved.times[: len(forces) - 1], True)  # a time's last
+        settled = commanded - COMPLIANCE_M_PER_N * forces
+        assert np.linalg.norm(settled - tips, axis=1)[last].max() <= SimSettings().pose_tolerance
+        deflection = max(deflection, np.linalg.norm(commanded - tips, axis=1).max())
+        settles += int((~last).sum())
+    assert settles >= 10, settles  # measured: 108 (272 solves at 164 times)
+    assert deflection > 2e-5, deflection  # measured: 37 um

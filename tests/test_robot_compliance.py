@@ -14,10 +14,8 @@ from fe.results import IncrementResult
 from twin.analysis.data import TrajectoryRecord
 from twin.analysis.predict import measured_loads
 from twin.campaign import QUICK_CONFIG, CampaignWorker, plan_campaign, simulate_trajectory
-from twin.campaign_batched import BatchedRunner
 from twin.controller import Recording
 from twin.effects import COMPLIANCE, apply_path
-from twin.executors import LocalExecutor
 from twin.plant import Plant, make_plant, rigid_transform
 from twin.readout import ft_load
 
@@ -135,9 +133,3 @@ def test_a_compliant_plant_presses_less_hard_and_its_tip_settles_where_its_force
         np.testing.assert_allclose(again.force, force, atol=SETTLED_N)
     assert pressed >= 10
     assert deepest[1] < 0.97 * deepest[0], deepest  # 0.79 -> 0.73 N at 1 mm (measured)
-
-
-def test_the_batched_campaign_refuses_a_compliant_plant() -> None:
-    """Its schedules are recorded without forces, so the poses of a compliant plant are not known before the fe."""
-    with pytest.raises(ValueError, match=COMPLIANCE):
-        BatchedRunner("cpu")([], CONFIG, _plant(COMPLIANCE_M_PER_N), LocalExecutor(1), lambda *done: None)

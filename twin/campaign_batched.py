@@ -26,8 +26,14 @@ batch reaches them), each trajectory's synthesis runs on the workers soon after 
 while the batch goes on with the others, and `twin.campaign.run_campaign` writes a sensor's file as soon as
 its last part is written. One batch for all sensors pays the nearly empty rounds at its end once, not once per sensor.
 
-A plant with `robot_compliance` is refused: where its tip stands depends on the forces, which a schedule is
-recorded without.
+With `robot_compliance` in the plant, where the tip stands depends on the forces, which a schedule is recorded
+without: the recorder's rest state deflects nothing, so a schedule holds the commanded tips. The fe pass solves
+each pose where the one-at-a-time backend does (`SettledTips`, a `PoseTrajectory.settle`: the commanded tip
+deflected by the force of the trajectory's last solve, then settled by solves at the same time, the same
+`twin.sim_backend.ComplianceSettle` as `SimBackend`'s), and writes the solves it made, every tip with its time
+repeated for the settle solves, along with the recorded schedule (which a resume compares); the synthesis replays
+those. A settle that spends its `COMPLIANCE_SOLVES` unsettled goes on at the backend's next sample, which no
+schedule holds: its synthesis leaves the schedule and the campaign stops with that error.
 
 A trajectory whose controller goes on past where the batch stopped it (a measurement effect that hides more
 than a third of the force) is solved again, without a force limit, in a second batch.
@@ -65,6 +71,7 @@ from twin.executors import Executor
 from twin.lanes import FirstFailure, Lane
 from twin.planning import PlannedTrajectory
 from twin.plant import Plant
+from twin.sim_backend import ComplianceSettle, SimSettings
 
 FE_FORCE_LIMIT_FACTOR = 1.5
 """The batch ends a trajectory once its fe force exceeds this many times the protocol's force limit (the
@@ -83,9 +90,16 @@ class SolveSchedule:
     rotations: np.ndarray
     translations: np.ndarray
 
-    def poses(self) -> PoseTrajectory:
-        """The schedule as a timed trajectory of the batched runner."""
-        return PoseTrajectory(self.indenter, self.rotations, self.translations, self.times)
+    def poses(self, compliance: float | None = None) -> PoseTrajectory:
+        """The schedule as a timed trajectory of the batched runner; on a robot of `compliance` (m/N), its tips
+        settle where the loads put them (`SettledTips`)."""
+        settle = None if compliance is None else SettledTips(self, compliance)
+        return PoseTrajectory(self.indenter, self.rotations, self.translations, self.times, settle)
+
+    def at(self, poses: np.ndarray, translations: np.ndarray) -> SolveSchedule:
+        """Solves at the times and rotations of the schedule's poses `poses` (S,) (indices), with the tips at
+        `translations` (S,3) m (biotac frame)."""
+        return SolveSchedule(self.indenter, self.times[poses], self.rotations[poses], translations)
 
     def same_as(self, other: SolveSchedule) -> bool:
         """Whether `other` asks for exactly these solves (indenter, times, poses, bit for bit)."""
@@ -124,6 +138,49 @@ class ScheduleRecorder:
         rotations = np.array([p[1] for p in self._poses], dtype=float).reshape(-1, 3, 3)
         translations = np.array([p[2] for p in self._poses], dtype=float).reshape(-1, 3)
         return SolveSchedule(self.indenter, times, rotations, translations)
+
+
+class SettledTips:
+    """The `PoseTrajectory.settle` of a schedule on a plant of `compliance` (m/N): pose k is first solved at its
+    recorded (commanded) tip deflected by the force of the trajectory's last solve, then again at the same time
+    where `ComplianceSettle` moves the tip (as `twin.sim_backend.SimBackend` solves it, with its default
+    `SimSettings`). Notes every tip it gives (m, biotac frame), in the order they are solved."""
+
+    def __init__(self, schedule: SolveSchedule, compliance: float) -> None:
+        self.schedule, self.compliance = schedule, compliance
+        self._load = np.zeros(3)
+        """The indenter's force (N) on the skin of the last solve (zero on the rest skin)."""
+        self._settle: ComplianceSettle | None = None
+        self._poses: list[int] = []
+        self._tips: list[np.ndarray] = []
+
+    def __call__(self, pose: int, result: IncrementResult | None) -> np.ndarray | None:
+        """Pose `pose`'s first tip (`result` None), or its next tip after the converged `result` (None: settled)."""
+        if result is None:
+            self._settle = self._first(pose)
+            tip = self._settle.tip
+        else:
+            self._load = np.array(result.force, dtype=float)
+            tip = self._settle.next_tip(result.force)
+        if tip is not None:
+            self._poses.append(pose)
+            self._tips.append(tip)
+        return tip
+
+    def solved(self) -> SolveSchedule:
+        """The solves made (times repeated for the settle solves) and, where the run ended the trajectory before
+        its last pose (its force limit), the first tip of the next pose, which a replay past the batch's end then
+        asks for (`ScheduleExhausted`)."""
+        poses, tips = list(self._poses), list(self._tips)
+        if poses and poses[-1] + 1 < len(self.schedule.times):
+            poses.append(poses[-1] + 1)
+            tips.append(self._first(poses[-1]).tip)
+        return self.schedule.at(np.array(poses, dtype=int), np.array(tips, dtype=float).reshape(-1, 3))
+
+    def _first(self, pose: int) -> ComplianceSettle:
+        """The settle of pose `pose` from its commanded tip, under the last solve's force."""
+        commanded = self.schedule.translations[pose]
+        return ComplianceSettle(commanded, self._load, self.compliance, SimSettings().pose_tolerance)
 
 
 class ScheduleExhausted(Exception):
@@ -216,29 +273,38 @@ def solves_path(task: TrajectoryTask) -> Path:
     return parts_dir / SOLVES_DIR / f"biotac{job.sensor_id}" / f"solves_{job.spec.trajectory_id:06d}.npz"
 
 
-def write_solves(path: Path, schedule: SolveSchedule, increments: list[IncrementResult]) -> None:
-    """Write a schedule and its batched results (every `IncrementResult` field, stacked) atomically."""
-    arrays = {
-        "indenter": np.asarray(schedule.indenter),
-        "times": schedule.times,
-        "rotations": schedule.rotations,
-        "translations": schedule.translations,
-        "solved": np.asarray(len(increments)),
-    }
+_POSE_FIELDS = ("times", "rotations", "translations")
+SOLVED_PREFIX = "solved_"
+"""Prefix of the arrays of the solves made, where they are not the schedule's (a compliant plant's, `SettledTips`)."""
+
+
+def write_solves(
+    path: Path, schedule: SolveSchedule, increments: list[IncrementResult], solved: SolveSchedule | None = None
+) -> None:
+    """Write a schedule, the solves made for it (`solved`, where they are not the schedule's poses) and their
+    batched results (every `IncrementResult` field, stacked) atomically."""
+    arrays = {"indenter": np.asarray(schedule.indenter), "solved": np.asarray(len(increments))}
+    for prefix, poses in (("", schedule), (SOLVED_PREFIX, solved)):
+        if poses is not None:
+            arrays |= {prefix + name: getattr(poses, name) for name in _POSE_FIELDS}
     for name in _RESULT_FIELDS:
         arrays[f"result_{name}"] = np.asarray([getattr(r, name) for r in increments])
     write_part(path, arrays)
 
 
-def read_solves(path: Path) -> tuple[SolveSchedule, list[IncrementResult]]:
-    """The schedule and results `write_solves` wrote (the same values)."""
+def read_solves(path: Path) -> tuple[SolveSchedule, SolveSchedule, list[IncrementResult]]:
+    """The schedule, the solves made for it (the schedule itself unless others were written) and their results,
+    as `write_solves` wrote them (the same values)."""
     arrays = read_part(path)
-    schedule = SolveSchedule(str(arrays["indenter"]), arrays["times"], arrays["rotations"], arrays["translations"])
+    prefixes = ("", SOLVED_PREFIX if SOLVED_PREFIX + "times" in arrays else "")
+    schedule, solved = (
+        SolveSchedule(str(arrays["indenter"]), *(arrays[prefix + name] for name in _POSE_FIELDS)) for prefix in prefixes
+    )
     columns = [arrays[f"result_{name}"] for name in _RESULT_FIELDS]
     increments = [
         IncrementResult(*(c[k] if c.ndim > 1 else c[k].item() for c in columns)) for k in range(int(arrays["solved"]))
     ]
-    return schedule, increments
+    return schedule, solved, increments
 
 
 def synthesise_part(
@@ -249,10 +315,10 @@ def synthesise_part(
     complete, None when the protocol needs solves past the batch's force-limit stop."""
     task = (job, slot, registration, parts_dir)
     path = solves_path(task)
-    schedule, increments = read_solves(path)
+    _, solved, increments = read_solves(path)
     try:
         with naming_trajectory(job):
-            sid, tid, complete = synthesise(process_worker(), task, schedule, increments)
+            sid, tid, complete = synthesise(process_worker(), task, solved, increments)
     except ScheduleExhausted:
         return _key(task), None
     path.unlink()
@@ -287,8 +353,9 @@ class BatchedRunner:
         # Every task's schedule is recorded again, and a resume keeps a solved one only where the schedule is the
         # same: a plan re-derived in this run may differ by a hair (e.g. an inflation on CUDA, whose sums have no
         # fixed order, moving a touch point and with it the first solve by a controller tick).
-        if plant is not None and COMPLIANCE in plant.effects:
-            raise ValueError(f"a plant with {COMPLIANCE} solves where the loads put the tip: run it one at a time")
+        compliance = (
+            plant.effects[COMPLIANCE]["compliance"] if plant is not None and COMPLIANCE in plant.effects else None
+        )
         order = fe_order(tasks)
         tasks = sorted(tasks, key=lambda task: order.index(task[0].sensor_id))
         host = Lane("campaign host stages", FirstFailure())
@@ -316,7 +383,7 @@ class BatchedRunner:
         try:
             host.submit(record_schedules)
             worker = CampaignWorker(config, plant)
-            arriving = _Arriving(tasks, lambda: host.take(arrived), _kept)
+            arriving = _Arriving(tasks, lambda: host.take(arrived), _kept, compliance)
             self._solve(worker, arriving, FE_FORCE_LIMIT_FACTOR * config.settings.force_limit, ended)
             host.join()
         except BaseException:
@@ -327,7 +394,7 @@ class BatchedRunner:
             exhausted.sort(key=lambda task: order.index(task[0].sensor_id))
             recorded = {_key(task): read_solves(solves_path(task))[0] for task in exhausted}
             resolved = itertools.count(1)
-            again = _Arriving(exhausted, iter(recorded.items()).__next__, lambda *_: False)
+            again = _Arriving(exhausted, iter(recorded.items()).__next__, lambda *_: False, compliance)
             self._solve(worker, again, np.inf, lambda _: self._stage("fe", next(resolved), len(exhausted)))
             done = itertools.count(1)
             if self._synthesise(exhausted, config, plant, executor, finished, done, len(exhausted)):
@@ -342,7 +409,9 @@ class BatchedRunner:
         def written(index: int, increments: list[IncrementResult]) -> None:
             task = arriving.task(index)
             if _key(task) not in arriving.kept:
-                write_solves(solves_path(task), arriving.schedules[_key(task)], increments)
+                settle = arriving[index].settle
+                solved = settle.solved() if isinstance(settle, SettledTips) else None
+                write_solves(solves_path(task), arriving.schedules[_key(task)], increments, solved)
             increments.clear()  # written: free the displacement fields as the run goes on
             ended(task)
 
@@ -408,15 +477,18 @@ class _Arriving(Sequence[PoseTrajectory]):
     a block is filled as the run reaches it, with the sensor's schedules to solve in the order they arrive while
     some are still being recorded, then the rest the longest first, then those with nothing to solve (no solve
     asked for, or solves `kept(task, schedule)` from an earlier run) as trajectories without poses. So the fe
-    starts once it has a schedule for every slot, while the workers record the others'."""
+    starts once it has a schedule for every slot, while the workers record the others'. With a `compliance`
+    (m/N), each trajectory's tips settle (`SettledTips`): a trajectory is made once and kept (its tips noted)."""
 
     def __init__(
         self,
         tasks: list[TrajectoryTask],
         take: Callable[[], tuple[tuple[int, int], SolveSchedule]],
         kept: Callable[[TrajectoryTask, SolveSchedule], bool],
+        compliance: float | None = None,
     ) -> None:
-        self._take, self._keep, self._count = take, kept, len(tasks)
+        self._take, self._keep, self._count, self._compliance = take, kept, len(tasks), compliance
+        self._trajectories: dict[tuple[int, int], PoseTrajectory] = {}
         self.sensor_of = [task[0].sensor_id for task in tasks]
         self.sensors = list(dict.fromkeys(self.sensor_of))
         self._tasks = {_key(task): task for task in tasks}
@@ -454,11 +526,18 @@ class _Arriving(Sequence[PoseTrajectory]):
 
     def __getitem__(self, index: int) -> PoseTrajectory:
         task = self.task(index)
+        key = _key(task)
+        if key not in self._trajectories:
+            self._trajectories[key] = self._trajectory(task)
+        return self._trajectories[key]
+
+    def _trajectory(self, task: TrajectoryTask) -> PoseTrajectory:
+        """The task's schedule as a trajectory of the batched run (none for solves kept from an earlier run)."""
         schedule = self.schedules[_key(task)]
         if _key(task) in self.kept:
             return PoseTrajectory(schedule.indenter, np.zeros((0, 3, 3)), np.zeros((0, 3)), np.zeros(0))
         with naming_trajectory(task[0]):
-            return schedule.poses()
+            return schedule.poses(self._compliance)
 
 
 def fe_order(tasks: list[TrajectoryTask]) -> list[int]:

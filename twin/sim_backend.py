@@ -59,11 +59,55 @@ class SimSettings:
 WRENCH_HISTORY_S = 1.0
 """Seconds of clean-wrench history kept for the measurement effects (the longest time delay is 0.5 s)."""
 COMPLIANCE_SOLVES = 8
-"""Solves at most per call for the plant's compliance fixed point (`SimBackend._settle`); one left unsettled goes on
+"""Solves at most per call for the plant's compliance fixed point (`ComplianceSettle`); one left unsettled goes on
 at the next sample, where the tip is still off its settled pose."""
 RELAXATION_SOLVE_INTERVAL_S = 0.1
 """While the skin relaxes (a viscoelastic skin model), it is re-solved at a held pose this often (s): here
 and in the model's replay (twin.analysis.predict) alike."""
+
+
+class ComplianceSettle:
+    """The compliant tip's equilibrium x = commanded - c F(x) at one solve time (`twin.effects.deflect`: c the
+    plant's `robot_compliance` in m/N, F(x) the skin's force in N with the tip at x m, all biotac frame), reached
+    by solves at the same time: the first at `tip` = commanded (3,) m deflected by `load` (3,) N, the force of the
+    solve before; then the Aitken-relaxed fixed point x <- x + w r, r = commanded - c F(x) - x (Irons and Tuck: w
+    from the last two residuals; 1 at first and while the residual stands still) until the next move would be
+    within `tolerance` (m) or `solves` solves are spent.
+
+    Every solve is an accepted step of the skin, as the real tip settles through its poses: no time passes after
+    the first (a relaxing skin's branches take the stress change since then as instantaneous), and the friction's
+    stick anchors follow the tip's short travel along the load to its settled pose. One object drives both the
+    one-at-a-time backend (`SimBackend`) and the batched campaign (`twin.campaign_batched`), so that their tips
+    are the same floating-point values."""
+
+    def __init__(
+        self,
+        commanded: np.ndarray,
+        load: np.ndarray,
+        compliance: float,
+        tolerance: float,
+        solves: int = COMPLIANCE_SOLVES,
+    ) -> None:
+        self.commanded, self.compliance, self.tolerance = np.array(commanded, dtype=float), compliance, tolerance
+        self.tip = deflect(self.commanded, load, compliance)
+        """The tip (3,) m to solve at next (the last one `next_tip` gave)."""
+        self._left = solves - 1
+        self._relaxation, self._previous = 1.0, None
+
+    def next_tip(self, force: np.ndarray) -> np.ndarray | None:
+        """After the solve at `tip` gave the indenter's force `force` (3,) N on the skin: the next tip (3,) m to
+        solve at the same time, or None when the tip has settled or the solves are spent."""
+        if self._left == 0:
+            return None
+        residual = deflect(self.commanded, force, self.compliance) - self.tip
+        if _norm(residual) <= self.tolerance:
+            return None
+        previous, self._previous = self._previous, residual
+        if previous is not None and (change := residual - previous).any():
+            self._relaxation = -self._relaxation * float(previous.dot(change)) / float(change.dot(change))
+        self.tip = self.tip + self._relaxation * residual
+        self._left -= 1
+        return self.tip
 
 
 class SkinSolver(Protocol):
@@ -251,14 +295,15 @@ class SimBackend:
     def _solve_if_moved(self, arm: str) -> None:
         """Solve the skin where the resting tip stands, if it moved or the skin relaxes: its pose with the plant's
         backlash (`trail`) and, with `robot_compliance`, deflected by the load of the last solve, then settled
-        (`_settle`)."""
+        at the same time (`ComplianceSettle`)."""
         pose = self.tip_pose_biotac(arm)
         if BACKLASH in self.effects:  # the tip trails its rest poses, from none at the first (the standoff)
             start = pose[:3, 3] if self._trailing is None else self._trailing
             self._trailing = trail(start, pose[:3, 3], self.effects[BACKLASH]["lag"])
             pose[:3, 3] = self._trailing
-        commanded = pose[:3, 3].copy()
-        pose[:3, 3] = self._deflected(commanded, self._load)
+        settle = self._settle(pose[:3, 3])
+        if settle is not None:
+            pose[:3, 3] = settle.tip
         moved = self._last_tip is None or _norm(pose[:3, 3] - self._last_tip) > self.settings.pose_tolerance
         relaxing = (
             self._stepper.relaxes
@@ -268,43 +313,21 @@ class SimBackend:
         if not (moved or relaxing):
             return
         result = self._step(pose)
-        if COMPLIANCE in self.effects:
-            result = self._settle(pose, commanded, result)
+        while settle is not None and (tip := settle.next_tip(result.force)) is not None:
+            pose[:3, 3] = tip
+            result = self._step(pose)
         self._last_tip = pose[:3, 3].copy()
         self._load = np.array(result.force, dtype=float)
         self._clean = self._signals(result, pose[:3, 3])
         self._record_wrench()
 
-    def _deflected(self, commanded: np.ndarray, load: np.ndarray) -> np.ndarray:
-        """Where a tip commanded to `commanded` (3,) m stands under `load` (3,) N, the indenter's force on the skin
-        (both biotac frame): `twin.effects.deflect` by the plant's `robot_compliance`; as commanded without it."""
+    def _settle(self, commanded: np.ndarray) -> ComplianceSettle | None:
+        """With `robot_compliance`, the settle of a tip commanded to `commanded` (3,) m (biotac frame) from under the
+        load of the last solve; None without it."""
         if COMPLIANCE not in self.effects:
-            return commanded
-        return deflect(commanded, load, self.effects[COMPLIANCE]["compliance"])
-
-    def _settle(self, pose: np.ndarray, commanded: np.ndarray, result: IncrementResult) -> IncrementResult:
-        """The compliant tip's equilibrium x = commanded - c F(x) (`twin.effects.deflect`: c the plant's compliance,
-        F(x) the skin's force with the tip at x, both biotac frame), from the first solve's `result` at `pose`
-        (4x4, biotac frame; moved in place to the last pose solved): re-solved at the same time by the
-        Aitken-relaxed fixed point x <- x + w r, r = commanded - c F(x) - x (Irons and Tuck: w from the last two
-        residuals; 1 at first and while the residual stands still) until the next move would be within the pose
-        tolerance or `COMPLIANCE_SOLVES` solves are spent. Returns the last solve's result, the state kept.
-
-        Every solve is an accepted step of the stepper, as the real tip settles through its poses: no time passes
-        after the first (a relaxing skin's branches take the stress change since then as instantaneous), and
-        the friction's stick anchors follow the tip's short travel along the load to its settled pose."""
-        relaxation, previous = 1.0, None
-        for _ in range(COMPLIANCE_SOLVES - 1):
-            residual = self._deflected(commanded, result.force) - pose[:3, 3]
-            if _norm(residual) <= self.settings.pose_tolerance:
-                break
-            change = None if previous is None else residual - previous
-            if change is not None and change.any():
-                relaxation = -relaxation * float(previous.dot(change)) / float(change.dot(change))
-            pose[:3, 3] += relaxation * residual
-            previous = residual
-            result = self._step(pose)
-        return result
+            return None
+        compliance = self.effects[COMPLIANCE]["compliance"]
+        return ComplianceSettle(commanded, self._load, compliance, self.settings.pose_tolerance)
 
     def _step(self, pose: np.ndarray) -> IncrementResult:
         """Solve the skin at `pose` (4x4 indenter body -> biotac frame, m) now and log the solve; BackendError when
