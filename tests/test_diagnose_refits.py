@@ -9,7 +9,7 @@ from types import SimpleNamespace
 import numpy as np
 import pytest
 
-from twin.analysis.predict import TwinModel
+from twin.analysis.predict import Predictor, TwinModel
 from twin.analysis.refit import refit, starts_across
 from twin.analysis.residual import Base, GainNuisance, Residual, recentred, whitened
 from twin.analysis.sensitivity import sensitivity
@@ -124,10 +124,10 @@ class _TwoBasins:
 def test_a_refit_caught_in_a_basin_is_tried_again_from_across_the_range() -> None:
     base = _TwoBasins()
     effect = EFFECTS["skin_modulus"]
-    lin = sensitivity(effect, TwinModel(), None, base)
+    lin = sensitivity(effect, TwinModel(), Predictor(), base)  # replays: the stand-in's
     assert lin.point["scale"] == 1.0
     candidate = Candidate("skin_modulus", "physics", {}, 0.0, 0.0, 0.0)
-    refit(candidate, TwinModel(), None, base, lin)
+    refit(candidate, TwinModel(), Predictor(), base, lin)
     assert candidate.refit_parameters["scale"] == pytest.approx(1.6, abs=0.02)
     assert candidate.refit_rms < 1.1
     # the starts: five across the search range of one parameter, a 3 x 3 grid for two

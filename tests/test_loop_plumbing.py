@@ -17,7 +17,7 @@ import twin.analysis.refit as refit_module
 import twin.cli.loop as cli_loop
 from twin.analysis.diagnose import Diagnosis
 from twin.analysis.history import read_history
-from twin.analysis.predict import TwinModel
+from twin.analysis.predict import Predictor, TwinModel
 from twin.analysis.refit import EffectFit, refit
 from twin.analysis.sensitivity import Linearisation, sensitivity, start_models
 from twin.analysis.verdict import Candidate
@@ -211,7 +211,7 @@ def test_an_effect_far_from_its_off_value_is_found_from_its_starts() -> None:
     the refit from there reaches the noise."""
     base = _NarrowBasin()
     effect = EFFECTS["time_delay"]
-    lin = sensitivity(effect, TwinModel(), None, base)
+    lin = sensitivity(effect, TwinModel(), Predictor(), base)  # replays: the stand-in's
     assert lin.point["seconds"] == pytest.approx(0.25)
     candidate = Candidate("time_delay", "measurement", {}, 0.0, 0.0, 0.0)
     refit(candidate, TwinModel(), None, base, lin)

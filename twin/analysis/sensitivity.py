@@ -127,8 +127,10 @@ def sensitivities(
     data-driven start (`DATA_STARTS`: a registration offset's contact onsets, `twin.analysis.onset`, no fe
     replay) tries what that gives (when it gives one) before its declared starts; its Linearisation keeps
     the estimate either way. Each stage's replays, over all the effects (the first linearisations, the
-    trials, the second linearisations), are solved as one batch. With `surrogates`, an effect off in the model that
-    has a `SURROGATES` stand-in is first linearised on it (for ranking: no replay of its own)."""
+    trials, the second linearisations), are solved as one batch; with `Predictor.solve_ahead` the declared starts
+    come first (a diagnosis solves them with its first batch) and the linearisations at the data-driven start and at
+    the best declared start with the trials, so that no batch follows them. With `surrogates`, an effect off in the
+    model that has a `SURROGATES` stand-in is first linearised on it (for ranking: no replay of its own)."""
     points = first_points(effects, model)
     base.prefetch(predictor, first_models(effects, model, points, surrogates))
     lins = [
@@ -136,8 +138,19 @@ def sensitivities(
         for e, p in zip(effects, points, strict=True)
     ]
     r = base.residual.values
+    costs: dict[tuple, float] = {}
+
+    def cost(effect: Effect, values: dict[str, float]) -> float:  # profiled chi-square, predicted nonlinearly
+        key = (effect.name, tuple(sorted(values.items())))
+        if key not in costs:
+            costs[key] = base.nuisance.chi2(r - base.shifted(predictor, model.with_effects({effect.name: values})))
+        return costs[key]
+
+    ahead = predictor.solve_ahead
+    if ahead:  # the declared starts first (a diagnosis solved them with its first batch): the best one's columns ahead
+        base.prefetch(predictor, start_models(effects, model))
     trials: list[list[dict[str, float]]] = []
-    ahead: list[TwinModel] = []
+    columns_ahead: list[TwinModel] = []
     for i, (effect, lin) in enumerate(zip(effects, lins, strict=True)):
         data_start = DATA_STARTS.get(effect.name)
         if not (effect.is_off(effect.values(model.effects.get(effect.name))) and (effect.starts or data_start)):
@@ -149,19 +162,17 @@ def sensitivities(
         if data_start is not None:
             lins[i] = replace(lin, data_start=data_start(predictor, model, base))
             first = [start] if (start := lins[i].data_start.start(lin.point)) is not None else []
-        trials.append([fitted, *first, *declared_starts(effect, lin.point)])
-        # ahead, the linearisation at the data-driven start (where the fitted step is best the first linearisation
-        # stands; the declared starts are many, and far)
-        ahead += [m for t in first for m in point_models(effect, model, t, predictor.solve_ahead)]
+        declared = declared_starts(effect, lin.point)
+        trials.append([fitted, *first, *declared])
+        # ahead, the linearisations at the data-driven start and at the best declared start, the trials that may win
+        # (where the fitted step wins the first linearisation stands)
+        best_declared = [min(declared, key=partial(cost, effect))] if ahead and declared else []
+        columns_ahead += [m for t in [*first, *best_declared] for m in point_models(effect, model, t, ahead)]
     tried = [model.with_effects({e.name: t}) for e, ts in zip(effects, trials, strict=True) for t in ts]
-    base.prefetch(predictor, [*tried, *ahead])
+    base.prefetch(predictor, [*tried, *columns_ahead])
     again: dict[int, dict[str, float]] = {}
     for i, (effect, ts) in enumerate(zip(effects, trials, strict=True)):
-        if not ts:
-            continue
-        shifted = [base.shifted(predictor, model.with_effects({effect.name: t})) for t in ts]
-        best = int(np.nanargmin([base.nuisance.chi2(r - s) for s in shifted]))
-        if best > 0:
+        if ts and (best := int(np.nanargmin([cost(effect, t) for t in ts]))) > 0:
             again[i] = ts[best]
     base.prefetch(predictor, [m for i, p in again.items() for m in linearisation_models(effects[i], model, p)])
     for i, point in again.items():
