@@ -676,7 +676,8 @@ def measured_loads(trajectory: TrajectoryRecord) -> np.ndarray:
     increment = trajectory.raw.increment
     ends = np.r_[np.flatnonzero(np.diff(increment)), len(increment) - 1]
     loads = np.full((int(increment.max()) + 2, 3), np.nan)
-    loads[increment[ends] + 1] = measured_force_fullrate(trajectory)[ends]
+    wrench = trajectory.raw.wrench  # only the hold ends' rows of `measured_force_fullrate` (called per replay plan)
+    loads[increment[ends] + 1] = (wrench[ends, :3] - wrench[0, :3]) @ trajectory.sensor_in_biotac[:3, :3].T
     return loads
 
 
