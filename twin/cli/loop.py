@@ -18,7 +18,10 @@ from twin.cli.common import (
 )
 
 if TYPE_CHECKING:
-    from twin.analysis.predict import TwinModel
+    from collections.abc import Callable
+
+    from twin.analysis.diagnose import Diagnosis
+    from twin.analysis.predict import Predictor, TwinModel
     from twin.analysis.refit import EffectFit
 
 loop_app = typer.Typer()
@@ -96,6 +99,16 @@ def diagnose(
             "ranked_mesh_mm).",
         ),
     ] = None,
+    in_turn: Annotated[
+        int,
+        typer.Option(
+            "--in-turn",
+            min=0,
+            help="Search in turn for up to this many missing effects: diagnose, add what is named (or once, on trial, "
+            "an unexplained verdict's closest candidate), refit every effect jointly, diagnose again, until the "
+            "residual is noise (JSON: turns, added, model; docs/analysis.md). 0: one diagnosis.",
+        ),
+    ] = 0,
 ) -> None:
     """Rank candidate effects by how much of the model-vs-measurement residual each explains."""
     from twin.analysis.diagnose import diagnose as run_diagnosis
@@ -106,30 +119,37 @@ def diagnose(
     err_console.print("diagnosing (replaying every trajectory per candidate parameter) ...")
     if hint := large_campaign_hint(sum(len(d.trajectories) for d in data), twin_model, per_stratum, rank_mesh_mm):
         err_console.print(hint)
-    steps = sum(1 for k in EFFECTS if k not in twin_model.effects)
-    with replay_progress(predictor) as progress:
-        total, done = steps + min(refit_top, steps), 0
-        task = progress.add_task("diagnosing", total=total)
 
-        def report(stage: str, name: str) -> None:
-            nonlocal total, done
-            done += stage != "nuisances"
-            total = max(total, done)  # close candidates refitted after the first ones (`verdict.to_refit`)
-            progress.update(task, description=f"{stage} {name}", completed=done, total=total)
+    def diagnosed(of: "TwinModel") -> "Diagnosis":
+        steps = sum(1 for k in EFFECTS if k not in of.effects)
+        with replay_progress(predictor) as progress:
+            total, done = steps + min(refit_top, steps), 0
+            task = progress.add_task("diagnosing", total=total)
 
-        result = guarded(
-            lambda: run_diagnosis(
-                data,
-                twin_model,
-                predictor,
-                top=refit_top,
-                on_progress=report,
-                nuisances=nuisances,
-                rank_per_stratum=rank_per_stratum,
-                per_stratum=per_stratum,
-                rank_mesh=None if rank_mesh_mm is None else 1e-3 * rank_mesh_mm,
+            def report(stage: str, name: str) -> None:
+                nonlocal total, done
+                done += stage != "nuisances"
+                total = max(total, done)  # close candidates refitted after the first ones (`verdict.to_refit`)
+                progress.update(task, description=f"{stage} {name}", completed=done, total=total)
+
+            return guarded(
+                lambda: run_diagnosis(
+                    data,
+                    of,
+                    predictor,
+                    top=refit_top,
+                    on_progress=report,
+                    nuisances=nuisances,
+                    rank_per_stratum=rank_per_stratum,
+                    per_stratum=per_stratum,
+                    rank_mesh=None if rank_mesh_mm is None else 1e-3 * rank_mesh_mm,
+                )
             )
-        )
+
+    if in_turn:
+        _search_in_turn(diagnosed, data, twin_model, predictor, in_turn, as_json)
+        return
+    result = diagnosed(twin_model)
     if as_json:
         print(result.to_json())
         return
@@ -175,6 +195,39 @@ def diagnose(
             "improved model: keep it only if the effect named next brings the held-out residual to the noise; a "
             "'nothing' there is no proof (docs/analysis.md, two effects at once)"
         )
+
+
+def _search_in_turn(
+    diagnosed: "Callable[[TwinModel], Diagnosis]",
+    data: list,
+    model: "TwinModel",
+    predictor: "Predictor",
+    additions: int,
+    as_json: bool,
+) -> None:
+    """`twin diagnose --in-turn`: `twin.analysis.in_turn.find_in_turn` with `diagnosed` and `fit_jointly`; a line a
+    turn and the verdict, or the JSON."""
+    from twin.analysis.in_turn import find_in_turn
+    from twin.analysis.refit import fit_jointly
+
+    def improved(of: "TwinModel", name: str) -> "EffectFit":
+        err_console.print(f"adding {name} and refitting every effect jointly ...")
+        with replay_progress(predictor):
+            return guarded(lambda: fit_jointly(data, of, name, predictor))
+
+    found = find_in_turn(diagnosed, improved, model, additions)
+    if as_json:
+        print(found.to_json())
+        return
+    for k, turn in enumerate(found.turns, start=1):
+        d, fit = turn.diagnosis, turn.fit
+        line = f"turn {k}: residual {d.base_rms:.2f} x noise, verdict {d.verdict}"
+        if fit is not None:
+            held = "-" if fit.heldout_rms is None else f"{fit.heldout_rms:.2f}"
+            line += f"; added {turn.added} ({turn.via}): {fit.rms_before:.2f} -> {fit.rms_after:.2f} x noise"
+            line += f", held out {held}"
+        out_console.print(line)
+    out_console.print(f"verdict: [bold]{found.verdict}[/bold] - {found.reason}")
 
 
 LARGE_CAMPAIGN = 100
