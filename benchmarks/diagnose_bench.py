@@ -17,12 +17,11 @@ axis that moves most clipped between its rest and peak readings (`ft_saturation`
 quantised F/T reading (expected "nothing"); each is diagnosed (one refit) and counted apart.
 
 With `--pairs a+b,c+d`, each seed's plant hides two library effects at once (each drawn from the seed as alone), and
-the loop runs twice in turn, as a user would: diagnose, `improve` (`fit_jointly`) with what it names, diagnose again
-with the improved model, improve again (the effects found so far refitted jointly). When the first diagnosis is
-"unexplained", the user's next move is its closest candidate (`Diagnosis.next_step`: the refitted one of least held-out
-RMS, the first the reason names) when that one lowers the held-out residual below the base's: it is added (`via:
-closest`) and the loop goes on. A pair is right when both effects end in the model, in either order, and the last
-diagnosis named its effect (not only closest); the RMS / noise before, after each step and held out is printed.
+the search in turn runs (`twin.analysis.in_turn.find_in_turn`, what `twin diagnose --in-turn 2` does): diagnose,
+add what is named and refit every effect jointly (`fit_jointly`), diagnose again; an "unexplained" verdict's closest
+candidate (`Diagnosis.next_step`) is added once, on trial (`via: closest`). A pair is right when the search ends at
+the noise with both effects added, in either order; the RMS / noise before, after the last fit and held out is
+printed.
 
     python benchmarks/diagnose_bench.py [--seeds 5,6,7] [--effects a,b|all|""] [--generated] [--pairs a+b,...]
         [--out runs/diagnose_bench] [--json FILE]
@@ -45,6 +44,7 @@ import numpy as np
 
 from twin.analysis.data import load_campaign
 from twin.analysis.diagnose import diagnose
+from twin.analysis.in_turn import find_in_turn
 from twin.analysis.predict import Predictor, TwinModel
 from twin.analysis.refit import fit_jointly
 from twin.analysis.residual import base_residual
@@ -175,47 +175,40 @@ def _generated_case(out: Path, name: str, seed: int, predictor: Predictor) -> di
     }
 
 
-NAMED = ("nothing", "unexplained")
-"""Verdicts that name no effect."""
-
-
 def _pair_case(out: Path, pair: str, seed: int, predictor: Predictor) -> dict:
-    """Two library effects hidden at once (`pair` "a+b", each at its own draw for `seed`); the loop in turn: diagnose,
-    improve with the named effect (`fit_jointly`), diagnose the improved model, improve again."""
+    """Two library effects hidden at once (`pair` "a+b", each at its own draw for `seed`); the search in turn
+    (`twin.analysis.in_turn.find_in_turn`, as `twin diagnose --in-turn 2`, one refit a diagnosis)."""
     start = time.perf_counter()
     names = pair.split("+")
     config, plant = loop_setup(names[0], seed, CONFIG)
     plant = replace(plant, effects={**plant.effects, **draw_hidden(names[1], seed)})
     result = run_campaign(config, out / f"seed{seed}_{pair}" / "campaign", workers=2, plant=plant)
     data = load_campaign(next(iter(result.files.values())))
-    model, steps = TwinModel(mesh_max_edge=data.mesh_max_edge), []
-    for _ in names:
-        diagnosis = diagnose([data], model, predictor, top=1)
-        named = diagnosis.candidates[0].name if diagnosis.verdict == "ambiguous" else diagnosis.verdict
-        step = {"verdict": diagnosis.verdict, "added": named, "rms_before": diagnosis.base_rms}
-        if not steps and (closest := diagnosis.next_step()) is not None:  # it explains part: the user adds it
-            named = step["added"] = closest.name
-            step["via"] = "closest"
-        steps.append(step)
-        if named in NAMED:
-            break
-        fit = fit_jointly([data], model, named, predictor)
-        model = fit.model
-        step.update(rms_after=fit.rms_after, heldout_rms=fit.heldout_rms, fitted=model.effects)
-    added = [step["added"] for step in steps]
+    found = find_in_turn(
+        lambda model: diagnose([data], model, predictor, top=1),
+        lambda model, name: fit_jointly([data], model, name, predictor),
+        TwinModel(mesh_max_edge=data.mesh_max_edge),
+        additions=len(names),
+    )
+    fits = [t.fit for t in found.turns if t.fit is not None]
+    steps = [
+        {"verdict": t.diagnosis.verdict, "rms_before": t.diagnosis.base_rms, "added": t.added, "via": t.via}
+        for t in found.turns
+    ]
     return {
         "seed": seed,
         "hidden": pair,
         "hidden_values": plant.effects,
-        "added": "+".join(added),
-        "verdict": steps[-1]["verdict"],
+        "added": "+".join(found.added) or found.verdict,
+        "verdict": found.verdict,
         "rank_of_hidden": None,
-        "rms_before": steps[0]["rms_before"],
-        "rms_after": steps[-1].get("rms_after"),
-        "heldout_rms": steps[-1].get("heldout_rms"),
+        "rms_before": found.turns[0].diagnosis.base_rms,
+        "rms_after": fits[-1].rms_after if fits else None,
+        "heldout_rms": fits[-1].heldout_rms if fits else None,
         "steps": steps,
+        "fitted": found.model.effects,
         "seconds": {"total": time.perf_counter() - start},
-        "reason": diagnosis.reason,
+        "reason": found.reason,
     }
 
 
@@ -265,7 +258,7 @@ def _correct(case: dict) -> bool:
         or (
             "+" in case["hidden"]
             and sorted(case["added"].split("+")) == sorted(case["hidden"].split("+"))
-            and case["verdict"] in case["hidden"].split("+")
+            and case["verdict"] == " + ".join(case["added"].split("+"))  # and the residual reached the noise
         )
         or case["added"] == GENERATED.get(case["hidden"])
         or (case["hidden"] == NONE and case["added"] == "nothing")
