@@ -95,6 +95,7 @@ def find_in_turn(
         raise ValueError(f"a search in turn adds at least one effect, got additions={additions}")
     turns: list[Turn] = []
     current = kept = model
+    trial: str | None = None  # the closest candidate added on trial, if any
     while True:
         diagnosis = diagnose_model(current)
         turn = Turn(diagnosis)
@@ -106,15 +107,13 @@ def find_in_turn(
             steps = ", then ".join(f"{t.added} ({t.via})" for t in turns[:-1])
             reason = f"added in turn: {steps}; with them the residual is noise ({diagnosis.reason})"
             return InTurn(turns, " + ".join(added), reason, current)
-        on_trial = any(t.via == "closest" for t in turns)
         if len(added) < additions:
             if diagnosis.verdict in EFFECTS:
                 turn.added, turn.via = diagnosis.verdict, "named"
-            elif not on_trial and (closest := diagnosis.next_step()) is not None:
+            elif trial is None and (closest := diagnosis.next_step()) is not None:
                 turn.added, turn.via = closest.name, "closest"
         if turn.added is None:
-            if on_trial:  # never named: the trial failed
-                trial = next(t.added for t in turns if t.via == "closest")
+            if trial is not None:  # never named: the trial failed
                 reason = (
                     f"{trial}, added on trial as the closest candidate, is not kept: nothing after it brought the "
                     f"residual to the noise (last diagnosis: {diagnosis.verdict}, {diagnosis.reason})"
@@ -126,5 +125,7 @@ def find_in_turn(
             return InTurn(turns, diagnosis.verdict, reason, kept)
         turn.fit = improve(current, turn.added)
         current = turn.fit.model
-        if not any(t.via == "closest" for t in turns):
+        if turn.via == "closest":
+            trial = turn.added
+        elif trial is None:
             kept = current

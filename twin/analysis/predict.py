@@ -662,10 +662,12 @@ def _replay_of(
     return Replay(times, indices, force, pressure, counts, pdc_change, np.isfinite(pressure))
 
 
-def measured_force_fullrate(trajectory: TrajectoryRecord) -> np.ndarray:
-    """(T, 3) measured force on the BioTac (N, biotac frame), tared, unfiltered."""
+def measured_force_fullrate(trajectory: TrajectoryRecord, samples: np.ndarray | None = None) -> np.ndarray:
+    """(T, 3) measured force on the BioTac (N, biotac frame), tared, unfiltered; at `samples` (indices) only when
+    given."""
     wrench = trajectory.raw.wrench
-    return (wrench[:, :3] - wrench[0, :3]) @ trajectory.sensor_in_biotac[:3, :3].T
+    picked = wrench if samples is None else wrench[samples]
+    return (picked[:, :3] - wrench[0, :3]) @ trajectory.sensor_in_biotac[:3, :3].T
 
 
 def measured_loads(trajectory: TrajectoryRecord) -> np.ndarray:
@@ -676,8 +678,7 @@ def measured_loads(trajectory: TrajectoryRecord) -> np.ndarray:
     increment = trajectory.raw.increment
     ends = np.r_[np.flatnonzero(np.diff(increment)), len(increment) - 1]
     loads = np.full((int(increment.max()) + 2, 3), np.nan)
-    wrench = trajectory.raw.wrench  # only the hold ends' rows of `measured_force_fullrate` (called per replay plan)
-    loads[increment[ends] + 1] = (wrench[ends, :3] - wrench[0, :3]) @ trajectory.sensor_in_biotac[:3, :3].T
+    loads[increment[ends] + 1] = measured_force_fullrate(trajectory, ends)  # those rows only: called per replay plan
     return loads
 
 

@@ -75,7 +75,7 @@ def refit(
     )
     if effect.kind == "physics" and not base.noise_test(fitted.residual).is_noise:
         fitted = _from_starts(
-            effect, fitted, (misfit, stepped), lambda models: base.prefetch(predictor, models), model, hooks, settings
+            effect, fitted, misfit, stepped, lambda models: base.prefetch(predictor, models), model, hooks, settings
         )
     values, rms = fitted.parameters, fitted.cost
     if effect.kind == "measurement" and not effect.linear:
@@ -116,7 +116,8 @@ def _across(parameter: EffectParameter, count: int) -> np.ndarray:
 def _from_starts(
     effect: Effect,
     fitted: Fit,
-    misfits: tuple[Callable[[dict[str, float]], np.ndarray], Callable[[dict[str, float]], np.ndarray]],
+    misfit: Callable[[dict[str, float]], np.ndarray],
+    stepped: Callable[[dict[str, float]], np.ndarray],
     prefetch: Callable[[list[TwinModel]], int],
     model: TwinModel,
     hooks: GaussNewtonHooks,
@@ -125,9 +126,8 @@ def _from_starts(
     """A refit that ended above the noise, tried again from across the effect's range (a cost can have several
     basins): the misfit at each of `starts_across` (their replays solved as one batch; not their linearisations,
     even ahead: many, and far), then damped Gauss-Newton from the best of them when it fits better than `fitted`;
-    whichever of the two fits better. `misfits`: the misfit of values, and of a Gauss-Newton step's values (`refit`:
-    ahead, with the step's linearisation's replays)."""
-    misfit, stepped = misfits
+    whichever of the two fits better. `misfit` of values; `stepped`, the misfit of a Gauss-Newton step's values
+    (`refit`: ahead, with the step's linearisation's replays)."""
     starts = starts_across(effect, fitted.parameters.as_dict())
     prefetch([model.with_effects({effect.name: start}) for start in starts])
     costs = np.array([hooks.cost(misfit(start), None) for start in starts])
