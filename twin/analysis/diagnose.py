@@ -55,7 +55,7 @@ from twin.analysis.heldout import (
 from twin.analysis.lockstep import run_in_lockstep
 from twin.analysis.nuisances import NUISANCE_EFFECTS, fit_nuisances
 from twin.analysis.predict import Predictor, TwinModel
-from twin.analysis.refit import refit
+from twin.analysis.refit import finish_on_model_mesh, refit
 from twin.analysis.residual import CHANNELS, Base, Residual, base_residual
 from twin.analysis.rows_only import RAW_ONLY_EFFECTS
 from twin.analysis.sensitivity import (
@@ -193,8 +193,9 @@ def diagnose(
     again, refitted and judged held out on every trajectory, and `ranked_on` says which trajectories ranked.
     With `rank_mesh` (m), candidates are linearised, ranked and refitted on replays of that fe mesh (a coarser one
     costs several times less; not with `nuisances`): each column is a difference of two replays of that mesh, scored
-    against the residual of the model's own mesh (`ranking_base`); each refitted one is judged held out about the
-    model mesh's residual at its fit (the fold fits' columns from that mesh's replays, `judge_heldout`), and its
+    against the residual of the model's own mesh (`ranking_base`); each physics fit is finished on the model's mesh
+    (`refit.finish_on_model_mesh`: a coarse mesh biases a fit of the indenter's path); each refitted one is judged held
+    out about the model mesh's residual at its fit (the fold fits' columns from that mesh's replays, `judge_heldout`), and its
     `refit_rms` is that residual's, so a verdict rests on the model mesh's residual at each fit.
     With `per_stratum`, the whole diagnosis runs on at most that many trajectories of each stratum
     (`twin.analysis.subset.sampled`), and `sampled` says which. On row-only data (`twin.analysis.rows_only`) the
@@ -301,6 +302,12 @@ def diagnose(
                 candidate.identifiable = False  # never named: the nuisances could be what it fits
         # side by side, their replays solved together (`twin.analysis.lockstep`): the same fits, fewer waves
         run_in_lockstep(predictor, [partial(refit, c, rank_model, base=fit_base, lin=lin) for c, lin in chosen])
+        if rank_model != model:  # each physics fit continued on the model's mesh, its columns still the ranking mesh's
+            finish = [
+                partial(finish_on_model_mesh, c, model, base=base, coarse=rank_model, columns=fit_base)
+                for c, _ in chosen
+            ]
+            run_in_lockstep(predictor, finish)
         # the held-out judgements in one batch: about each fit on the model's mesh, columns on the ranking mesh
         columns = rank_model if rank_model != model else None
         base.prefetch(predictor, judgement_models([c for c, _ in chosen], model, columns))

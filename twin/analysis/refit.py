@@ -15,7 +15,14 @@ from twin.analysis.fit import Fit, GaussNewtonHooks, GaussNewtonSettings, Parame
 from twin.analysis.heldout import judge_heldout, whitened_rms
 from twin.analysis.predict import Predictor, TwinModel
 from twin.analysis.residual import Base, base_residual
-from twin.analysis.sensitivity import Linearisation, effect_parameters, linearise, point_models, sensitivity
+from twin.analysis.sensitivity import (
+    Linearisation,
+    effect_parameters,
+    linearisation_models,
+    linearise,
+    point_models,
+    sensitivity,
+)
 from twin.analysis.verdict import Candidate
 from twin.effects import EFFECTS, Effect, EffectParameter
 
@@ -26,6 +33,8 @@ STEP_TOLERANCE = 0.05
 finite-difference step): smaller steps change the fit by far less than the noise, at an fe replay set each."""
 STARTS_ALONE = 5
 """Starts across its range for an effect of one parameter (`starts_across`); 3 a parameter for more."""
+FINISH_STEPS = 2
+"""Gauss-Newton steps a refit made on a coarser fe mesh takes on the model's own mesh (`finish_on_model_mesh`)."""
 DECADE_SPACED = 10.0
 """A positive range whose bounds differ by this factor or more is spaced geometrically (a relaxation time of
 0.05-10 s), otherwise evenly."""
@@ -88,6 +97,43 @@ def refit(
         rms = whitened_rms(misfit(values.as_dict()))
     # Never end above the starting point (the model as given): a step the linearisation misjudged is undone.
     candidate.refit_rms, candidate.refit_parameters = min(best, (rms, values.as_dict()), key=lambda b: b[0])
+
+
+def finish_on_model_mesh(
+    candidate: Candidate,
+    model: TwinModel,
+    predictor: Predictor,
+    base: Base,
+    coarse: TwinModel,
+    columns: Base,
+    steps: int = FINISH_STEPS,
+) -> None:
+    """A physics refit made on the coarser fe mesh of `coarse` continued on `model`'s own: damped Gauss-Newton of
+    `model`'s residual (`base`) from the refitted values, its Jacobian the differences of `coarse`'s replays
+    (`columns`: the coarse base, residual `base`'s), at most `steps` steps, none once that residual passes the
+    noise test; a step is kept only when it lowers it (so never worse than the coarse fit on `model`'s mesh). A coarse
+    mesh's facets put the skin's contact elsewhere, so a fit of the indenter's path there is biased by more than the
+    noise allows (docs/analysis.md: a 0.3 mm registration offset on a 1 mm campaign fitted 0.04 mm off on a 2 mm
+    mesh, 1.46x the noise). Ahead (`Predictor.solve_ahead`), each step's coarse columns with its replays."""
+    effect = EFFECTS[candidate.name]
+    if effect.kind != "physics" or coarse == model or candidate.refit_parameters is None:
+        return
+    ahead = predictor.solve_ahead
+
+    def stepped(at: Parameters) -> np.ndarray:
+        values = at.as_dict()
+        on_model = model.with_effects({candidate.name: values})
+        base.prefetch(predictor, [on_model, *(linearisation_models(effect, coarse, values) if ahead else [])])
+        return base.residual.values - base.shifted(predictor, on_model)
+
+    hooks = GaussNewtonHooks(
+        jacobian=lambda at: linearise(effect, coarse, at.as_dict(), predictor, columns).jac,
+        at_noise=lambda r: base.noise_test(r).is_noise,
+        cost=lambda r, _: whitened_rms(r),
+    )
+    settings = GaussNewtonSettings(steps, BACKTRACKS, STEP_TOLERANCE)
+    fitted = gauss_newton(stepped, effect_parameters(effect, candidate.refit_parameters), hooks, settings)
+    candidate.refit_rms, candidate.refit_parameters = fitted.cost, fitted.parameters.as_dict()
 
 
 def starts_across(effect: Effect, at: dict[str, float]) -> list[dict[str, float]]:
