@@ -87,7 +87,8 @@ def test_a_coarse_refit_finished_on_the_model_mesh_reaches_its_noise() -> None:
 
 def test_a_finish_keeps_the_coarse_fit_when_the_model_mesh_agrees_and_leaves_measurement_effects() -> None:
     base = _TwoMeshes()
-    candidate = Candidate(BACKLASH.name, "physics", {}, 0.0, 0.0, 0.5, refit_rms=0.9, refit_parameters={"lag": LAG_TRUE})
+    at_truth = {"lag": LAG_TRUE}
+    candidate = Candidate(BACKLASH.name, "physics", {}, 0.0, 0.0, 0.5, refit_rms=0.9, refit_parameters=at_truth)
     finish_on_model_mesh(candidate, MODEL, SimpleNamespace(solve_ahead=True), base, COARSE, base)
     assert candidate.refit_parameters == {"lag": LAG_TRUE}  # at the noise there: no step
     assert candidate.refit_rms == _rms_on_model_mesh(base, LAG_TRUE)

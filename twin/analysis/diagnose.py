@@ -194,9 +194,10 @@ def diagnose(
     With `rank_mesh` (m), candidates are linearised, ranked and refitted on replays of that fe mesh (a coarser one
     costs several times less; not with `nuisances`): each column is a difference of two replays of that mesh, scored
     against the residual of the model's own mesh (`ranking_base`); each physics fit is finished on the model's mesh
-    (`refit.finish_on_model_mesh`: a coarse mesh biases a fit of the indenter's path); each refitted one is judged held
-    out about the model mesh's residual at its fit (the fold fits' columns from that mesh's replays, `judge_heldout`), and its
-    `refit_rms` is that residual's, so a verdict rests on the model mesh's residual at each fit.
+    (`refit.finish_on_model_mesh`: a coarse mesh biases a fit of the indenter's path); each refitted one is judged
+    held out about the model mesh's residual at its fit (the fold fits' columns from that mesh's replays,
+    `judge_heldout`), and its `refit_rms` is that residual's, so a verdict rests on the model mesh's residual at each
+    fit.
     With `per_stratum`, the whole diagnosis runs on at most that many trajectories of each stratum
     (`twin.analysis.subset.sampled`), and `sampled` says which. On row-only data (`twin.analysis.rows_only`) the
     effects those cannot identify (`RAW_ONLY_EFFECTS`) are not candidates (ValueError when asked for)."""
