@@ -171,3 +171,24 @@ def test_bad_input_is_refused_with_one_line(make) -> None:
     with pytest.raises(ValueError) as error:
         make()
     assert "\n" not in str(error.value) and str(error.value)
+
+
+@pytest.mark.parametrize(("overstated", "steps"), [(2.0, 5), (20.0, 2)])
+def test_extra_iterations_go_on_while_the_cost_falls_fast(overstated: float, steps: int) -> None:
+    """A chord iteration with a Jacobian `overstated` times too steep takes 1/overstated of the way each step: its
+    cost falls by 75 % a step (2x) or by 9.75 % (20x, under `extra_if_drop`'s tenth): the first goes on past
+    `iterations` to its `extra_iterations`, the second stops at `iterations`."""
+    a, y, units = _linear_problem(seed=2)
+    settings = GaussNewtonSettings(iterations=2, extra_iterations=3, whitened=False)
+    fit = gauss_newton(
+        lambda p: y - a @ p.values,
+        _parameters(np.zeros(3), scale=units),
+        GaussNewtonHooks(),
+        settings,
+        start_jacobian=overstated * a,
+    )
+    assert fit.evaluations == 1 + steps
+    solution = np.linalg.solve(a.T @ a, a.T @ y)
+    assert np.abs(fit.values - solution) == pytest.approx(
+        np.abs(solution) * (1.0 - 1.0 / overstated) ** steps, rel=1e-6
+    )

@@ -212,15 +212,18 @@ class Fit:
 
 @dataclass(frozen=True)
 class GaussNewtonSettings:
-    """Damped Gauss-Newton controls: `iterations` linear steps at most; a step that does not lower the cost
-    is halved up to `backtracks` times, then the fit stops; it also stops after a step that moves every
-    parameter by less than `step_tolerance` of its scale; `whitened` says whether the residual's variance
-    is 1 (the intervals' s^2)."""
+    """Damped Gauss-Newton controls: `iterations` linear steps at most, then up to `extra_iterations` more while
+    each step lowers the cost by at least the fraction `extra_if_drop` (a fit still converging fast is not cut
+    short; one that stalls is); a step that does not lower the cost is halved up to `backtracks` times, then the
+    fit stops; it also stops after a step that moves every parameter by less than `step_tolerance` of its scale;
+    `whitened` says whether the residual's variance is 1 (the intervals' s^2)."""
 
     iterations: int = 4
     backtracks: int = 2
     step_tolerance: float = 0.0
     whitened: bool = True
+    extra_iterations: int = 0
+    extra_if_drop: float = 0.1
 
 
 @dataclass(frozen=True)
@@ -267,8 +270,10 @@ def gauss_newton(
         state = evaluated(start)
     else:
         state = (start, start_residual, cost(start_residual, start.values))
-    jac, used = start_jacobian, None
-    for iteration in range(settings.iterations):
+    jac, used, falling = start_jacobian, None, True
+    for iteration in range(settings.iterations + settings.extra_iterations):
+        if iteration >= settings.iterations and not falling:
+            break
         if hooks.on_iteration is not None:
             hooks.on_iteration(iteration, state[1])
         if jac is None:
@@ -284,6 +289,7 @@ def gauss_newton(
             trial = evaluated(state[0].moved(delta))
         if not trial[2] < state[2]:
             break
+        falling = trial[2] <= (1.0 - settings.extra_if_drop) * state[2]
         state, used = trial, jac
         if np.all(np.abs(delta) < settings.step_tolerance * start.scale):
             break
