@@ -95,3 +95,22 @@ def test_a_finish_keeps_the_coarse_fit_when_the_model_mesh_agrees_and_leaves_mea
     gain = Candidate("ft_gain", "measurement", {}, 0.0, 0.0, 0.0, refit_rms=1.7, refit_parameters={"scale": 0.9})
     finish_on_model_mesh(gain, MODEL, SimpleNamespace(solve_ahead=True), base, COARSE, base)
     assert (gain.refit_parameters, gain.refit_rms) == ({"scale": 0.9}, 1.7)
+
+
+def test_a_finish_goes_on_from_a_start_that_fits_the_model_mesh_better_than_the_coarse_fit() -> None:
+    """A coarse fit far off (the backlash at its 0.5 mm bound) and the effect's data-driven start near the truth: both
+    are tried on the model's mesh in one batch, and the finish goes on from the start (fewer steps than from the
+    coarse fit alone)."""
+    far = {"lag": BACKLASH.parameters[0].upper}
+    predictor = SimpleNamespace(solve_ahead=True)
+    out = {}
+    for starts in ([{"lag": 2.7e-4}], []):
+        base = _TwoMeshes()
+        candidate = Candidate(BACKLASH.name, "physics", {}, 0.0, 0.0, 0.0, refit_rms=9.0, refit_parameters=dict(far))
+        finish_on_model_mesh(candidate, MODEL, predictor, base, COARSE, base, starts=starts)
+        assert abs(candidate.refit_parameters["lag"] - LAG_TRUE) < 0.1 * COARSE_BIAS
+        assert candidate.refit_rms < 1.05
+        first = {MODEL.with_effects({BACKLASH.name: values}).key() for values in [far, *starts]}
+        assert first <= base.batches[0]  # the coarse fit and the start, tried together
+        out[bool(starts)] = len(base.batches)
+    assert out[True] < out[False]

@@ -74,6 +74,9 @@ class _DataStart:
     def start(self, current: dict[str, float]) -> dict[str, float]:
         return {"lag": self.lag}
 
+    def estimate(self, current: dict[str, float]) -> dict[str, float]:
+        return self.start(current)
+
     def to_dict(self) -> dict:
         return {"lag": self.lag}
 

@@ -106,6 +106,10 @@ class OnsetEstimate:
         None."""
         return self.values(current) if self.large else None
 
+    def estimate(self, current: dict[str, float]) -> dict[str, float]:
+        """`values`, whatever the estimate's size (`sensitivity.StartEstimate.estimate`)."""
+        return self.values(current)
+
 
 def loading_curves(
     trajectory: TrajectoryRecord, predicted_force: np.ndarray, sigma: np.ndarray

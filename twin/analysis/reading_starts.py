@@ -32,6 +32,10 @@ class RangeEstimate:
                 out[axis] = float(np.clip(largest, *bounds[axis]))
         return out
 
+    def estimate(self, current: dict[str, float]) -> dict[str, float] | None:
+        """The start (`start`): a limit where an axis clips, none otherwise."""
+        return self.start(current)
+
     def to_dict(self) -> dict:
         return {
             "largest_reading_n": [float(v) for v in self.found.largest],

@@ -4,7 +4,7 @@ every effect of the model refitted in turn."""
 
 from __future__ import annotations
 
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field, replace
 from itertools import product
 
@@ -109,33 +109,52 @@ def finish_on_model_mesh(
     base: Base,
     coarse: TwinModel,
     columns: Base,
+    starts: Sequence[dict[str, float]] = (),
     steps: int = FINISH_STEPS,
 ) -> None:
     """A physics refit made on the coarser fe mesh of `coarse` continued on `model`'s own: damped Gauss-Newton of
-    `model`'s residual (`base`) from the refitted values, its Jacobian the differences of `coarse`'s replays
+    `model`'s residual (`base`) from the refitted values or from whichever of `starts` (an effect's data-driven start)
+    and the model's own values of the effect leaves less of that residual (all tried in one batch; the model's own
+    values are its base replays), its Jacobian the differences of `coarse`'s replays
     (`columns`: the coarse base, residual `base`'s), at most `steps` steps, none once that residual passes the
     noise test; a step is kept only when it lowers it (so never worse than the coarse fit on `model`'s mesh). A coarse
     mesh's facets put the skin's contact elsewhere, so a fit of the indenter's path there is biased by more than the
-    noise allows (docs/analysis.md: a 0.3 mm registration offset on a 1 mm campaign fitted 0.04 mm off on a 2 mm
-    mesh, 1.46x the noise). Ahead (`Predictor.solve_ahead`), each step's coarse columns with its replays."""
+    noise allows, or in another basin (docs/analysis.md: a 0.3 mm registration offset on a 1 mm campaign fitted 0.04
+    mm off on a 2 mm mesh, 1.46x the noise; a 0.5 mm one at the 3 mm bound). Ahead (`Predictor.solve_ahead`), each
+    point's coarse columns with its replays."""
     effect = EFFECTS[candidate.name]
     if effect.kind != "physics" or coarse == model or candidate.refit_parameters is None:
         return
     ahead = predictor.solve_ahead
 
-    def stepped(at: Parameters) -> np.ndarray:
-        values = at.as_dict()
-        on_model = model.with_effects({candidate.name: values})
-        base.prefetch(predictor, [on_model, *(linearisation_models(effect, coarse, values) if ahead else [])])
-        return base.residual.values - base.shifted(predictor, on_model)
+    def on_model(values: dict[str, float]) -> TwinModel:
+        return model.with_effects({candidate.name: values})
 
+    def solved(points: list[dict[str, float]]) -> None:
+        columns_ahead = [m for values in points for m in linearisation_models(effect, coarse, values)] if ahead else []
+        base.prefetch(predictor, [*map(on_model, points), *columns_ahead])
+
+    def misfit(values: dict[str, float]) -> np.ndarray:
+        return base.residual.values - base.shifted(predictor, on_model(values))
+
+    tried = [candidate.refit_parameters]
+    for values in [*starts, effect.values(model.effects.get(candidate.name))]:
+        if values not in tried:
+            tried.append(values)
+    solved(tried)
+    begin = min(tried, key=lambda values: whitened_rms(misfit(values)))
     hooks = GaussNewtonHooks(
         jacobian=lambda at: linearise(effect, coarse, at.as_dict(), predictor, columns).jac,
         at_noise=lambda r: base.noise_test(r).is_noise,
         cost=lambda r, _: whitened_rms(r),
     )
     settings = GaussNewtonSettings(steps, BACKTRACKS, STEP_TOLERANCE, extra_iterations=EXTRA_ITERATIONS)
-    fitted = gauss_newton(stepped, effect_parameters(effect, candidate.refit_parameters), hooks, settings)
+
+    def stepped(at: Parameters) -> np.ndarray:
+        solved([at.as_dict()])
+        return misfit(at.as_dict())
+
+    fitted = gauss_newton(stepped, effect_parameters(effect, begin), hooks, settings, start_residual=misfit(begin))
     candidate.refit_rms, candidate.refit_parameters = fitted.cost, fitted.parameters.as_dict()
 
 

@@ -27,6 +27,11 @@ class StartEstimate(Protocol):
         """The effect's values to try, about its `current` values (None: nothing worth trying)."""
         ...
 
+    def estimate(self, current: dict[str, float]) -> dict[str, float] | None:
+        """The effect's values the data give about its `current` values whatever their size (None: none): where a fit
+        made on a coarser fe mesh is also finished from (`twin.analysis.refit.finish_on_model_mesh`)."""
+        ...
+
     def to_dict(self) -> dict:
         """A JSON-ready summary (what diagnosis reports beside the candidate)."""
         ...
