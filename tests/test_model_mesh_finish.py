@@ -9,6 +9,7 @@ coarse refit lands off, the finish, with the coarse columns, lands on the model 
 from types import SimpleNamespace
 
 import numpy as np
+from stand_ins import SolvedModels
 
 from twin.analysis.predict import TwinModel
 from twin.analysis.refit import finish_on_model_mesh, refit
@@ -22,29 +23,21 @@ COARSE_BIAS = 3e-5  # m: the coarse mesh's answer to a lag is the model mesh's t
 MODEL, COARSE = TwinModel(mesh_max_edge=1e-3), TwinModel(mesh_max_edge=2e-3)
 
 
-class _TwoMeshes:
+class _TwoMeshes(SolvedModels):
     """Stands in for `twin.analysis.residual.Base` on either mesh: the whitened residual of a campaign with a backlash
     of `LAG_TRUE` on the model's mesh (unit noise) about the base model there; a model's shift from the base model
     on its own mesh; the models solved so far, in the batches that solved them."""
 
     def __init__(self) -> None:
+        super().__init__(MODEL, COARSE)
         self.t = np.linspace(0.0, 1.0, 400)
         noise = np.random.default_rng(5).standard_normal(len(self.t))
         self.residual = SimpleNamespace(values=self.response(LAG_TRUE, MODEL) - self.response(0.0, MODEL) + noise)
         self.nuisance = SimpleNamespace(chi2=lambda r: float(np.nansum(r**2)))
-        self.solved: set = {MODEL.key(), COARSE.key()}
-        self.batches: list[set] = []
 
     def response(self, lag: float, model: TwinModel) -> np.ndarray:
         x = (lag + (COARSE_BIAS if model.mesh_max_edge == COARSE.mesh_max_edge else 0.0)) / 1e-4
         return 20.0 * np.sin(2.0 * np.pi * self.t) * np.tanh(x) + 3.0 * np.cos(5.0 * self.t) * x**2
-
-    def prefetch(self, predictor: object, models: list[TwinModel]) -> int:
-        new = {m.key() for m in models} - self.solved
-        if new:
-            self.batches.append(new)
-            self.solved |= new
-        return len(new)
 
     def shifted(self, predictor: object, model: TwinModel) -> np.ndarray:
         self.prefetch(predictor, [model])

@@ -10,6 +10,7 @@ from types import SimpleNamespace
 
 import numpy as np
 import pytest
+from stand_ins import SolvedModels
 
 from twin.analysis import sensitivity
 from twin.analysis.predict import Predictor, TwinModel
@@ -22,30 +23,22 @@ BACKLASH = EFFECTS["robot_backlash"]
 LAG_TRUE = 3.1e-4  # m: inside the range (0-0.5 mm), away from its declared starts (0.1, 0.25 mm)
 
 
-class _Response:
+class _Response(SolvedModels):
     """Stands in for `twin.analysis.residual.Base`: the whitened residual of a campaign with a backlash of
     `LAG_TRUE` (a response nonlinear in the lag, unit noise), and the replays of every model solved so far, with
     the batches that solved them. As `Base.shifted` does, a prediction whose replays are not solved yet solves
     them first (a batch of its own)."""
 
     def __init__(self) -> None:
+        super().__init__(TwinModel())
         rng = np.random.default_rng(3)
         self.t = np.linspace(0.0, 1.0, 400)
         self.residual = SimpleNamespace(values=self.response(LAG_TRUE) + rng.standard_normal(len(self.t)))
         self.nuisance = SimpleNamespace(chi2=lambda r: float(np.nansum(r**2)))
-        self.solved: set = {TwinModel().key()}
-        self.batches: list[set] = []
 
     def response(self, lag: float) -> np.ndarray:
         x = lag / 1e-4
         return 20.0 * np.sin(2.0 * np.pi * self.t) * np.tanh(x) + 3.0 * np.cos(5.0 * self.t) * x**2
-
-    def prefetch(self, predictor: object, models: list[TwinModel]) -> int:
-        new = {m.key() for m in models} - self.solved
-        if new:
-            self.batches.append(new)
-            self.solved |= new
-        return len(new)
 
     def shifted(self, predictor: object, model: TwinModel) -> np.ndarray:
         self.prefetch(predictor, [model])
