@@ -121,7 +121,7 @@ def finish_on_model_mesh(
     mesh's facets put the skin's contact elsewhere, so a fit of the indenter's path there is biased by more than the
     noise allows, or in another basin (docs/analysis.md: a 0.3 mm registration offset on a 1 mm campaign fitted 0.04
     mm off on a 2 mm mesh, 1.46x the noise; a 0.5 mm one at the 3 mm bound). Ahead (`Predictor.solve_ahead`), each
-    point's coarse columns with its replays."""
+    step's coarse columns with its replays, and the coarse fit's with the first batch."""
     effect = EFFECTS[candidate.name]
     if effect.kind != "physics" or coarse == model or candidate.refit_parameters is None:
         return
@@ -130,8 +130,8 @@ def finish_on_model_mesh(
     def on_model(values: dict[str, float]) -> TwinModel:
         return model.with_effects({candidate.name: values})
 
-    def solved(points: list[dict[str, float]]) -> None:
-        columns_ahead = [m for values in points for m in linearisation_models(effect, coarse, values)] if ahead else []
+    def solved(points: list[dict[str, float]]) -> None:  # ahead, with the first point's columns
+        columns_ahead = linearisation_models(effect, coarse, points[0]) if ahead else []
         base.prefetch(predictor, [*map(on_model, points), *columns_ahead])
 
     def misfit(values: dict[str, float]) -> np.ndarray:
