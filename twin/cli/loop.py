@@ -95,8 +95,8 @@ def diagnose(
             "--rank-mesh-mm",
             min=0.1,
             help="Rank and refit the candidates on fe replays of this mesh size (mm; a coarser one is several times "
-            "cheaper); each refitted one is judged held out about the campaign mesh's residual at its fit (JSON: "
-            "ranked_mesh_mm).",
+            "cheaper); each physics refit is finished on the campaign's mesh and each refitted one judged held out "
+            "about that mesh's residual at its fit (JSON: ranked_mesh_mm).",
         ),
     ] = None,
     in_turn: Annotated[
