@@ -60,6 +60,7 @@ from twin.analysis.residual import CHANNELS, Base, Residual, base_residual
 from twin.analysis.rows_only import RAW_ONLY_EFFECTS
 from twin.analysis.sensitivity import (
     Linearisation,
+    data_estimate,
     first_models,
     linear_fit,
     linearisation_models,
@@ -304,9 +305,16 @@ def diagnose(
         # side by side, their replays solved together (`twin.analysis.lockstep`): the same fits, fewer waves
         run_in_lockstep(predictor, [partial(refit, c, rank_model, base=fit_base, lin=lin) for c, lin in chosen])
         if rank_model != model:  # each physics fit continued on the model's mesh, its columns still the ranking mesh's
-            on_fit_mesh = {"base": base, "coarse": rank_model, "columns": fit_base}
             finishes = [
-                partial(finish_on_model_mesh, c, model, **on_fit_mesh, starts=data_start(c.name, lin, model))
+                partial(
+                    finish_on_model_mesh,
+                    c,
+                    model,
+                    base=base,
+                    coarse=rank_model,
+                    columns=fit_base,
+                    starts=data_estimate(EFFECTS[c.name], lin, model),
+                )
                 for c, lin in chosen
             ]
             run_in_lockstep(predictor, finishes)
@@ -351,15 +359,6 @@ def diagnose(
         sampled_on.to_dict() if sampled_on is not None else None,
         rank_mesh,
     )
-
-
-def data_start(name: str, lin: Linearisation, model: TwinModel) -> list[dict[str, float]]:
-    """What the data give of the effect (`sensitivity.DATA_STARTS`' estimate about `model`'s values of it, whatever
-    its size) when its linearisation has such an estimate: where a refit on a coarse mesh is also finished from
-    (`refit.finish_on_model_mesh`)."""
-    values = EFFECTS[name].values(model.effects.get(name))
-    start = lin.data_start.estimate(values) if lin.data_start is not None else None
-    return [] if start is None else [start]
 
 
 def ranking_base(

@@ -43,6 +43,22 @@ DECADE_SPACED = 10.0
 0.05-10 s), otherwise evenly."""
 
 
+def _misfit(base: Base, predictor: Predictor, model: TwinModel, name: str) -> Callable[[dict], np.ndarray]:
+    """The whitened residual `base` leaves about `model` with effect `name` at given values."""
+    return lambda values: base.residual.values - base.shifted(predictor, model.with_effects({name: values}))
+
+
+def _controls(
+    base: Base, jacobian: Callable[[Parameters], np.ndarray] | None, iterations: int
+) -> tuple[GaussNewtonHooks, GaussNewtonSettings]:
+    """A refit's Gauss-Newton hooks (its whitened RMS the cost, stopping at `base`'s noise test before a new
+    `jacobian`) and settings (`iterations`, then `EXTRA_ITERATIONS` while converging fast)."""
+    hooks = GaussNewtonHooks(
+        jacobian=jacobian, at_noise=lambda r: base.noise_test(r).is_noise, cost=lambda r, _: whitened_rms(r)
+    )
+    return hooks, GaussNewtonSettings(iterations, BACKTRACKS, STEP_TOLERANCE, extra_iterations=EXTRA_ITERATIONS)
+
+
 def refit(
     candidate: Candidate, model: TwinModel, predictor: Predictor, base: Base, lin: Linearisation, iterations: int = 3
 ) -> None:
@@ -56,10 +72,7 @@ def refit(
     tried again from starts across its range (`_from_starts`: a cost can have several basins). When the result
     fits worse than the model's own values of the effect (the starting point), those are kept."""
     effect = EFFECTS[candidate.name]
-
-    def misfit(trial: dict[str, float]) -> np.ndarray:
-        return base.residual.values - base.shifted(predictor, model.with_effects({candidate.name: trial}))
-
+    misfit = _misfit(base, predictor, model, candidate.name)
     ahead = effect.kind == "physics" and predictor.solve_ahead
 
     def stepped(trial: dict[str, float]) -> np.ndarray:  # a step's misfit; ahead, its linearisation's replays too
@@ -71,12 +84,7 @@ def refit(
 
     start = effect.values(model.effects.get(candidate.name))
     best = (whitened_rms(misfit(start)), start)
-    hooks = GaussNewtonHooks(
-        jacobian=relinearised if effect.kind == "physics" else None,
-        at_noise=lambda r: base.noise_test(r).is_noise,
-        cost=lambda r, _: whitened_rms(r),
-    )
-    settings = GaussNewtonSettings(iterations, BACKTRACKS, STEP_TOLERANCE, extra_iterations=EXTRA_ITERATIONS)
+    hooks, settings = _controls(base, relinearised if effect.kind == "physics" else None, iterations)
     fitted = gauss_newton(
         lambda at: stepped(at.as_dict()),
         effect_parameters(effect, lin.point),
@@ -134,21 +142,14 @@ def finish_on_model_mesh(
         columns_ahead = linearisation_models(effect, coarse, points[0]) if ahead else []
         base.prefetch(predictor, [*map(on_model, points), *columns_ahead])
 
-    def misfit(values: dict[str, float]) -> np.ndarray:
-        return base.residual.values - base.shifted(predictor, on_model(values))
-
+    misfit = _misfit(base, predictor, model, candidate.name)
     tried = [candidate.refit_parameters]
     for values in [*starts, effect.values(model.effects.get(candidate.name))]:
         if values not in tried:
             tried.append(values)
     solved(tried)
     begin = min(tried, key=lambda values: whitened_rms(misfit(values)))
-    hooks = GaussNewtonHooks(
-        jacobian=lambda at: linearise(effect, coarse, at.as_dict(), predictor, columns).jac,
-        at_noise=lambda r: base.noise_test(r).is_noise,
-        cost=lambda r, _: whitened_rms(r),
-    )
-    settings = GaussNewtonSettings(steps, BACKTRACKS, STEP_TOLERANCE, extra_iterations=EXTRA_ITERATIONS)
+    hooks, settings = _controls(base, lambda at: linearise(effect, coarse, at.as_dict(), predictor, columns).jac, steps)
 
     def stepped(at: Parameters) -> np.ndarray:
         solved([at.as_dict()])

@@ -185,6 +185,15 @@ def sensitivities(
     return lins
 
 
+def data_estimate(effect: Effect, lin: Linearisation, model: TwinModel) -> list[dict[str, float]]:
+    """What the data give of the effect (its `DATA_STARTS` estimate about `model`'s values of it, whatever its size),
+    as a list of one, when `lin` has such an estimate: where a refit on a coarse mesh is also finished from
+    (`twin.analysis.refit.finish_on_model_mesh`)."""
+    values = effect.values(model.effects.get(effect.name))
+    estimate = lin.data_start.estimate(values) if lin.data_start is not None else None
+    return [] if estimate is None else [estimate]
+
+
 def declared_starts(effect: Effect, point: dict[str, float]) -> list[dict[str, float]]:
     """The effect's declared starts (values across its range) about its first linearisation's `point`."""
     return [effect.values({**point, **start}) for start in effect.starts]
