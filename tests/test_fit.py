@@ -192,3 +192,28 @@ def test_extra_iterations_go_on_while_the_cost_falls_fast(overstated: float, ste
     assert np.abs(fit.values - solution) == pytest.approx(
         np.abs(solution) * (1.0 - 1.0 / overstated) ** steps, rel=1e-6
     )
+
+
+def test_a_step_its_hook_finds_unpromising_is_not_taken() -> None:
+    """A linear model whose best fit leaves a residual of RMS ~0.05 (the noise): a hook that asks for a predicted RMS
+    below 0.01 refuses the first step (the fit stays at its start, one evaluation), one that asks for 0.1 lets the
+    fit reach the normal equations' solution; the hook is shown the start's residual and the linear step's."""
+    a, y, units = _linear_problem(seed=3)
+    solution = np.linalg.solve(a.T @ a, a.T @ y)
+    start = _parameters(np.zeros(3), scale=units)
+    settings = GaussNewtonSettings(iterations=3, whitened=False)
+    shown = []
+
+    def fit_asking_below(limit: float):
+        def promising(residual: np.ndarray, predicted: np.ndarray) -> bool:
+            shown.append((residual, predicted))
+            return float(np.sqrt(np.mean(predicted**2))) < limit
+
+        hooks = GaussNewtonHooks(promising=promising)
+        return gauss_newton(lambda p: y - a @ p.values, start, hooks, settings, start_jacobian=a)
+
+    refused = fit_asking_below(0.01)
+    assert refused.values == pytest.approx(np.zeros(3)) and refused.evaluations == 1 and refused.jacobian is None
+    assert shown[0][0] == pytest.approx(y) and shown[0][1] == pytest.approx(y - a @ solution, abs=1e-9)
+    taken = fit_asking_below(0.1)
+    assert taken.values == pytest.approx(solution, rel=1e-9)

@@ -12,7 +12,7 @@ import numpy as np
 from stand_ins import SolvedModels
 
 from twin.analysis.predict import TwinModel
-from twin.analysis.refit import finish_on_model_mesh, refit
+from twin.analysis.refit import FINISH_REACH, finish_on_model_mesh, refit
 from twin.analysis.sensitivity import linearise
 from twin.analysis.verdict import Candidate
 from twin.effects import EFFECTS
@@ -45,7 +45,7 @@ class _TwoMeshes(SolvedModels):
         return self.response(lag, model) - self.response(0.0, model)
 
     def noise_test(self, values: np.ndarray) -> SimpleNamespace:
-        return SimpleNamespace(is_noise=bool(np.sqrt(np.nanmean(values**2)) < 1.05))
+        return SimpleNamespace(is_noise=bool(np.sqrt(np.nanmean(values**2)) < 1.05), rms_threshold=1.05)
 
 
 def _coarse_fit(base: _TwoMeshes, ahead: bool) -> Candidate:
@@ -107,3 +107,22 @@ def test_a_finish_goes_on_from_a_start_that_fits_the_model_mesh_better_than_the_
         assert first <= base.batches[0]  # the coarse fit and the start, tried together
         out[bool(starts)] = len(base.batches)
     assert out[True] < out[False]
+
+
+def test_a_finish_takes_no_step_where_its_linearisation_leaves_the_fit_far_above_the_noise() -> None:
+    """The same campaign with a large signal no backlash makes (10x the noise, a stand-in for what another effect or
+    a nuisance leaves): the finish tries its starts on the model's mesh (one batch) and stops there, since the step's
+    linearisation predicts a residual above `FINISH_REACH` times the noise; its figure is the best start's RMS. The
+    same coarse fit on the campaign without that signal steps on (more batches)."""
+    batches = {}
+    for unexplained in (0.0, 10.0):
+        base = _TwoMeshes()
+        base.residual.values = base.residual.values + unexplained * np.sqrt(2.0) * np.cos(40.0 * np.pi * base.t)
+        far = {"lag": 2.0e-4}
+        candidate = Candidate(BACKLASH.name, "physics", {}, 0.0, 0.0, 0.0, refit_rms=9.0, refit_parameters=dict(far))
+        finish_on_model_mesh(candidate, MODEL, SimpleNamespace(solve_ahead=True), base, COARSE, base)
+        batches[unexplained] = len(base.batches)
+        if unexplained:
+            assert candidate.refit_parameters == far
+            assert candidate.refit_rms == _rms_on_model_mesh(base, far["lag"]) > FINISH_REACH * 1.05
+    assert batches[10.0] == 1 < batches[0.0]

@@ -231,12 +231,16 @@ class GaussNewtonHooks:
     """What a fit may be told besides its residual. `jacobian(parameters)` linearises again before each
     step (None: keep `start_jacobian` throughout); `at_noise(residual)` stops the fit before a new
     linearisation; `cost(residual, values)` defaults to the sum of squares of the finite residual (plus the
-    prior's chi-square); `on_iteration(i, residual)` is told each iteration before its step."""
+    prior's chi-square); `on_iteration(i, residual)` is told each iteration before its step; `promising(residual,
+    predicted)` is asked before each step with the residual where the fit stands and the one the step's linearisation
+    predicts (residual - J delta), and a step it refuses is not taken: the fit stops there (None: every step is
+    taken; for steps that cost more than the fit can gain)."""
 
     jacobian: Callable[[Parameters], np.ndarray] | None = None
     at_noise: Callable[[np.ndarray], bool] | None = None
     cost: Callable[[np.ndarray, np.ndarray], float] | None = None
     on_iteration: Callable[[int, np.ndarray], None] | None = None
+    promising: Callable[[np.ndarray, np.ndarray], bool] | None = None
 
 
 def gauss_newton(
@@ -281,6 +285,8 @@ def gauss_newton(
                 break
             jac = hooks.jacobian(state[0])
         delta = linear_step(jac, state[1], state[0], prior)
+        if hooks.promising is not None and not hooks.promising(state[1], state[1] - jac @ delta):
+            break
         trial = evaluated(state[0].moved(delta))
         for _ in range(settings.backtracks):
             if trial[2] < state[2]:

@@ -6,6 +6,7 @@ from __future__ import annotations
 
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field, replace
+from functools import partial
 from itertools import product
 
 import numpy as np
@@ -38,6 +39,14 @@ STARTS_ALONE = 5
 """Starts across its range for an effect of one parameter (`starts_across`); 3 a parameter for more."""
 FINISH_STEPS = 2
 """Gauss-Newton steps a refit made on a coarser fe mesh takes on the model's own mesh (`finish_on_model_mesh`)."""
+FINISH_REACH = 5.0
+FINISH_PROMISE = 0.5
+"""A finish takes a step only when the residual its linearisation predicts is within `FINISH_REACH` times the noise
+test's RMS threshold or at most `FINISH_PROMISE` times the whitened RMS it starts from: a fit that its own
+linearisation leaves far above the noise, and barely lower, cannot be named, and each step costs a wave of the
+model's mesh (the paper diagnose on an H200: four such waves, 260 s, for fits that ended at 48-56x the noise;
+docs/scale.md, session 26); a step from far off that promises to halve the misfit is taken (a backlash's linearisation
+at zero lag predicts 12.6x from 30.8x; the steps from there reach the noise)."""
 DECADE_SPACED = 10.0
 """A positive range whose bounds differ by this factor or more is spaced geometrically (a relaxation time of
 0.05-10 s), otherwise evenly."""
@@ -125,7 +134,9 @@ def finish_on_model_mesh(
     and the model's own values of the effect leaves less of that residual (all tried in one batch; the model's own
     values are its base replays), its Jacobian the differences of `coarse`'s replays
     (`columns`: the coarse base, residual `base`'s), at most `steps` steps, none once that residual passes the
-    noise test; a step is kept only when it lowers it (so never worse than the coarse fit on `model`'s mesh). A coarse
+    noise test, none that its linearisation leaves far above the noise and barely lower (`FINISH_REACH`,
+    `FINISH_PROMISE`); a step is kept only when it
+    lowers that residual (so never worse than the coarse fit on `model`'s mesh). A coarse
     mesh's facets put the skin's contact elsewhere, so a fit of the indenter's path there is biased by more than the
     noise allows, or in another basin (docs/analysis.md: a 0.3 mm registration offset on a 1 mm campaign fitted 0.04
     mm off on a 2 mm mesh, 1.46x the noise; a 0.5 mm one at the 3 mm bound). Ahead (`Predictor.solve_ahead`), each
@@ -150,6 +161,7 @@ def finish_on_model_mesh(
     solved(tried)
     begin = min(tried, key=lambda values: whitened_rms(misfit(values)))
     hooks, settings = _controls(base, lambda at: linearise(effect, coarse, at.as_dict(), predictor, columns).jac, steps)
+    hooks = replace(hooks, promising=partial(_promising, base))
 
     def stepped(at: Parameters) -> np.ndarray:
         solved([at.as_dict()])
@@ -157,6 +169,12 @@ def finish_on_model_mesh(
 
     fitted = gauss_newton(stepped, effect_parameters(effect, begin), hooks, settings, start_residual=misfit(begin))
     candidate.refit_rms, candidate.refit_parameters = fitted.cost, fitted.parameters.as_dict()
+
+
+def _promising(base: Base, residual: np.ndarray, predicted: np.ndarray) -> bool:
+    """Whether a finish's step is worth its wave (`FINISH_REACH`, `FINISH_PROMISE`)."""
+    rms, reach = whitened_rms(predicted), FINISH_REACH * base.noise_test(predicted).rms_threshold
+    return rms <= reach or rms <= FINISH_PROMISE * whitened_rms(residual)
 
 
 def starts_across(effect: Effect, at: dict[str, float]) -> list[dict[str, float]]:
