@@ -29,7 +29,7 @@ from assets.indenters import Indenter, get_indenter
 from fe.batched import BatchedShell, InflatedSkin, NewtonBatch, get_rows, put_rows
 from fe.indenter_sdf import head_radius
 from fe.results import IncrementResult
-from fe.shell import lumped_areas
+from fe.shell import pressed_areas
 from fe.viscoelastic import SkinRelaxation
 
 MAX_CUTS = 3
@@ -475,7 +475,7 @@ class BatchedStepper:
         after the first refresh, whose jump it shrinks)."""
         shell, rows = self.shell, np.flatnonzero(which)
         rotation, translation = self._start_rotation[rows], self._start_translation[rows, None]
-        anchors = np.einsum("bij,bvj->bvi", rotation, self._anchor[rows]) + translation
+        anchors = self._anchor[rows] @ np.swapaxes(rotation, 1, 2) + translation
         put_rows(shell.x_start, rows, np.where(self._anchored[rows, :, None], anchors, self.x[rows]))
         put_rows(shell.x, rows, start)
         shell.lag_contact(shell.x, which)
@@ -506,7 +506,7 @@ class BatchedStepper:
         share = np.where(held, creep, np.clip(along, 0, 1))
         x = self.x[rows] + share[:, None, None] * np.where(self._has_motion[rows, None, None], self._motion[rows], 0.0)
         turn = self.pose_rotation[rows] @ np.transpose(self._start_rotation[rows], (0, 2, 1))
-        stuck = np.einsum("bij,bvj->bvi", turn, start) + self.pose_translation[rows, None]
+        stuck = start @ np.swapaxes(turn, 1, 2) + self.pose_translation[rows, None]
         off_line = np.linalg.norm(travel - along[:, None] * last, axis=1) > 1e-3 * np.linalg.norm(travel, axis=1)
         turns = off_line | (np.abs(turn - np.eye(3)).max(axis=(1, 2)) > 1e-9)
         x = np.where(((self._gap[rows] < 0.0) & turns[:, None])[:, :, None], stuck, x)
@@ -543,7 +543,7 @@ class BatchedStepper:
             clearance = shell.indenter_clearance(self._core_parts, self._core_floor, finished)
         reach = shell.indenter_skin_clearance(shell.x, self._skin_spacing, self._skin_floor, finished)
         forces, balances = self._force_balance(rows, state.pressure[rows])
-        contact_areas = np.where(gap_rows < 0.0, lumped_areas(x_rows, self.skin.triangles), 0.0).sum(axis=1)
+        contact_areas = pressed_areas(x_rows, gap_rows < 0.0, self.skin.triangles)
         results = {}
         for k, i in enumerate(int(r) for r in rows):
             x, gap, force, balance = x_rows[k], gap_rows[k], forces[k], float(balances[k])
@@ -580,13 +580,13 @@ class BatchedStepper:
         a sticking vertex keeps its friction force at a held pose instead of starting the next increment
         unloaded and creeping, a sliding one carries mu lambda on. Vertices without friction force lose theirs."""
         start_r, start_t = self._start_rotation[rows], self._start_translation[rows, None]
-        body = np.einsum("bji,bvj->bvi", self.pose_rotation[rows], x - self.pose_translation[rows, None])
-        slip = np.einsum("bij,bvj->bvi", start_r, body) + start_t - get_rows(self.shell.x_start, rows)
+        body = (x - self.pose_translation[rows, None]) @ self.pose_rotation[rows]
+        slip = body @ np.swapaxes(start_r, 1, 2) + start_t - get_rows(self.shell.x_start, rows)
         normal = get_rows(self.shell.lagged_normal, rows)
         tangential = slip - np.einsum("bvi,bvi->bv", slip, normal)[:, :, None] * normal
         length = np.linalg.norm(tangential, axis=2, keepdims=True)
         kept = tangential * np.minimum(1.0, self.skin.contact.slip_length / np.maximum(length, 1e-300))
-        self._anchor[rows] = body - np.einsum("bji,bvj->bvi", start_r, kept)
+        self._anchor[rows] = body - kept @ start_r
         self._anchored[rows] = lagged * np.array([self.skins[i].params.friction for i in rows])[:, None] > 0.0
 
     def _inadmissible(

@@ -30,11 +30,16 @@ class ShellMesh:
 
 
 def lumped_areas(vertices: np.ndarray, triangles: np.ndarray) -> np.ndarray:
-    """One third of the adjacent triangle areas per vertex (m^2): (V,) of vertices (V, 3) m, or (R, V) of R meshes
-    (R, V, 3) at once (each the same, bit for bit, as alone)."""
-    many = np.reshape(vertices, (-1, *np.shape(vertices)[-2:]))
-    p0, p1, p2 = (many[:, triangles[:, k]] for k in range(3))
-    area = 0.5 * np.linalg.norm(np.cross(p1 - p0, p2 - p0), axis=2)
-    bins = (np.arange(len(many))[:, None] * many.shape[1] + triangles.ravel()).ravel()
-    summed = np.bincount(bins, weights=np.repeat(area / 3.0, 3, axis=1).ravel(), minlength=many.size // 3)
-    return summed.reshape(np.shape(vertices)[:-1])
+    """One third of the adjacent triangle areas per vertex (m^2): (V,) of vertices (V, 3) m."""
+    p0, p1, p2 = (vertices[triangles[:, k]] for k in range(3))
+    area = 0.5 * np.linalg.norm(np.cross(p1 - p0, p2 - p0), axis=1)
+    return np.bincount(triangles.ravel(), weights=np.repeat(area / 3.0, 3), minlength=len(vertices))
+
+
+def pressed_areas(vertices: np.ndarray, pressed: np.ndarray, triangles: np.ndarray) -> np.ndarray:
+    """(R,) the lumped areas (`lumped_areas`, m^2) of the `pressed` (R, V) vertices of R meshes (R, V, 3) m summed,
+    from the triangles that touch a pressed vertex only (a contact patch is a small part of the skin)."""
+    rows, touching = np.nonzero(counts := pressed[:, triangles].sum(axis=2))  # pressed corners (R, T)
+    p0, p1, p2 = (vertices[rows, triangles[touching, k]] for k in range(3))
+    area = 0.5 * np.linalg.norm(np.cross(p1 - p0, p2 - p0), axis=1)
+    return np.bincount(rows, weights=area * counts[rows, touching] / 3.0, minlength=len(vertices))

@@ -404,6 +404,7 @@ class Predictor:
         """Worker processes a batch is split over (see the class docstring); 1: solved in this process."""
         self._solver = _ReplaySolver(device)
         self._replays: dict[tuple, Replay] = {}
+        self._paths: dict[tuple[int, bool], tuple] = {}  # (id, timed) -> (trajectory, `_trajectory_path` of it)
 
     def inflated(self, skin: SkinParameters, mesh_max_edge: float, inflation: str = "thickness") -> tuple:
         """(fe model, its InflationResult) for these parameters, inflated by `inflation` (built once)."""
@@ -420,15 +421,28 @@ class Predictor:
     def _plan(self, model: TwinModel, trajectory: TrajectoryRecord) -> _ReplayPlan:
         """The replay `model` needs for `trajectory` (its key says which cached replay serves it)."""
         skin = apply_skin(model.skin, model.effects)
-        raw = trajectory.raw
-        commanded = trajectory.touch_point + np.outer(_path_depths(raw), trajectory.direction)
-        tips = apply_path(commanded, model.effects, measured_loads(trajectory))
         timed = skin.relaxation_fraction > 0.0
+        commanded, loads, events, solved = self._trajectory_path(trajectory, timed)
+        tips = apply_path(commanded, model.effects, loads)
         model_key = (tuple(sorted(asdict(skin).items())), model.mesh_max_edge, model.inflation)
         key = (model_key, trajectory.sensor_id, trajectory.trajectory_id, tips.round(12).tobytes())
-        times, indices = solve_events(raw, RELAXATION_SOLVE_INTERVAL_S if timed else None)
-        solved = held_solves(indices, self.held_first)
-        return _ReplayPlan(key, tips, (times, indices), timed, solved, skin.relaxation_time_s)
+        return _ReplayPlan(key, tips, events, timed, solved, skin.relaxation_time_s)
+
+    def _trajectory_path(self, trajectory: TrajectoryRecord, timed: bool) -> tuple:
+        """What every model's replay plan of `trajectory` shares, worked out once per trajectory object: the commanded
+        tip of each path index (m, biotac frame), the measured loads (`measured_loads`), the events (`solve_events`;
+        timed: at the relaxation's interval) and which are solved (`held_solves`)."""
+        cached = self._paths.get((id(trajectory), timed))
+        if cached is None or cached[0] is not trajectory:
+            raw = trajectory.raw
+            events = solve_events(raw, RELAXATION_SOLVE_INTERVAL_S if timed else None)
+            commanded = trajectory.touch_point + np.outer(_path_depths(raw), trajectory.direction)
+            cached = (
+                trajectory,
+                (commanded, measured_loads(trajectory), events, held_solves(events[1], self.held_first)),
+            )
+            self._paths[(id(trajectory), timed)] = cached
+        return cached[1]
 
     def _model_fe(self, model: TwinModel) -> BioTacModel:
         """The inflated fe model of `model`'s skin with its effects applied."""

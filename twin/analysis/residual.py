@@ -17,6 +17,7 @@ from __future__ import annotations
 
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, replace
+from functools import cached_property
 
 import numpy as np
 
@@ -257,7 +258,12 @@ class Base:
         `predicted` ((T, 4) each, `fullrate_prediction`'s form: N and counts; NaN where there is none), as
         `shifted` makes it of a model's."""
         changed = whitened(predicted, self.masks, self.sigma)
-        return self.nuisance.project(self.misfit(self.prediction) - self.misfit(changed))
+        return self.nuisance.project(self._own_misfit - self.misfit(changed))
+
+    @cached_property
+    def _own_misfit(self) -> np.ndarray:
+        """`misfit` of this base's own prediction (every shift is taken from it)."""
+        return self.misfit(self.prediction)
 
     def prefetch(self, predictor: Predictor, models: Sequence[TwinModel]) -> int:
         """Solve the replays that `shifted` needs for every model of `models` as one batch (those not cached
