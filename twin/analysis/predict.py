@@ -542,30 +542,28 @@ class Predictor:
             wrench = read_out(wrench + (raw.wrench[0] - wrench[0]), model.effects)  # less the load there
         read = read_pdc(times, replay.pdc_change[sample_event], model.effects)  # affine: taring drops the offset
         pdc_change = read - read[0]
-        pdc = raw.pdc[0] + pdc_change
-        predicted = Recording(
-            time=times,
-            joints=raw.joints,
-            wrench=wrench,
-            electrodes=raw.electrodes[0] + replay.electrodes[sample_event] - replay.electrodes[0],
-            pdc=pdc,
-            depth_command=raw.depth_command,
-            increment=raw.increment,
-            complete=bool(replay.converged.all()),
-            message="",
-        )
-        processed = (
-            process(
+        processed = None
+        if rows:  # the recording the testbed would have made, processed as the measurements were
+            predicted = Recording(
+                time=times,
+                joints=raw.joints,
+                wrench=wrench,
+                electrodes=raw.electrodes[0] + replay.electrodes[sample_event] - replay.electrodes[0],
+                pdc=raw.pdc[0] + pdc_change,
+                depth_command=raw.depth_command,
+                increment=raw.increment,
+                complete=bool(replay.converged.all()),
+                message="",
+            )
+            registration = np.linalg.inv(trajectory.registration)
+            processed = process(
                 predicted,
                 trajectory.arm,
                 trajectory.tool_tip,
-                np.linalg.inv(trajectory.registration),
+                registration,
                 trajectory.sensor_in_biotac,
                 trajectory.rate_hz,
             )
-            if rows
-            else None
-        )
         tared = (wrench[:, :3] - wrench[0, :3]) @ trajectory.sensor_in_biotac[:3, :3].T
         last = np.r_[np.flatnonzero(np.diff(replay.path_index)), len(replay.path_index) - 1]  # per path index
         return Prediction(
