@@ -78,6 +78,7 @@ from twin.analysis.verdict import (
     verdict,
 )
 from twin.effects import EFFECTS
+from twin.lanes import thread_map
 
 
 @dataclass
@@ -250,12 +251,12 @@ def diagnose(
     n = len(r)
     chi2 = ranking.nuisance.chi2(r)
     excess = chi2 - n
-    for name, lin in zip(names, lins, strict=True):
+
+    def scored_candidate(named: tuple[str, Linearisation]) -> tuple[Candidate, Linearisation]:
+        name, lin = named
         effect = EFFECTS[name]
-        report("evidence", name)
         scored = lin
         if fitted is not None:  # what a joint refit with the nuisances would leave of the effect's signature
-            fitted.confounding(name, lin.jac)
             scored = replace(lin, offset=fitted.project(lin.offset), jac=fitted.project(lin.jac))
         delta = linear_fit(effect, scored.point, scored.jac, r - scored.offset)
         drop = chi2 - ranking.nuisance.chi2(r - scored.offset - scored.jac @ delta)
@@ -268,8 +269,15 @@ def diagnose(
             explained_fraction=drop / excess if excess > 0 else 0.0,
             onset=lin.data_start.to_dict() if lin.data_start is not None else None,
         )
-        candidate.heldout_rms = heldout(effect, scored, r, heldout_folds(ranking.residual))[0]
-        ranked.append((candidate, lin))
+        candidate.heldout_rms = heldout(effect, scored, r, folds)[0]
+        return candidate, lin
+
+    folds = heldout_folds(ranking.residual)
+    for name, lin in zip(names, lins, strict=True):
+        report("evidence", name)
+        if fitted is not None:  # how much of its signature the nuisances can take (`cannot_tell_apart`)
+            fitted.confounding(name, lin.jac)
+    ranked += thread_map(scored_candidate, list(zip(names, lins, strict=True)))  # numpy over the residual, each
     # Evidence can be fooled by a flexible effect that fits every indenter its own way: those that
     # also predict left-out indenters to within the tolerance rank ahead of those that do not.
     ranked.sort(key=lambda item: (not generalises(item[0]), -item[0].evidence))
@@ -321,8 +329,8 @@ def diagnose(
         # the held-out judgements in one batch: about each fit on the model's mesh, columns on the ranking mesh
         columns = rank_model if rank_model != model else None
         base.prefetch(predictor, judgement_models([c for c, _ in chosen], model, columns))
-        for candidate, _ in chosen:
-            about_fit = judge_heldout(candidate, model, predictor, base, columns)
+        judged = thread_map(lambda c: judge_heldout(c, model, predictor, base, columns), [c for c, _ in chosen])
+        for (candidate, _), about_fit in zip(chosen, judged, strict=True):
             if rank_model != model:  # the refit's own figure on the model's mesh (the judgement's residual)
                 candidate.refit_rms = whitened_rms(about_fit.residual.values)
 

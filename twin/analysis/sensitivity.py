@@ -18,6 +18,7 @@ from twin.analysis.reading_starts import range_start
 from twin.analysis.residual import Base
 from twin.analysis.surrogate import RELAXATION, RELAXATION_SURROGATE, Surrogate
 from twin.effects import REGISTRATION, Effect
+from twin.lanes import thread_map
 
 
 class StartEstimate(Protocol):
@@ -138,10 +139,10 @@ def sensitivities(
     model that has a `SURROGATES` stand-in is first linearised on it (for ranking: no replay of its own)."""
     points = first_points(effects, model)
     base.prefetch(predictor, first_models(effects, model, points, surrogates))
-    lins = [
-        linearise(e, model, p, predictor, base, _surrogate(e, model) if surrogates else None)
-        for e, p in zip(effects, points, strict=True)
-    ]
+    lins = thread_map(  # their replays solved: each linearisation is numpy over the residual's samples
+        lambda at: linearise(at[0], model, at[1], predictor, base, _surrogate(at[0], model) if surrogates else None),
+        list(zip(effects, points, strict=True)),
+    )
     r = base.residual.values
     costs: dict[tuple, float] = {}
 
@@ -151,14 +152,26 @@ def sensitivities(
             costs[key] = base.nuisance.chi2(r - base.shifted(predictor, model.with_effects({effect.name: values})))
         return costs[key]
 
+    def tries_starts(effect: Effect) -> bool:  # off in the model, with starts declared or from the data
+        return effect.is_off(effect.values(model.effects.get(effect.name))) and bool(
+            effect.starts or effect.name in DATA_STARTS
+        )
+
     ahead = predictor.solve_ahead
     if ahead:  # the declared starts first (a diagnosis solved them with its first batch): the best one's columns ahead
         base.prefetch(predictor, start_models(effects, model))
+        starts = [
+            (e, t)
+            for e, lin in zip(effects, lins, strict=True)
+            if tries_starts(e)
+            for t in declared_starts(e, lin.point)
+        ]
+        thread_map(lambda trial: cost(*trial), starts)
     trials: list[list[dict[str, float]]] = []
     columns_ahead: list[TwinModel] = []
     for i, (effect, lin) in enumerate(zip(effects, lins, strict=True)):
         data_start = DATA_STARTS.get(effect.name)
-        if not (effect.is_off(effect.values(model.effects.get(effect.name))) and (effect.starts or data_start)):
+        if not tries_starts(effect):
             trials.append([])
             continue
         at = effect_parameters(effect, lin.point)
@@ -175,13 +188,15 @@ def sensitivities(
         columns_ahead += [m for t in [*first, *best_declared] for m in point_models(effect, model, t, ahead)]
     tried = [model.with_effects({e.name: t}) for e, ts in zip(effects, trials, strict=True) for t in ts]
     base.prefetch(predictor, [*tried, *columns_ahead])
+    thread_map(lambda trial: cost(*trial), [(e, t) for e, ts in zip(effects, trials, strict=True) for t in ts])
     again: dict[int, dict[str, float]] = {}
     for i, (effect, ts) in enumerate(zip(effects, trials, strict=True)):
         if ts and (best := int(np.nanargmin([cost(effect, t) for t in ts]))) > 0:
             again[i] = ts[best]
     base.prefetch(predictor, [m for i, p in again.items() for m in linearisation_models(effects[i], model, p)])
-    for i, point in again.items():
-        lins[i] = replace(linearise(effects[i], model, point, predictor, base), data_start=lins[i].data_start)
+    at_best = thread_map(lambda i: linearise(effects[i], model, again[i], predictor, base), list(again))
+    for i, lin in zip(again, at_best, strict=True):
+        lins[i] = replace(lin, data_start=lins[i].data_start)
     return lins
 
 
