@@ -3,7 +3,10 @@ mesh's facets put the skin's contact elsewhere, so its fit of the indenter's pat
 by more than the noise allows; finished there (`refit.finish_on_model_mesh`) the hidden offset is named.
 
 Measured before the finish (docs/analysis.md, session 25): this campaign's offset fitted (0.211, 0.314, 0.269) mm on
-the 2 mm mesh against the plant's (0.244, 0.293, 0.327) mm, 1.46x the noise on the 1 mm mesh: "unexplained"."""
+the 2 mm mesh against the plant's (0.244, 0.293, 0.327) mm, 1.46x the noise on the 1 mm mesh: "unexplained". Drawn with
+seed 6 (0.413, 0.265, -0.144) mm, the coarse refit ends in another basin (9.0x) and the finish starts from the contact
+onsets' estimate (4.76x); with the coarse columns only it ended at 1.44x, 2.26x held out, "unexplained" (session 26,
+before the finish took the model mesh's own columns once the coarse ones converge slowly)."""
 
 from dataclasses import replace
 from pathlib import Path
@@ -17,7 +20,7 @@ from twin.analysis.predict import Predictor, TwinModel
 from twin.campaign import run_campaign
 from twin.demo import CHECK_CONFIG, loop_setup
 
-HIDDEN, SEED = "registration_offset", 5
+HIDDEN = "registration_offset"
 CONFIG = replace(
     CHECK_CONFIG,
     mesh_max_edge=1e-3,
@@ -27,9 +30,14 @@ CONFIG = replace(
 mesh (seed 5 keeps 6 of the 8 presses)."""
 
 
+@pytest.fixture(scope="module", params=[5, 6], ids=["seed5", "seed6"])
+def seed(request: pytest.FixtureRequest) -> int:
+    return request.param
+
+
 @pytest.fixture(scope="module")
-def campaign(tmp_path_factory: pytest.TempPathFactory) -> tuple[Path, dict]:
-    config, plant = loop_setup(HIDDEN, SEED, CONFIG)
+def campaign(seed: int, tmp_path_factory: pytest.TempPathFactory) -> tuple[Path, dict]:
+    config, plant = loop_setup(HIDDEN, seed, CONFIG)
     result = run_campaign(config, tmp_path_factory.mktemp("rank_mesh") / "campaign", workers=2, plant=plant)
     return next(iter(result.files.values())), plant.effects[HIDDEN]
 

@@ -39,6 +39,11 @@ STARTS_ALONE = 5
 """Starts across its range for an effect of one parameter (`starts_across`); 3 a parameter for more."""
 FINISH_STEPS = 2
 """Gauss-Newton steps a refit made on a coarser fe mesh takes on the model's own mesh (`finish_on_model_mesh`)."""
+FINISH_OWN_COLUMNS = 0.5
+"""A finish's steps take the model mesh's own columns (one replay a parameter there) once a step with the coarse ones
+leaves more than this fraction of the whitened RMS it started from: biased columns converge slowly (a 0.41 mm
+registration offset finished from 4.76x with 2 mm columns on a 1 mm campaign: 3.13x, 2.60x, 2.00x, 1.73x, 1.44x in
+its five steps; docs/analysis.md)."""
 FINISH_REACH = 5.0
 FINISH_PROMISE = 0.5
 """A finish takes a step only when the residual its linearisation predicts is within `FINISH_REACH` times the noise
@@ -133,14 +138,15 @@ def finish_on_model_mesh(
     `model`'s residual (`base`) from the refitted values or from whichever of `starts` (an effect's data-driven start)
     and the model's own values of the effect leaves less of that residual (all tried in one batch; the model's own
     values are its base replays), its Jacobian the differences of `coarse`'s replays
-    (`columns`: the coarse base, residual `base`'s), at most `steps` steps, none once that residual passes the
+    (`columns`: the coarse base, residual `base`'s) until a step with them converges slowly, then of `model`'s own
+    (`FINISH_OWN_COLUMNS`), at most `steps` steps, none once that residual passes the
     noise test, none that its linearisation leaves far above the noise and barely lower (`FINISH_REACH`,
     `FINISH_PROMISE`); a step is kept only when it
     lowers that residual (so never worse than the coarse fit on `model`'s mesh). A coarse
     mesh's facets put the skin's contact elsewhere, so a fit of the indenter's path there is biased by more than the
     noise allows, or in another basin (docs/analysis.md: a 0.3 mm registration offset on a 1 mm campaign fitted 0.04
     mm off on a 2 mm mesh, 1.46x the noise; a 0.5 mm one at the 3 mm bound). Ahead (`Predictor.solve_ahead`), each
-    step's coarse columns with its replays, and the coarse fit's with the first batch."""
+    step's columns with its replays, and the coarse fit's with the first batch."""
     effect = EFFECTS[candidate.name]
     if effect.kind != "physics" or coarse == model or candidate.refit_parameters is None:
         return
@@ -149,9 +155,22 @@ def finish_on_model_mesh(
     def on_model(values: dict[str, float]) -> TwinModel:
         return model.with_effects({candidate.name: values})
 
+    own = False  # the model mesh's own columns from now on (`FINISH_OWN_COLUMNS`)
+    last_rms = np.inf
+
     def solved(points: list[dict[str, float]]) -> None:  # ahead, with the first point's columns
-        columns_ahead = linearisation_models(effect, coarse, points[0]) if ahead else []
+        columns_ahead = linearisation_models(effect, model if own else coarse, points[0]) if ahead else []
         base.prefetch(predictor, [*map(on_model, points), *columns_ahead])
+
+    def watched(_: int, residual: np.ndarray) -> None:  # each iteration's start: was the last step slow?
+        nonlocal own, last_rms
+        rms = whitened_rms(residual)
+        own = own or rms > FINISH_OWN_COLUMNS * last_rms
+        last_rms = rms
+
+    def jacobian(at: Parameters) -> np.ndarray:
+        on_own = (model, base) if own else (coarse, columns)
+        return linearise(effect, on_own[0], at.as_dict(), predictor, on_own[1]).jac
 
     misfit = _misfit(base, predictor, model, candidate.name)
     tried = [candidate.refit_parameters]
@@ -160,8 +179,8 @@ def finish_on_model_mesh(
             tried.append(values)
     solved(tried)
     begin = min(tried, key=lambda values: whitened_rms(misfit(values)))
-    hooks, settings = _controls(base, lambda at: linearise(effect, coarse, at.as_dict(), predictor, columns).jac, steps)
-    hooks = replace(hooks, promising=partial(_promising, base))
+    hooks, settings = _controls(base, jacobian, steps)
+    hooks = replace(hooks, promising=partial(_promising, base), on_iteration=watched)
 
     def stepped(at: Parameters) -> np.ndarray:
         solved([at.as_dict()])
