@@ -137,12 +137,11 @@ def finish_on_model_mesh(
     """A physics refit made on the coarser fe mesh of `coarse` continued on `model`'s own: damped Gauss-Newton of
     `model`'s residual (`base`) from the refitted values or from whichever of `starts` (an effect's data-driven start)
     and the model's own values of the effect leaves less of that residual (all tried in one batch; the model's own
-    values are its base replays), its Jacobian the differences of `coarse`'s replays
-    (`columns`: the coarse base, residual `base`'s) until a step with them converges slowly, then of `model`'s own
-    (`FINISH_OWN_COLUMNS`), at most `steps` steps, none once that residual passes the
-    noise test, none that its linearisation leaves far above the noise and barely lower (`FINISH_REACH`,
-    `FINISH_PROMISE`); a step is kept only when it
-    lowers that residual (so never worse than the coarse fit on `model`'s mesh). A coarse
+    values are its base replays), its Jacobian the differences of `coarse`'s replays (`columns`: the coarse base,
+    residual `base`'s) until a step with them converges slowly, then of `model`'s own (`FINISH_OWN_COLUMNS`); `steps`
+    steps (up to `EXTRA_ITERATIONS` more while each lowers that residual by a tenth), none once it passes the noise
+    test, none that its linearisation leaves far above the noise and barely lower (`FINISH_REACH`, `FINISH_PROMISE`);
+    a step is kept only when it lowers that residual (so never worse than the coarse fit on `model`'s mesh). A coarse
     mesh's facets put the skin's contact elsewhere, so a fit of the indenter's path there is biased by more than the
     noise allows, or in another basin (docs/analysis.md: a 0.3 mm registration offset on a 1 mm campaign fitted 0.04
     mm off on a 2 mm mesh, 1.46x the noise; a 0.5 mm one at the 3 mm bound). Ahead (`Predictor.solve_ahead`), each
