@@ -29,10 +29,14 @@ class ShellMesh:
             raise ValueError("triangle indices out of range")
 
 
+def triangle_areas(p0: np.ndarray, p1: np.ndarray, p2: np.ndarray) -> np.ndarray:
+    """Areas (m^2) of the triangles with corners p0, p1, p2 (..., 3) m."""
+    return 0.5 * np.linalg.norm(np.cross(p1 - p0, p2 - p0), axis=-1)
+
+
 def lumped_areas(vertices: np.ndarray, triangles: np.ndarray) -> np.ndarray:
     """One third of the adjacent triangle areas per vertex (m^2): (V,) of vertices (V, 3) m."""
-    p0, p1, p2 = (vertices[triangles[:, k]] for k in range(3))
-    area = 0.5 * np.linalg.norm(np.cross(p1 - p0, p2 - p0), axis=1)
+    area = triangle_areas(*(vertices[triangles[:, k]] for k in range(3)))
     return np.bincount(triangles.ravel(), weights=np.repeat(area / 3.0, 3), minlength=len(vertices))
 
 
@@ -40,6 +44,5 @@ def pressed_areas(vertices: np.ndarray, pressed: np.ndarray, triangles: np.ndarr
     """(R,) the lumped areas (`lumped_areas`, m^2) of the `pressed` (R, V) vertices of R meshes (R, V, 3) m summed,
     from the triangles that touch a pressed vertex only (a contact patch is a small part of the skin)."""
     rows, touching = np.nonzero(counts := pressed[:, triangles].sum(axis=2))  # pressed corners (R, T)
-    p0, p1, p2 = (vertices[rows, triangles[touching, k]] for k in range(3))
-    area = 0.5 * np.linalg.norm(np.cross(p1 - p0, p2 - p0), axis=1)
+    area = triangle_areas(*(vertices[rows, triangles[touching, k]] for k in range(3)))
     return np.bincount(rows, weights=area * counts[rows, touching] / 3.0, minlength=len(vertices))

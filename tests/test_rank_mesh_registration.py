@@ -4,7 +4,7 @@ by more than the noise allows; finished there (`refit.finish_on_model_mesh`) the
 
 Measured before the finish (docs/analysis.md, session 25): this campaign's offset fitted (0.211, 0.314, 0.269) mm on
 the 2 mm mesh against the plant's (0.244, 0.293, 0.327) mm, 1.46x the noise on the 1 mm mesh: "unexplained". Drawn with
-seed 6 (0.413, 0.265, -0.144) mm, the coarse refit ends in another basin (9.0x) and the finish starts from the contact
+seed 6 (0.413, 0.265, -0.144) mm, the coarse refit ends at 9.0x on the 2 mm mesh and the finish starts from the contact
 onsets' estimate (4.76x); with the coarse columns only it ended at 1.44x, 2.26x held out, "unexplained" (session 26,
 before the finish took the model mesh's own columns once the coarse ones converge slowly)."""
 

@@ -5,6 +5,9 @@ executor maps are consumed on a lane while the driver solves, and the sensor fil
 Every lane of a campaign shares one `FirstFailure`: the first exception raised on any of them (or recorded by the
 driver) is the one the campaign ends with; later ones (often its consequences, such as a pool broken by it) are
 dropped, and a lane runs no further job once a failure is recorded.
+
+`thread_map` is the other way round: the calling thread waits while a pool of threads maps a function (the
+diagnosis's per-candidate stages, numpy over large arrays).
 """
 
 from __future__ import annotations

@@ -428,7 +428,9 @@ class Predictor:
         key = (model_key, trajectory.sensor_id, trajectory.trajectory_id, tips.round(12).tobytes())
         return _ReplayPlan(key, tips, events, timed, solved, skin.relaxation_time_s)
 
-    def _trajectory_path(self, trajectory: TrajectoryRecord, timed: bool) -> tuple:
+    def _trajectory_path(
+        self, trajectory: TrajectoryRecord, timed: bool
+    ) -> tuple[np.ndarray, np.ndarray, tuple[np.ndarray, np.ndarray], np.ndarray]:
         """What every model's replay plan of `trajectory` shares, worked out once per trajectory object: the commanded
         tip of each path index (m, biotac frame), the measured loads (`measured_loads`), the events (`solve_events`;
         timed: at the relaxation's interval) and which are solved (`held_solves`)."""

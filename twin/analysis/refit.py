@@ -45,6 +45,8 @@ leaves more than this fraction of the whitened RMS it started from: biased colum
 registration offset finished from 4.76x with 2 mm columns on a 1 mm campaign: 3.13x, 2.60x, 2.00x, 1.73x, 1.44x in
 its five steps; docs/analysis.md)."""
 FINISH_REACH = 5.0
+"""A finish's step is worth its wave when its linearisation predicts a residual within this factor of the noise test's
+RMS threshold (or one that keeps at most `FINISH_PROMISE` of the RMS it starts from)."""
 FINISH_PROMISE = 0.5
 """A finish takes a step only when the residual its linearisation predicts is within `FINISH_REACH` times the noise
 test's RMS threshold or at most `FINISH_PROMISE` times the whitened RMS it starts from: a fit that its own
@@ -168,8 +170,8 @@ def finish_on_model_mesh(
         last_rms = rms
 
     def jacobian(at: Parameters) -> np.ndarray:
-        on_own = (model, base) if own else (coarse, columns)
-        return linearise(effect, on_own[0], at.as_dict(), predictor, on_own[1]).jac
+        mesh_model, about = (model, base) if own else (coarse, columns)
+        return linearise(effect, mesh_model, at.as_dict(), predictor, about).jac
 
     misfit = _misfit(base, predictor, model, candidate.name)
     tried = [candidate.refit_parameters]

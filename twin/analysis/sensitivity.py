@@ -152,6 +152,9 @@ def sensitivities(
             costs[key] = base.nuisance.chi2(r - base.shifted(predictor, model.with_effects({effect.name: values})))
         return costs[key]
 
+    def costed(trials: list[tuple[Effect, dict[str, float]]]) -> None:  # each trial's `cost`, on threads, memoised
+        thread_map(lambda trial: cost(*trial), trials)
+
     def tries_starts(effect: Effect) -> bool:  # off in the model, with starts declared or from the data
         return effect.is_off(effect.values(model.effects.get(effect.name))) and bool(
             effect.starts or effect.name in DATA_STARTS
@@ -166,7 +169,7 @@ def sensitivities(
             if tries_starts(e)
             for t in declared_starts(e, lin.point)
         ]
-        thread_map(lambda trial: cost(*trial), starts)
+        costed(starts)
     trials: list[list[dict[str, float]]] = []
     columns_ahead: list[TwinModel] = []
     for i, (effect, lin) in enumerate(zip(effects, lins, strict=True)):
@@ -188,7 +191,7 @@ def sensitivities(
         columns_ahead += [m for t in [*first, *best_declared] for m in point_models(effect, model, t, ahead)]
     tried = [model.with_effects({e.name: t}) for e, ts in zip(effects, trials, strict=True) for t in ts]
     base.prefetch(predictor, [*tried, *columns_ahead])
-    thread_map(lambda trial: cost(*trial), [(e, t) for e, ts in zip(effects, trials, strict=True) for t in ts])
+    costed([(e, t) for e, ts in zip(effects, trials, strict=True) for t in ts])
     again: dict[int, dict[str, float]] = {}
     for i, (effect, ts) in enumerate(zip(effects, trials, strict=True)):
         if ts and (best := int(np.nanargmin([cost(effect, t) for t in ts]))) > 0:
