@@ -187,8 +187,7 @@ def test_a_prefetch_split_over_worker_processes_replays_bit_for_bit_like_one_run
     requests = [(m, data.trajectories) for m in models]
     one_run, threaded = Predictor("cpu", workers=1), Predictor("cpu", workers=3)
     assert one_run.workers == 1 and threaded.workers == 3
-    with pytest.raises(ValueError, match="CPU device only"):
-        Predictor("cuda", workers=2)
+    assert Predictor("cuda").workers == 1  # a GPU solves a batch in this process unless told otherwise
     done: list[tuple[int, int]] = []
     n = len(models) * len(data.trajectories)
     assert one_run.prefetch_many(requests) == threaded.prefetch_many(requests, lambda *d: done.append(d)) == n
@@ -217,12 +216,13 @@ def test_a_replay_worker_that_dies_is_one_clear_error_and_the_next_batch_starts_
     assert np.isfinite(predictor.predict(nominal, data.trajectories[0]).increment_force).all()
 
 
-def _job(skin: int, events: int) -> predict._ReplayJob:
-    """A replay job of skin number `skin` with `events` solves (only what `_shares` reads is real)."""
+def _job(skin: int, events: int, mesh: float = 2e-3) -> predict._ReplayJob:
+    """A replay job of skin number `skin` with `events` solves on fe mesh `mesh` (m) (only what `_shares` and
+    `_device_shares` read is real)."""
     times = (np.zeros(events), np.zeros(events))
-    key = ((skin,), 2e-3, "thickness")
+    key = ((skin,), mesh, "thickness")
     plan = predict._ReplayPlan(key, np.zeros((events, 3)), times, False, np.ones(events, bool), 1.0)
-    return predict._ReplayJob(SkinParameters(), 2e-3, "thickness", "sphere_small", np.eye(3), plan)
+    return predict._ReplayJob(SkinParameters(), mesh, "thickness", "sphere_small", np.eye(3), plan)
 
 
 def _each_once(shares: list[list[predict._ReplayJob]], jobs: list[predict._ReplayJob]) -> bool:
@@ -243,6 +243,21 @@ def test_a_batch_is_shared_out_by_whole_skins_when_there_are_enough_else_by_repl
     loads = [sum(job.events for job in share) for share in shares]
     assert abs(loads[0] - loads[1]) <= 5  # 261 solves: 132 and 129 (the longest first, each to the lighter share)
     assert [len(share) for share in predict._shares(few[:1], 4)] == [1]  # never an empty share
+
+
+def test_a_gpu_batch_is_shared_out_by_mesh_first_then_halved() -> None:
+    fine = [_job(skin, 40, 0.5e-3) for skin in range(3)]  # a mixed wave: the model mesh's replays and
+    coarse = [_job(skin, 30 + skin, 1e-3) for skin in range(3, 23)]  # the ranking mesh's columns
+    two = predict._device_shares(fine + coarse, 2)
+    assert _each_once(two, fine + coarse)
+    assert sorted(len(share) for share in two) == [3, 20]  # each mesh apart, side by side
+    assert all(len({job.mesh_max_edge for job in share}) == 1 for share in two)
+    three = predict._device_shares(fine + coarse, 3)  # the spare worker halves the larger mesh's share
+    assert _each_once(three, fine + coarse) and sorted(len(share) for share in three) == [3, 10, 10]
+    assert all(len({job.mesh_max_edge for job in share}) == 1 for share in three)
+    one = predict._device_shares(fine + coarse, 1)  # more meshes than workers: one share of every job
+    assert len(one) == 1 and _each_once(one, fine + coarse)
+    assert [len(share) for share in predict._device_shares(fine[:1], 4)] == [1]  # never an empty share
 
 
 def test_held_poses_are_solved_at_their_first_events_and_their_last() -> None:

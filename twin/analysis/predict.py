@@ -257,16 +257,36 @@ def _shares(jobs: list[_ReplayJob], parts: int) -> list[list[_ReplayJob]]:
     return shares
 
 
+def _device_shares(jobs: list[_ReplayJob], parts: int) -> list[list[_ReplayJob]]:
+    """The jobs of a GPU batch split into at most `parts` non-empty shares: each fe mesh's jobs apart (a batched run
+    on a GPU costs about its longest chain of solves on its mesh, so a wave's 0.5 mm and 1 mm replays run side by
+    side rather than one run after the other), then the share of most jobs halved (`_shares`) while parts are left
+    and it has two jobs or more. Meshes beyond `parts` join the share of fewest solves (events)."""
+    by_mesh: dict[float, list[_ReplayJob]] = {}
+    for job in jobs:
+        by_mesh.setdefault(job.mesh_max_edge, []).append(job)
+    meshes = sorted(by_mesh.values(), key=lambda share: -sum(job.events for job in share))
+    shares = meshes[:parts]
+    for rest in meshes[parts:]:
+        min(shares, key=lambda share: sum(job.events for job in share)).extend(rest)
+    while len(shares) < parts and max(len(share) for share in shares) > 1:
+        largest = max(shares, key=len)
+        shares.remove(largest)
+        shares += _shares(largest, 2)
+    return shares
+
+
 _WORKER: tuple[_ReplaySolver, Any] | None = None
 """In a replay worker process: its solver (models cached across the shares it solves) and the queue on which it
 tells each replay solved (`_start_worker`); None elsewhere."""
 
 
-def _start_worker(progress: Any) -> None:
-    """A replay worker process's initializer: its own CPU solver and the progress queue; the fe kernels loaded."""
+def _start_worker(progress: Any, device: str) -> None:
+    """A replay worker process's initializer: its own solver on warp `device` and the progress queue; the fe kernels
+    loaded."""
     global _WORKER
-    _WORKER = (_ReplaySolver("cpu"), progress)
-    wp.force_load(device="cpu")
+    _WORKER = (_ReplaySolver(device), progress)
+    wp.force_load(device=device)
 
 
 def _started() -> None:
@@ -301,22 +321,25 @@ def _solve_share(batch: int, jobs: list[_ReplayJob]) -> list[tuple[tuple, Replay
 
 
 class ReplayWorkers:
-    """Worker processes that solve shares of a batch of replays on warp's CPU device, each share one batched run
-    of its own: the fe kernels, the sparse factorisations and the Python between them all run at once (threads
-    shared Python's lock: the demo diagnosis kept 1.6 of 2 cores busy in threads, 1.75 here, 0.92x the wall time;
-    docs/scale.md, session 21). Each worker keeps its own cache of inflated models. Replays are the same bit for bit
-    however a batch is split (every system iterates on its own). Started once per process and count
-    (`replay_workers`), shut down at exit."""
+    """Worker processes that solve shares of a batch of replays on a warp device, each share one batched run of its
+    own. On the CPU (shares of about equal solves, `_shares`) the fe kernels, the sparse factorisations and the Python
+    between them all run at once (threads shared Python's lock: the demo diagnosis kept 1.6 of 2 cores busy in
+    threads, 1.75 here, 0.92x the wall time; docs/scale.md, session 21). On a GPU (each mesh's jobs apart,
+    `_device_shares`) each worker is a CUDA context of its own: the GPU interleaves their kernels while each waits on
+    its host. Each worker keeps its own cache of inflated models. Replays are the same bit for bit however a batch is
+    split (every system iterates on its own). Started once per process, count and device (`replay_workers`), shut
+    down at exit."""
 
-    def __init__(self, count: int) -> None:
+    def __init__(self, count: int, device: str = "cpu") -> None:
         context = multiprocessing.get_context("spawn")  # never fork a process that holds warp's state
         self._progress = context.Queue()
-        self._pool = ProcessPoolExecutor(count, context, initializer=_start_worker, initargs=(self._progress,))
+        initargs = (self._progress, device)
+        self._pool = ProcessPoolExecutor(count, context, initializer=_start_worker, initargs=initargs)
         with _main_hidden():
             for _ in range(count):  # each submit to a pool with no idle worker starts one
                 self._pool.submit(_started)
         self._batches = 0
-        self.count = count
+        self.count, self.device = count, device
 
     def solve(self, jobs: list[_ReplayJob], done: Callable[[tuple, Replay], None], told: Callable[[], None]) -> None:
         """Solve the jobs in up to `count` shares (`_shares`), done(key, replay) for each as its share returns and
@@ -325,7 +348,8 @@ class ReplayWorkers:
         self._batches += 1
         batch = self._batches
         try:
-            futures = [self._pool.submit(_solve_share, batch, share) for share in _shares(jobs, self.count)]
+            split = _shares if self.device == "cpu" else _device_shares
+            futures = [self._pool.submit(_solve_share, batch, share) for share in split(jobs, self.count)]
             heard = 0
             while not all(future.done() for future in futures) or heard < len(jobs):
                 try:
@@ -348,9 +372,9 @@ class ReplayWorkers:
 
 
 @cache
-def replay_workers(count: int) -> ReplayWorkers:
-    """This process's `count` replay worker processes (started at the first call)."""
-    return ReplayWorkers(count)
+def replay_workers(count: int, device: str = "cpu") -> ReplayWorkers:
+    """This process's `count` replay worker processes on warp `device` (started at the first call)."""
+    return ReplayWorkers(count, device)
 
 
 class Predictor:
@@ -363,10 +387,10 @@ class Predictor:
     `prefetch_many` those of many models, as the systems of one batched run (`fe.batched_runner`), which is
     how a GPU is kept busy and the per-round overhead of a run is paid once for them all.
 
-    On warp's CPU device a batch is split into `workers` shares of about equal work, each share batched runs in a
-    worker process of its own (`ReplayWorkers`; default: one per usable CPU, at most `DEFAULT_WORKERS_MAX`; 1: in
-    this process). Every system iterates on its own, so the replays are the same (bit for bit) whatever the
-    split. A GPU device runs one batch, in this process.
+    With `workers` > 1 a batch is split into that many shares, each share's batched runs in a worker process of its
+    own (`ReplayWorkers`): on warp's CPU device shares of about equal work (default: one worker per usable CPU, at
+    most `DEFAULT_WORKERS_MAX`), on a GPU each fe mesh's replays apart, then halved (default: 1, one batch in this
+    process). Every system iterates on its own, so the replays are the same (bit for bit) whatever the split.
 
     With `electrodes=False` replays read no electrodes (NaN counts) and predictions have no processed rows: for
     the residual's analyses (diagnose, improve), which compare force and PDC only; reading the 19 electrodes at
@@ -397,8 +421,6 @@ class Predictor:
         every event, as the plant solves them)."""
         self.on_replays = on_replays
         """Told (done, total) as each replay of a `prefetch_many` without its own `progress` is solved."""
-        if workers is not None and workers > 1 and device != "cpu":
-            raise ValueError(f"replays are split over worker processes on warp's CPU device only, not {device!r}")
         default = min(usable_cpus(), DEFAULT_WORKERS_MAX) if device == "cpu" else 1
         self.workers = max(1, workers if workers is not None else default)
         """Worker processes a batch is split over (see the class docstring); 1: solved in this process."""
@@ -498,7 +520,7 @@ class Predictor:
             self._replays[key] = replay
 
         if self.workers > 1 and len(work) > 1:
-            replay_workers(self.workers).solve(work, done, told)
+            replay_workers(self.workers, self.device).solve(work, done, told)
         elif work:
             self._solver.solve(work, lambda key, replay: (done(key, replay), told()))
         return len(work)
