@@ -187,7 +187,7 @@ def test_a_prefetch_split_over_worker_processes_replays_bit_for_bit_like_one_run
     requests = [(m, data.trajectories) for m in models]
     one_run, threaded = Predictor("cpu", workers=1), Predictor("cpu", workers=3)
     assert one_run.workers == 1 and threaded.workers == 3
-    assert Predictor("cuda").workers == 1  # a GPU solves a batch in this process unless told otherwise
+    assert Predictor("cuda").workers == predict.GPU_WORKERS and Predictor("cuda", workers=1).workers == 1
     done: list[tuple[int, int]] = []
     n = len(models) * len(data.trajectories)
     assert one_run.prefetch_many(requests) == threaded.prefetch_many(requests, lambda *d: done.append(d)) == n

@@ -52,6 +52,11 @@ from twin.processing import ProcessedRows, lowpass, process
 from twin.readout import SensorReadout, ft_load
 from twin.sim_backend import RELAXATION_SOLVE_INTERVAL_S
 
+GPU_WORKERS = 2
+"""Replay worker processes a GPU Predictor starts unless told (`_device_shares`): the paper diagnose (33 trajectories,
+0.5 mm, ranked on 1 mm) took 296.2 s with two against 323.7 s in one process on one H200 (2026-11-28, 98c19f4): its
+first wave (the 0.5 mm base beside the 1 mm columns) 62.9 against 78.0 s, its largest 1 mm wave (660 replays, halved)
+43.8 against 59.7 s, its 1 mm waves of 198-359 replays and its last mixed wave (99) no faster (docs/scale.md)."""
 MODEL_CACHE_SIZE = 24
 """Inflated fe models a Predictor keeps (first built dropped first); replays, small arrays, are all kept."""
 DEFAULT_WORKERS_MAX = 8
@@ -389,8 +394,9 @@ class Predictor:
 
     With `workers` > 1 a batch is split into that many shares, each share's batched runs in a worker process of its
     own (`ReplayWorkers`): on warp's CPU device shares of about equal work (default: one worker per usable CPU, at
-    most `DEFAULT_WORKERS_MAX`), on a GPU each fe mesh's replays apart, then halved (default: 1, one batch in this
-    process). Every system iterates on its own, so the replays are the same (bit for bit) whatever the split.
+    most `DEFAULT_WORKERS_MAX`), on a GPU each fe mesh's replays apart, then halved (default: `GPU_WORKERS`). Every
+    system iterates on its own, so on warp's CPU device the replays are the same (bit for bit) whatever the split (on a
+    GPU, to the engine's run-to-run round-off).
 
     With `electrodes=False` replays read no electrodes (NaN counts) and predictions have no processed rows: for
     the residual's analyses (diagnose, improve), which compare force and PDC only; reading the 19 electrodes at
@@ -421,7 +427,7 @@ class Predictor:
         every event, as the plant solves them)."""
         self.on_replays = on_replays
         """Told (done, total) as each replay of a `prefetch_many` without its own `progress` is solved."""
-        default = min(usable_cpus(), DEFAULT_WORKERS_MAX) if device == "cpu" else 1
+        default = min(usable_cpus(), DEFAULT_WORKERS_MAX) if device == "cpu" else GPU_WORKERS
         self.workers = max(1, workers if workers is not None else default)
         """Worker processes a batch is split over (see the class docstring); 1: solved in this process."""
         self._solver = _ReplaySolver(device)
