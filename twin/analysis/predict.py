@@ -17,10 +17,11 @@ import json
 import multiprocessing
 import queue
 import sys
+import threading
 from collections.abc import Callable, Iterable, Iterator, Sequence
 from concurrent.futures import ProcessPoolExecutor
 from concurrent.futures.process import BrokenProcessPool
-from contextlib import contextmanager
+from contextlib import AbstractContextManager, contextmanager, nullcontext
 from dataclasses import asdict, dataclass, field, replace
 from functools import cache
 from types import ModuleType
@@ -187,12 +188,18 @@ class _ReplaySolver:
 
     def __init__(self, device: str) -> None:
         self.device = device
+        self.exclusive: AbstractContextManager = nullcontext() if device == "cpu" else threading.RLock()
+        """Held while a thread drives a GPU (inflation, a batched run, a single replay): warp keeps one current stream
+        a device, not a thread, so two threads' solves would share it (a graph captured on it by one while the other
+        launches: "unknown stream"); the analyses' threaded stages read cached replays, and one that is not is then
+        solved in turn. Threads on warp's CPU device solve at once."""
         self._readouts: dict[int, SensorReadout] = {}
         self._models = ModelCache(MODEL_CACHE_SIZE, on_drop=lambda model: self._readouts.pop(id(model), None))
 
     def inflated(self, skin: SkinParameters, mesh_max_edge: float, inflation: str) -> tuple:
         """(fe model, its InflationResult) for these parameters (built once); raises if it did not inflate."""
-        model, result = self._models.get(skin, mesh_max_edge, inflation)
+        with self.exclusive:
+            model, result = self._models.get(skin, mesh_max_edge, inflation)
         if not result.converged:
             raise RuntimeError(f"the model did not inflate for {skin}: {result.message}")
         return model, result
@@ -210,19 +217,20 @@ class _ReplaySolver:
         is timed, and each elastic replay is given its events' times, which a skin that does not relax ignores
         (its solves are those of an untimed run, tests/test_batched_replay.py): on a GPU the elastic replays then
         share the run's slots with the relaxing ones instead of waiting for them."""
-        fes = {job.model_key: self.inflated(job.skin, job.mesh_max_edge, job.inflation)[0] for job in jobs}
-        groups: list[list[_ReplayJob]] = []
-        for job in sorted(jobs, key=lambda job: -job.events):
-            fe = fes[job.model_key]
+        with self.exclusive:
+            fes = {job.model_key: self.inflated(job.skin, job.mesh_max_edge, job.inflation)[0] for job in jobs}
+            groups: list[list[_ReplayJob]] = []
+            for job in sorted(jobs, key=lambda job: -job.events):
+                fe = fes[job.model_key]
+                for group in groups:
+                    first = fes[group[0].model_key]
+                    if first is fe or can_share_batch(first.inflated_skin(), fe.inflated_skin()):
+                        group.append(job)
+                        break
+                else:
+                    groups.append([job])
             for group in groups:
-                first = fes[group[0].model_key]
-                if first is fe or can_share_batch(first.inflated_skin(), fe.inflated_skin()):
-                    group.append(job)
-                    break
-            else:
-                groups.append([job])
-        for group in groups:
-            self._run(group, [fes[job.model_key] for job in group], done)
+                self._run(group, [fes[job.model_key] for job in group], done)
 
     def _run(self, jobs: list[_ReplayJob], fes: list[BioTacModel], done: Callable[[tuple, Replay], None]) -> None:
         """One batched run of `jobs` (their fe models `fes`)."""
@@ -553,10 +561,12 @@ class Predictor:
             raise ValueError("this predictor reads no electrodes (electrodes=False): ask for predictions without rows")
         plan = self._plan(model, trajectory)
         if plan.key not in self._replays:
-            fe = self._model_fe(model)
-            stepper = fe.stepper(trajectory.indenter, self.device)
-            times, indices = plan.solves
-            increments = step_through(stepper, trajectory.rotation, plan.tips[indices], times if plan.timed else None)
+            with self._solver.exclusive:
+                fe = self._model_fe(model)
+                stepper = fe.stepper(trajectory.indenter, self.device)
+                times, indices = plan.solves
+                tips, at = plan.tips[indices], times if plan.timed else None
+                increments = step_through(stepper, trajectory.rotation, tips, at)
             self._replays[plan.key] = _replay_of(self.readout(fe), plan, increments, self.electrodes)
         replay = self._replays[plan.key]
         tips, raw = plan.tips, trajectory.raw
