@@ -339,9 +339,9 @@ class ReplayWorkers:
     between them all run at once (threads shared Python's lock: the demo diagnosis kept 1.6 of 2 cores busy in
     threads, 1.75 here, 0.92x the wall time; docs/scale.md, session 21). On a GPU (each mesh's jobs apart,
     `_device_shares`) each worker is a CUDA context of its own: the GPU interleaves their kernels while each waits on
-    its host. Each worker keeps its own cache of inflated models. Replays are the same bit for bit however a batch is
-    split (every system iterates on its own). Started once per process, count and device (`replay_workers`), shut
-    down at exit."""
+    its host. Each worker keeps its own cache of inflated models. Every system iterates on its own, so however a batch
+    is split the replays are the same, bit for bit on the CPU (on a GPU to its run-to-run round-off: CUDA's sums have
+    no fixed order). Started once per process, count and device (`replay_workers`), shut down at exit."""
 
     def __init__(self, count: int, device: str = "cpu") -> None:
         context = multiprocessing.get_context("spawn")  # never fork a process that holds warp's state
