@@ -45,17 +45,22 @@ def heldout(effect: Effect, lin: Linearisation, r: np.ndarray, folds: np.ndarray
     folds predicts each left-out one. (whitened RMS of the left-out residuals, those residuals (N,), NaN where no
     prediction); (None, all NaN) with fewer than two folds: nothing is held out."""
     target = r - lin.offset
-    groups = np.unique(folds)
-    if len(groups) < 2:
+    order = np.argsort(folds, kind="stable")  # each fold's rows contiguous, in their own order: slices, not masks
+    ordered = folds[order]
+    edges = np.flatnonzero(ordered[1:] != ordered[:-1]) + 1
+    if len(edges) < 1:
         return None, np.full_like(target, np.nan)
-    left_out = np.full_like(target, np.nan)
-    tests = [folds == g for g in groups]
-    parts = [reduced(lin.jac[test], target[test]) for test in tests]  # each fold's rows reduced once
-    for k, test in enumerate(tests):
+    jac, target = lin.jac[order], target[order]
+    blocks = [slice(a, b) for a, b in zip((0, *edges), (*edges, len(order)), strict=True)]
+    parts = [reduced(jac[block], target[block]) for block in blocks]  # each fold's rows reduced once
+    left_out = np.empty_like(target)
+    for k, block in enumerate(blocks):
         others = [part for j, part in enumerate(parts) if j != k]
         delta = linear_fit(effect, lin.point, np.vstack([m for m, _ in others]), np.concatenate([t for _, t in others]))
-        left_out[test] = target[test] - lin.jac[test] @ delta
-    return whitened_rms(left_out), left_out
+        left_out[block] = target[block] - jac[block] @ delta
+    unsorted = np.empty_like(left_out)
+    unsorted[order] = left_out
+    return whitened_rms(unsorted), unsorted
 
 
 def judge_heldout(
