@@ -186,8 +186,10 @@ def recentred(values: np.ndarray, group: np.ndarray) -> np.ndarray:
     """`values` (N,) less, in each group (non-negative integer labels, N,), the mean of its finite entries; NaN
     entries stay NaN (a no-op, to round-off, on groups whose finite entries already have zero mean)."""
     finite = np.isfinite(values)
-    sums = np.bincount(group[finite], weights=values[finite], minlength=int(group.max()) + 1)
-    counts = np.bincount(group[finite], minlength=len(sums))
+    keep = slice(None) if finite.all() else finite  # views when every entry is finite, else copies of those only
+    kept = group[keep]
+    sums = np.bincount(kept, weights=values[keep], minlength=int(group.max()) + 1)
+    counts = np.bincount(kept, minlength=len(sums))
     return values - np.divide(sums, counts, out=np.zeros_like(sums), where=counts > 0)[group]
 
 
