@@ -50,17 +50,15 @@ def heldout(effect: Effect, lin: Linearisation, r: np.ndarray, folds: np.ndarray
     edges = np.flatnonzero(ordered[1:] != ordered[:-1]) + 1
     if len(edges) < 1:
         return None, np.full_like(target, np.nan)
-    jac, target = lin.jac[order], target[order]
+    jac, fold_target = lin.jac[order], target[order]
     blocks = [slice(a, b) for a, b in zip((0, *edges), (*edges, len(order)), strict=True)]
-    parts = [reduced(jac[block], target[block]) for block in blocks]  # each fold's rows reduced once
+    parts = [reduced(jac[block], fold_target[block]) for block in blocks]  # each fold's rows reduced once
     left_out = np.empty_like(target)
     for k, block in enumerate(blocks):
         others = [part for j, part in enumerate(parts) if j != k]
         delta = linear_fit(effect, lin.point, np.vstack([m for m, _ in others]), np.concatenate([t for _, t in others]))
-        left_out[block] = target[block] - jac[block] @ delta
-    unsorted = np.empty_like(left_out)
-    unsorted[order] = left_out
-    return whitened_rms(unsorted), unsorted
+        left_out[order[block]] = fold_target[block] - jac[block] @ delta
+    return whitened_rms(left_out), left_out
 
 
 def judge_heldout(

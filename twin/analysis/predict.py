@@ -253,6 +253,11 @@ class _ReplaySolver:
         )
 
 
+def _solves(jobs: list[_ReplayJob]) -> int:
+    """The fe solves (events) of these jobs together."""
+    return sum(job.events for job in jobs)
+
+
 def _shares(jobs: list[_ReplayJob], parts: int) -> list[list[_ReplayJob]]:
     """The jobs split into at most `parts` non-empty shares of about equal solves (events): units, the longest
     first, each go to the share with the fewest events so far. A unit is all the jobs of one skin when there are
@@ -263,10 +268,10 @@ def _shares(jobs: list[_ReplayJob], parts: int) -> list[list[_ReplayJob]]:
     units = list(by_model.values()) if len(by_model) >= 2 * parts else [[job] for job in jobs]
     shares: list[list[_ReplayJob]] = [[] for _ in range(min(parts, len(units)))]
     events = [0] * len(shares)
-    for unit in sorted(units, key=lambda unit: -sum(job.events for job in unit)):
+    for unit in sorted(units, key=lambda unit: -_solves(unit)):
         least = events.index(min(events))
         shares[least].extend(unit)
-        events[least] += sum(job.events for job in unit)
+        events[least] += _solves(unit)
     return shares
 
 
@@ -278,10 +283,10 @@ def _device_shares(jobs: list[_ReplayJob], parts: int) -> list[list[_ReplayJob]]
     by_mesh: dict[float, list[_ReplayJob]] = {}
     for job in jobs:
         by_mesh.setdefault(job.mesh_max_edge, []).append(job)
-    meshes = sorted(by_mesh.values(), key=lambda share: -sum(job.events for job in share))
+    meshes = sorted(by_mesh.values(), key=lambda share: -_solves(share))
     shares = meshes[:parts]
     for rest in meshes[parts:]:
-        min(shares, key=lambda share: sum(job.events for job in share)).extend(rest)
+        min(shares, key=_solves).extend(rest)
     while len(shares) < parts and max(len(share) for share in shares) > 1:
         largest = max(shares, key=len)
         shares.remove(largest)
