@@ -57,7 +57,8 @@ GPU_WORKERS = 2
 """Replay worker processes a GPU Predictor starts unless told (`_device_shares`): the paper diagnose (33 trajectories,
 0.5 mm, ranked on 1 mm) took 296.2 s with two against 323.7 s in one process on one H200 (2026-11-28, 98c19f4): its
 first wave (the 0.5 mm base beside the 1 mm columns) 62.9 against 78.0 s, its largest 1 mm wave (660 replays, halved)
-43.8 against 59.7 s, its 1 mm waves of 198-359 replays and its last mixed wave (99) no faster (docs/scale.md)."""
+43.8 against 59.7 s, its 1 mm waves of 198-359 replays and its last mixed wave (99) no faster; three took 318.2 s
+(the GPU runs one context at a time, so the last wave's chain-bound 0.5 mm share waited behind two; docs/scale.md)."""
 MODEL_CACHE_SIZE = 24
 """Inflated fe models a Predictor keeps (first built dropped first); replays, small arrays, are all kept."""
 DEFAULT_WORKERS_MAX = 8
