@@ -79,6 +79,10 @@ ITERATIONS = 4
 """Gauss-Newton iterations of one fit (each a finite-difference sensitivity: one replay set per parameter)."""
 BACKTRACKS = 2
 """Halvings of a step that does not lower the cost."""
+REFITS_ON_REACHED = 2
+"""Times the fit is taken again, from its values and on the residual they reach, when those values reach samples
+the residual it was fitted on did not (a replay that stopped early, e.g. a nominal model pressing too deep for its
+fe to converge, leaves the rest of its trajectory out of that fit's chi-square)."""
 USABLE_ROWS = 0.9
 """A sensitivity column whose replay reached fewer than this fraction of the samples is not used."""
 CONFOUNDED_FRACTION = 0.9
@@ -277,14 +281,16 @@ def fit_nuisances(
     nominal = base_residual(datasets, model, predictor)
     slots = nuisance_slots(nominal.trajectories)
     prior = model_values(slots, model)
-    fitted = _gauss_newton(nominal, model, predictor, prior, prior, report)
-    if not (np.isfinite(fitted.cost) and nominal.noise_test(fitted.residual, len(slots)).is_noise):
-        report("registration starts")
-        starts = _best_starts(nominal, model, predictor, prior.at(fitted.parameters), fitted.residual)
-        fitted = min(fitted, _gauss_newton(nominal, model, predictor, starts, prior, report), key=lambda f: f.cost)
-    values = prior.at(fitted.parameters)
-    base = base_residual(datasets, model, predictor, values.model_for, len(slots), nominal.sigma)
-    same_samples = all(np.array_equal(a, b) for a, b in zip(base.masks, nominal.masks, strict=True))
+    fitted_on, start = nominal, prior
+    for refits in range(REFITS_ON_REACHED + 1):
+        fitted = _fit(fitted_on, model, predictor, start, prior, report)
+        values = prior.at(fitted.parameters)
+        base = base_residual(datasets, model, predictor, values.model_for, len(slots), nominal.sigma)
+        if _samples(base) <= _samples(fitted_on) or refits == REFITS_ON_REACHED:
+            break
+        report(f"fitted again on the {_samples(base) - _samples(fitted_on)} samples its values reach besides")
+        fitted_on, start = base, values
+    same_samples = all(np.array_equal(a, b) for a, b in zip(base.masks, fitted_on.masks, strict=True))
     jac = fitted.jacobian
     if jac is None or not same_samples:
         jac = _jacobian(base, model, predictor, values)
@@ -301,6 +307,29 @@ def fit_nuisances(
         _correlation(jac, values),
         list(fitted.at_bound),
     )
+
+
+def _fit(
+    base: Base,
+    model: TwinModel,
+    predictor: Predictor,
+    start: NuisanceValues,
+    prior: NuisanceValues,
+    report: Callable[[str], None],
+) -> Fit:
+    """Gauss-Newton (`_gauss_newton`) from `start` on `base`'s residual; when it does not reach the noise, again from
+    the registration starts about it (`_best_starts`, each arm its best), the fit of lower cost kept."""
+    fitted = _gauss_newton(base, model, predictor, start, prior, report)
+    if not (np.isfinite(fitted.cost) and base.noise_test(fitted.residual, len(start.slots)).is_noise):
+        report("registration starts")
+        starts = _best_starts(base, model, predictor, prior.at(fitted.parameters), fitted.residual)
+        fitted = min(fitted, _gauss_newton(base, model, predictor, starts, prior, report), key=lambda f: f.cost)
+    return fitted
+
+
+def _samples(base: Base) -> int:
+    """Samples (of every trajectory) `base`'s model reached."""
+    return sum(int(mask.sum()) for mask in base.masks)
 
 
 def _shifted(base: Base, model: TwinModel, predictor: Predictor, values: NuisanceValues) -> np.ndarray:
