@@ -117,7 +117,8 @@ class Uncertainty:
 
     covariance: (p, p) in the parameters' units; std: (p,) 1-sigma; correlation: (p, p) (0 where a
     parameter has no variance); condition: largest over smallest eigenvalue of the scaled J^T J (prior left
-    out); variance: "unit" (whitened residual) or "residual" (s^2 = |r|^2 / (n - p))."""
+    out; infinite where the data do not see a direction); variance: "unit" (whitened residual) or "residual"
+    (s^2 = |r|^2 / (n - p))."""
 
     covariance: np.ndarray
     std: np.ndarray
@@ -143,7 +144,10 @@ def uncertainty(
     scaled = jac[rows] * scale
     information = scaled.T @ scaled
     eig = np.linalg.eigvalsh(information)
-    condition = float(eig[-1] / max(eig[0], 1e-300)) if len(eig) else float("nan")
+    if not len(eig):
+        condition = float("nan")
+    else:  # a direction the data do not see at all (eigenvalue 0, or round-off below it): infinite
+        condition = float(eig[-1] / eig[0]) if eig[0] > eig[-1] * 1e-300 else float("inf")
     if prior_sigma is not None:
         information = information + np.diag((scale / prior_sigma) ** 2)
     variance = 1.0

@@ -24,14 +24,16 @@ residual (`twin.analysis.residual`), as is each sensor's PDC gain: those nuisanc
 mount's pose is what registration measures (its holes); what registration gets wrong of it is the
 per-arm offset.
 
-The fit is damped Gauss-Newton on the whitened residual with a Gaussian prior on each nuisance about the
-model's own value (`PRIORS`, wide: about twice the spread a real campaign shows), finite-difference
-sensitivities (a registration column replays only that arm's trajectories), and, when the result is not
-yet at the noise, the registration tried again from `REGISTRATION_STARTS` (each arm picks its best)
-because a large offset is nonlinear. Whether the nuisances explain the data is judged held out: each
-trajectory is predicted by the nuisances fitted (linearised at the fit) without it. Which candidate
-effects the campaign cannot tell apart from the nuisances is the fraction of each effect's signature that
-lies in the span of the nuisances' signatures (`confounded`).
+The fit is damped Gauss-Newton on the whitened residual with a Gaussian prior on each nuisance about the model's own
+value (`PRIORS`, wide: about twice the spread a real campaign shows), finite-difference sensitivities (a
+registration column replays only that arm's trajectories), and, when the result is not yet at the noise, the
+registration tried again from `REGISTRATION_STARTS` (each arm picks its best) because a large offset is nonlinear. A
+fit is judged on the samples its residual's replays reached; when its values reach more (a nominal model pressing
+deeper than the plant may stop where its fe does not converge), it is taken again on the residual at those values,
+so no sample the fitted model predicts is left out of the fit. Whether the nuisances explain the data is judged held
+out: each trajectory is predicted by the nuisances fitted (linearised at the fit) without it. Which candidate
+effects the campaign cannot tell apart from the nuisances is the fraction of each effect's signature that lies in
+the span of the nuisances' signatures (`confounded`).
 """
 
 from __future__ import annotations
