@@ -55,7 +55,7 @@ from twin.analysis.heldout import (
 from twin.analysis.lockstep import run_in_lockstep
 from twin.analysis.nuisances import NUISANCE_EFFECTS, fit_nuisances
 from twin.analysis.predict import Predictor, TwinModel
-from twin.analysis.refit import finish_on_model_mesh, refit
+from twin.analysis.refit import finish_on_model_mesh, refit, refit_on_reached
 from twin.analysis.residual import CHANNELS, Base, Residual, base_residual
 from twin.analysis.rows_only import RAW_ONLY_EFFECTS
 from twin.analysis.sensitivity import (
@@ -326,6 +326,8 @@ def diagnose(
                 for c, lin in chosen
             ]
             run_in_lockstep(predictor, finishes)
+        # each fit that reaches samples the model without it did not, fitted again on all it reaches
+        run_in_lockstep(predictor, [partial(refit_on_reached, c, model, base=base) for c, _ in chosen])
         # the held-out judgements in one batch: about each fit on the model's mesh, columns on the ranking mesh
         columns = rank_model if rank_model != model else None
         base.prefetch(predictor, judgement_models([c for c, _ in chosen], model, columns))

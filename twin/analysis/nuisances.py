@@ -288,9 +288,9 @@ def fit_nuisances(
         fitted = _fit(fitted_on, model, predictor, start, prior, report)
         values = prior.at(fitted.parameters)
         base = base_residual(datasets, model, predictor, values.model_for, len(slots), nominal.sigma)
-        if _samples(base) <= _samples(fitted_on) or refits == REFITS_ON_REACHED:
+        if base.reached <= fitted_on.reached or refits == REFITS_ON_REACHED:
             break
-        report(f"fitted again on the {_samples(base) - _samples(fitted_on)} samples its values reach besides")
+        report(f"fitted again on the {base.reached - fitted_on.reached} samples its values reach besides")
         fitted_on, start = base, values
     same_samples = all(np.array_equal(a, b) for a, b in zip(base.masks, fitted_on.masks, strict=True))
     jac = fitted.jacobian
@@ -327,11 +327,6 @@ def _fit(
         starts = _best_starts(base, model, predictor, prior.at(fitted.parameters), fitted.residual)
         fitted = min(fitted, _gauss_newton(base, model, predictor, starts, prior, report), key=lambda f: f.cost)
     return fitted
-
-
-def _samples(base: Base) -> int:
-    """Samples (of every trajectory) `base`'s model reached."""
-    return sum(int(mask.sum()) for mask in base.masks)
 
 
 def _shifted(base: Base, model: TwinModel, predictor: Predictor, values: NuisanceValues) -> np.ndarray:

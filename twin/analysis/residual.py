@@ -225,6 +225,16 @@ class Base:
     model_for: ModelFor = same_model
     fitted: int = 0
 
+    @property
+    def reached(self) -> int:
+        """Samples (of every trajectory) this residual's model reached."""
+        return sum(int(mask.sum()) for mask in self.masks)
+
+    def reaching(self, predictor: Predictor, model: TwinModel) -> Base:
+        """The residual of `model` (each trajectory by `model_for`) on every sample it reaches, this residual's noise
+        and fitted count kept (`about` keeps this residual's samples)."""
+        return residual_of(self.trajectories, model, predictor, self.model_for, self.fitted, self.sigma)
+
     def with_prediction(self, prediction: np.ndarray) -> Base:
         """This residual about another model whose whitened, offset-projected prediction on these samples is
         `prediction` (N,; NaN where its replay failed): the data less it, each sensor's PDC gain profiled about
@@ -302,6 +312,18 @@ def base_residual(
     trajectories = [t for d in datasets for t in d.trajectories]
     if not trajectories:
         raise ValueError("the datasets hold no trajectories")
+    return residual_of(trajectories, model, predictor, model_for, fitted, sigma)
+
+
+def residual_of(
+    trajectories: list[TrajectoryRecord],
+    model: TwinModel,
+    predictor: Predictor,
+    model_for: ModelFor = same_model,
+    fitted: int = 0,
+    sigma: np.ndarray | None = None,
+) -> Base:
+    """`base_residual` of these trajectories."""
     if sigma is None:
         sigma = noise_sigma(trajectories)
     predicted = fullrate_prediction(predictor, model, trajectories, model_for)
