@@ -56,3 +56,5 @@ def test_a_refit_covers_the_samples_its_values_reach(offset_at_paper_depth: Path
     at_fit = base_residual([data], model.with_effects({REGISTRATION: fitted}), predictor, sigma=nominal.sigma)
     assert at_fit.reached == samples, "the fitted model must reach every sample"
     assert np.sqrt(np.mean(at_fit.residual.values**2)) <= found.rms_threshold
+    assert found.samples == {"reached": nominal.reached, "of": samples}
+    assert f"reached {nominal.reached} of the data's {samples} samples" in found.reason

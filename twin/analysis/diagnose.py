@@ -96,6 +96,7 @@ class Diagnosis:
     ranked_on: dict | None = None  # the trajectories that ranked the candidates (`subset.RankedOn`); None: all
     sampled: dict | None = None  # the trajectories diagnosed (`subset.RankedOn`), every stage; None: all
     ranked_mesh: float | None = None  # fe mesh (m) the candidates were ranked and refitted on; None: the model's
+    samples: dict | None = None  # {"reached": residual samples the base model's replays reached, "of": the data's}
 
     def to_dict(self) -> dict:
         """JSON-ready form (the `twin diagnose --json` shape)."""
@@ -111,6 +112,7 @@ class Diagnosis:
             "ranked_on": self.ranked_on,
             "sampled": self.sampled,
             "ranked_mesh_mm": None if self.ranked_mesh is None else 1e3 * self.ranked_mesh,
+            "samples": self.samples,
         }
 
     def next_step(self) -> Candidate | None:
@@ -355,6 +357,12 @@ def diagnose(
             )
     if cannot_tell:
         reason += f"; these data cannot tell {', '.join(fitted.cannot_tell_apart())} from the nuisances"
+    samples = {"reached": base.reached, "of": base.samples}
+    if samples["reached"] < samples["of"]:
+        reason += (
+            f"; the model's replays reached {samples['reached']} of the data's {samples['of']} samples (a replay stops "
+            "at an fe increment that does not converge): its residual and the ranking cover those only"
+        )
     summary = fitted.to_dict() if fitted is not None else None
     return Diagnosis(
         base_rms,
@@ -368,6 +376,7 @@ def diagnose(
         ranked_on.to_dict() if ranked_on is not None else None,
         sampled_on.to_dict() if sampled_on is not None else None,
         rank_mesh,
+        samples,
     )
 
 

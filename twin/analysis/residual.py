@@ -230,6 +230,11 @@ class Base:
         """Samples (of every trajectory) this residual's model reached."""
         return sum(int(mask.sum()) for mask in self.masks)
 
+    @property
+    def samples(self) -> int:
+        """Residual samples the data hold (`residual_samples`, every trajectory), reached by its model or not."""
+        return sum(int(residual_samples(t).sum()) for t in self.trajectories)
+
     def reaching(self, predictor: Predictor, model: TwinModel) -> Base:
         """The residual of `model` (each trajectory by `model_for`) on every sample it reaches, this residual's noise
         and fitted count kept (`about` keeps this residual's samples)."""

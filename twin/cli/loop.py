@@ -169,6 +169,11 @@ def diagnose(
     out_console.print(
         f"residual RMS = {result.base_rms:.2f} x noise (noise test: {result.rms_threshold:.3f} x noise on these data)"
     )
+    if (samples := result.samples) is not None and samples["reached"] < samples["of"]:
+        out_console.print(
+            f"the model's replays reached {samples['reached']} of the data's {samples['of']} samples (an fe increment "
+            "that does not converge stops a replay): its residual and the ranking cover those only"
+        )
     if result.nuisances is not None:
         _print_nuisances(result.nuisances)
     if (on := result.sampled) is not None:
