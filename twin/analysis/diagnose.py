@@ -328,10 +328,12 @@ def diagnose(
                 for c, lin in chosen
             ]
             run_in_lockstep(predictor, finishes)
-        # each fit that reaches samples the model without it did not, fitted again on all it reaches
-        run_in_lockstep(predictor, [partial(refit_on_reached, c, model, base=base) for c, _ in chosen])
-        # the held-out judgements in one batch: about each fit on the model's mesh, columns on the ranking mesh
+        # the held-out judgements' replays in one batch: about each fit on the model's mesh, columns on the ranking mesh
         columns = rank_model if rank_model != model else None
+        base.prefetch(predictor, judgement_models([c for c, _ in chosen], model, columns))
+        # each fit that reaches samples the model without it did not, fitted again on all it reaches (then its
+        # judgement's replays are solved anew; none when no fit reaches more)
+        run_in_lockstep(predictor, [partial(refit_on_reached, c, model, base=base) for c, _ in chosen])
         base.prefetch(predictor, judgement_models([c for c, _ in chosen], model, columns))
         judged = thread_map(lambda c: judge_heldout(c, model, predictor, base, columns), [c for c, _ in chosen])
         for (candidate, _), about_fit in zip(chosen, judged, strict=True):
