@@ -285,7 +285,12 @@ def fit_nuisances(
     prior = model_values(slots, model)
     fitted_on, start = nominal, prior
     for refits in range(REFITS_ON_REACHED + 1):
-        fitted = _fit(fitted_on, model, predictor, start, prior, report)
+        fitted = _gauss_newton(fitted_on, model, predictor, start, prior, report)
+        if not (np.isfinite(fitted.cost) and fitted_on.noise_test(fitted.residual, len(slots)).is_noise):
+            report("registration starts")  # each arm its best start about the fit, and the fit of lower cost kept
+            starts = _best_starts(fitted_on, model, predictor, prior.at(fitted.parameters), fitted.residual)
+            again = _gauss_newton(fitted_on, model, predictor, starts, prior, report)
+            fitted = min(fitted, again, key=lambda f: f.cost)
         values = prior.at(fitted.parameters)
         base = base_residual(datasets, model, predictor, values.model_for, len(slots), nominal.sigma)
         if base.reached <= fitted_on.reached or refits == REFITS_ON_REACHED:
@@ -309,24 +314,6 @@ def fit_nuisances(
         _correlation(jac, values),
         list(fitted.at_bound),
     )
-
-
-def _fit(
-    base: Base,
-    model: TwinModel,
-    predictor: Predictor,
-    start: NuisanceValues,
-    prior: NuisanceValues,
-    report: Callable[[str], None],
-) -> Fit:
-    """Gauss-Newton (`_gauss_newton`) from `start` on `base`'s residual; when it does not reach the noise, again from
-    the registration starts about it (`_best_starts`, each arm its best), the fit of lower cost kept."""
-    fitted = _gauss_newton(base, model, predictor, start, prior, report)
-    if not (np.isfinite(fitted.cost) and base.noise_test(fitted.residual, len(start.slots)).is_noise):
-        report("registration starts")
-        starts = _best_starts(base, model, predictor, prior.at(fitted.parameters), fitted.residual)
-        fitted = min(fitted, _gauss_newton(base, model, predictor, starts, prior, report), key=lambda f: f.cost)
-    return fitted
 
 
 def _shifted(base: Base, model: TwinModel, predictor: Predictor, values: NuisanceValues) -> np.ndarray:

@@ -238,7 +238,8 @@ class Base:
     def reaching(self, predictor: Predictor, model: TwinModel) -> Base:
         """The residual of `model` (each trajectory by `model_for`) on every sample it reaches, this residual's noise
         and fitted count kept (`about` keeps this residual's samples)."""
-        return residual_of(self.trajectories, model, predictor, self.model_for, self.fitted, self.sigma)
+        predicted = fullrate_prediction(predictor, model, self.trajectories, self.model_for)
+        return residual_about(self.trajectories, predicted, self.sigma, self.model_for, self.fitted)
 
     def with_prediction(self, prediction: np.ndarray) -> Base:
         """This residual about another model whose whitened, offset-projected prediction on these samples is
@@ -317,21 +318,21 @@ def base_residual(
     trajectories = [t for d in datasets for t in d.trajectories]
     if not trajectories:
         raise ValueError("the datasets hold no trajectories")
-    return residual_of(trajectories, model, predictor, model_for, fitted, sigma)
-
-
-def residual_of(
-    trajectories: list[TrajectoryRecord],
-    model: TwinModel,
-    predictor: Predictor,
-    model_for: ModelFor = same_model,
-    fitted: int = 0,
-    sigma: np.ndarray | None = None,
-) -> Base:
-    """`base_residual` of these trajectories."""
     if sigma is None:
         sigma = noise_sigma(trajectories)
     predicted = fullrate_prediction(predictor, model, trajectories, model_for)
+    return residual_about(trajectories, predicted, sigma, model_for, fitted)
+
+
+def residual_about(
+    trajectories: list[TrajectoryRecord],
+    predicted: list[np.ndarray],
+    sigma: np.ndarray,
+    model_for: ModelFor,
+    fitted: int,
+) -> Base:
+    """The `Base` of these trajectories about the full-rate predictions `predicted` (`fullrate_prediction`'s form),
+    on every sample a prediction reached."""
     residual, masks = build_residual(trajectories, predicted, sigma)
     base = whitened(predicted, masks, sigma)
     nuisance = GainNuisance(base, residual.covariates["axis"], residual.covariates["sensor"])
