@@ -256,3 +256,23 @@ def test_the_declared_starts_are_known_before_any_residual_and_tried_only_for_ef
     assert len(offsets) == len(registration.starts), "each start its own model"
     on = model.with_effects({"registration_offset": {"dx": 1e-4, "dy": 0.0, "dz": 0.0}})
     assert start_models([registration], on) == []
+
+
+def test_diagnose_says_when_the_models_replays_reached_part_of_the_samples(
+    fake_inputs: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """A replay stops at an fe increment that does not converge: the table output says how many samples the residual
+    covers (and says nothing when it covers them all); the JSON carries them as `samples`."""
+    covered = {"reached": 1605, "of": 3933}
+
+    def fake_diagnose(data, model, predictor=None, top=3, on_progress=None, **_):
+        return replace(_diagnosis_with_nan(), samples=covered)
+
+    monkeypatch.setattr(diagnose_module, "diagnose", fake_diagnose)
+    shown = runner.invoke(app, ["diagnose", str(fake_inputs)], env={"COLUMNS": "400"})
+    assert shown.exit_code == 0, shown.output
+    assert "reached 1605 of the data's 3933 samples" in shown.output
+    parsed = json.loads(runner.invoke(app, ["diagnose", str(fake_inputs), "--json"]).stdout)
+    assert parsed["samples"] == covered
+    covered = {"reached": 3933, "of": 3933}
+    assert "samples" not in runner.invoke(app, ["diagnose", str(fake_inputs)], env={"COLUMNS": "400"}).output
