@@ -129,21 +129,19 @@ def refit(
     candidate.refit_rms, candidate.refit_parameters = min(best, (rms, values.as_dict()), key=lambda b: b[0])
 
 
-def refit_on_reached(candidate: Candidate, model: TwinModel, predictor: Predictor, base: Base) -> bool:
+def refit_on_reached(candidate: Candidate, model: TwinModel, predictor: Predictor, base: Base) -> None:
     """When the candidate's refit values reach samples `base` (the residual it was fitted on) does not, as when the
     model without the effect pressed deeper than the data and its fe stopped converging part of the way, refit it on
     the residual at those values, over every sample they reach (linearised there: one fe replay per parameter), so
-    that no sample its model predicts is left out of its fit; returns whether it did. A fit on the samples the model
+    that no sample its model predicts is left out of its fit. A fit on the samples the model
     without the effect reached left a hidden 0.6 mm registration offset at 1.006x there and 1.30x on the whole of a
     paper-depth press (docs/analysis.md)."""
     if not candidate.refit_parameters:
-        return False
+        return
     reach = base.reaching(predictor, model.with_effects({candidate.name: candidate.refit_parameters}))
-    if reach.reached <= base.reached:
-        return False
-    effect = EFFECTS[candidate.name]
-    refit(candidate, model, predictor, reach, linearise(effect, model, candidate.refit_parameters, predictor, reach))
-    return True
+    if reach.reached > base.reached:
+        lin = linearise(EFFECTS[candidate.name], model, candidate.refit_parameters, predictor, reach)
+        refit(candidate, model, predictor, reach, lin)
 
 
 def finish_on_model_mesh(
