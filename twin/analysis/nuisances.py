@@ -286,7 +286,8 @@ def fit_nuisances(
     nominal = base_residual(datasets, model, predictor)
     slots = nuisance_slots(nominal.trajectories)
     prior = model_values(slots, model)
-    fitted_on, start = nominal, prior
+    report("registration starts")  # each arm from its contact onsets first: most of a realistic misfit is registration
+    fitted_on, start = nominal, _best_starts(nominal, model, predictor, prior, nominal.residual.values)
     for refits in range(REFITS_ON_REACHED + 1):
         fitted = _gauss_newton(fitted_on, model, predictor, start, prior, report)
         if not (np.isfinite(fitted.cost) and fitted_on.noise_test(fitted.residual, len(slots)).is_noise):
