@@ -26,8 +26,9 @@ per-arm offset.
 
 The fit is damped Gauss-Newton on the whitened residual with a Gaussian prior on each nuisance about the model's own
 value (`PRIORS`, wide: about twice the spread a real campaign shows), finite-difference sensitivities (a
-registration column replays only that arm's trajectories), and, when the result is not yet at the noise, the
-registration tried again from `REGISTRATION_STARTS` (each arm picks its best) because a large offset is nonlinear. A
+registration column replays only that arm's trajectories), started from each arm's best registration start (its
+contact-onset estimate, `REGISTRATION_STARTS` or the model's values) because a large offset is nonlinear, and, when
+the result is not yet at the noise, the registration starts tried again about the fit. A
 fit is judged on the samples its residual's replays reached; when its values reach more (a nominal model pressing
 deeper than the plant may stop where its fe does not converge), it is taken again on the residual at those values,
 so no sample the fitted model predicts is left out of the fit. Whether the nuisances explain the data is judged held
