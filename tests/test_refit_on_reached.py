@@ -5,6 +5,7 @@ not converge: its residual then covers part of a press, and a fit judged there a
 plant here is exact (no unit spread, no registration error) with a hidden registration offset of 0.6 mm along y, so
 the nominal model's normal press runs deeper than the plant's and stops early."""
 
+from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
@@ -58,3 +59,28 @@ def test_a_refit_covers_the_samples_its_values_reach(offset_at_paper_depth: Path
     assert np.sqrt(np.mean(at_fit.residual.values**2)) <= found.rms_threshold
     assert found.samples == {"reached": nominal.reached, "of": samples}
     assert f"reached {nominal.reached} of the data's {samples} samples" in found.reason
+
+
+def test_a_residual_at_the_noise_on_part_of_the_samples_is_not_nothing(offset_at_paper_depth: Path) -> None:
+    """The data made the nominal model's own where its replay reached (its force and PDC plus white noise: 0.01 N an
+    axis, one PDC count) and the plant's beyond: the residual on the reached samples is noise, but the model predicts
+    nothing of the rest, so "nothing" is refused (the code before said "nothing")."""
+    data = load_campaign(offset_at_paper_depth)
+    model = TwinModel(mesh_max_edge=data.mesh_max_edge)
+    predictor = Predictor()
+    rng = np.random.default_rng(3)
+    records = []
+    for t in data.trajectories:
+        p = predictor.predict(model, t)
+        reached = np.isfinite(p.force_fullrate).all(axis=1) & np.isfinite(p.pdc_fullrate)
+        wrench, pdc = t.raw.wrench.copy(), t.raw.pdc.copy()
+        own = wrench[0, :3] + p.force_fullrate @ t.sensor_in_biotac[:3, :3] + 0.01 * rng.standard_normal((len(pdc), 3))
+        wrench[reached, :3] = own[reached]
+        pdc[reached] = np.round(t.raw.pdc[0] + p.pdc_fullrate + rng.standard_normal(len(pdc)))[reached]
+        records.append(replace(t, raw=replace(t.raw, wrench=wrench, pdc=pdc)))
+    partly_own = replace(data, trajectories=records)
+    found = diagnose([partly_own], model, predictor, candidates=[], top=0)
+    assert found.samples["reached"] < found.samples["of"], found.samples
+    assert found.base_rms <= found.rms_threshold, "the residual on the reached samples must be noise"
+    assert found.verdict == "unexplained", found.reason
+    assert f"only on the {found.samples['reached']} of the data's {found.samples['of']} samples" in found.reason

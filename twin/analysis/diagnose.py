@@ -73,6 +73,7 @@ from twin.analysis.verdict import (
     NOTHING_BEYOND_NUISANCES,
     Candidate,
     candidate_figures,
+    on_every_sample,
     order_candidates,
     to_refit,
     verdict,
@@ -360,7 +361,10 @@ def diagnose(
     if cannot_tell:
         reason += f"; these data cannot tell {', '.join(fitted.cannot_tell_apart())} from the nuisances"
     samples = {"reached": base.reached, "of": base.samples}
-    if samples["reached"] < samples["of"]:
+    covered = on_every_sample(outcome, reason, base.reached, base.samples)
+    if covered[0] != outcome:
+        outcome, reason = covered
+    elif samples["reached"] < samples["of"]:
         reason += (
             f"; the model's replays reached {samples['reached']} of the data's {samples['of']} samples (a replay stops "
             "at an fe increment that does not converge): its residual and the ranking cover those only"

@@ -189,3 +189,16 @@ def verdict(
         + (f"; also held out within theirs, further behind in evidence: {also}" if also else ""),
         [],
     )
+
+
+def on_every_sample(outcome: str, reason: str, reached: int, of: int) -> tuple[str, str]:
+    """(verdict, reason) with "nothing" (or `NOTHING_BEYOND_NUISANCES`) refused when the model's replays reached only
+    `reached` of the data's `of` samples: a residual at the noise on part of the data says nothing of the rest, which
+    the model does not predict (its fe stopped where an increment did not converge), so the verdict is
+    "unexplained". Any other verdict is returned as it is."""
+    if outcome not in ("nothing", NOTHING_BEYOND_NUISANCES) or reached >= of:
+        return outcome, reason
+    return "unexplained", (
+        f"{reason}, but only on the {reached} of the data's {of} samples the model's replays reached: the others are "
+        "not predicted (a replay stops at an fe increment that does not converge), so nothing is claimed"
+    )
