@@ -235,6 +235,7 @@ class NuisanceFit:
     correlation: list[list[float]]
     at_bound: list[str]
     confounded: dict[str, float] = field(default_factory=dict)  # effect -> fraction in the nuisance span
+    heldout_by_trajectory: list[dict] = field(default_factory=list)  # `by_trajectory`: where the held-out test fails
 
     def project(self, columns: np.ndarray) -> np.ndarray:
         """Columns (N, k) (or a vector) with their least-squares component on the nuisance signatures
@@ -274,6 +275,7 @@ class NuisanceFit:
             "at_bound": self.at_bound,
             "confounded": dict(self.confounded),
             "cannot_tell_apart": self.cannot_tell_apart(),
+            "heldout_by_trajectory": self.heldout_by_trajectory,
         }
 
 
@@ -318,7 +320,31 @@ def fit_nuisances(
         base.noise_test(base.residual.values).is_noise,
         _correlation(jac, values),
         list(fitted.at_bound),
+        heldout_by_trajectory=by_trajectory(base, heldout),
     )
+
+
+def by_trajectory(base: Base, heldout: np.ndarray) -> list[dict]:
+    """Per trajectory of `base`, worst held out first: its sensor, id, indenter and path ("normal" or "angled"), and
+    the whitened RMS of its residual at the fit ("in_sample") and predicted by the nuisances fitted without it
+    ("held_out"; `heldout`, (N,) in `base`'s sample order); None where none of its samples was predicted."""
+    index = base.residual.trajectory_index
+
+    def rms(values: np.ndarray) -> float | None:  # None where no sample of it was predicted
+        return _rms(values) if np.isfinite(values).any() else None
+
+    rows = [
+        {
+            "sensor": t.sensor_id,
+            "trajectory": t.trajectory_id,
+            "indenter": t.indenter,
+            "path": "normal" if t.normal else "angled",
+            "in_sample": rms(base.residual.values[index == k]),
+            "held_out": rms(heldout[index == k]),
+        }
+        for k, t in enumerate(base.trajectories)
+    ]
+    return sorted(rows, key=lambda row: (row["held_out"] is None, -(row["held_out"] or 0.0)))
 
 
 def _shifted(base: Base, model: TwinModel, predictor: Predictor, values: NuisanceValues) -> np.ndarray:

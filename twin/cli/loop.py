@@ -235,6 +235,8 @@ def _search_in_turn(
     out_console.print(f"verdict: [bold]{found.verdict}[/bold] - {found.reason}")
 
 
+HELDOUT_WORST_SHOWN = 3
+"""Presses named where the nuisances do not hold out (the worst first)."""
 LARGE_CAMPAIGN = 100
 """Trajectories above which `twin diagnose` without a sample says how to take one (the paper campaign: 905)."""
 
@@ -264,6 +266,13 @@ def _print_nuisances(fit: dict) -> None:
     out_console.print(f"  {values}")
     if fit["cannot_tell_apart"]:
         out_console.print(f"  these data cannot tell {', '.join(fit['cannot_tell_apart'])} from the nuisances")
+    if not fit["heldout_is_noise"] and fit["heldout_by_trajectory"]:
+        worst = ", ".join(
+            f"sensor {t['sensor']} trajectory {t['trajectory']} ({t['indenter']}, {t['path']}) {t['held_out']:.2f}x"
+            for t in fit["heldout_by_trajectory"][:HELDOUT_WORST_SHOWN]
+            if t["held_out"] is not None
+        )
+        out_console.print(f"  worst held out (each press predicted by the nuisances fitted without it): {worst}")
 
 
 @loop_app.command()
