@@ -77,7 +77,7 @@ registration 0.5-1.5 mm); the joint offsets' is the RMS that reproduces the pape
 REGISTRATION_STARTS = tuple(
     np.array(v) for v in ((1e-3, 0, 0), (-1e-3, 0, 0), (0, 1e-3, 0), (0, -1e-3, 0), (0, 0, 1e-3), (0, 0, -1e-3))
 )
-"""Registration offsets (m) also tried, per arm, when the fit from the model's values is not at the noise."""
+"""Registration offsets (m) also tried, per arm, before the first step and about a fit not at the noise."""
 ITERATIONS = 4
 """Gauss-Newton iterations of one fit (each a finite-difference sensitivity: one replay set per parameter)."""
 EXTRA_ITERATIONS = 8
@@ -330,7 +330,7 @@ def by_trajectory(base: Base, heldout: np.ndarray) -> list[dict]:
     ("held_out"; `heldout`, (N,) in `base`'s sample order); None where none of its samples was predicted."""
     index = base.residual.trajectory_index
 
-    def rms(values: np.ndarray) -> float | None:  # None where no sample of it was predicted
+    def rms(values: np.ndarray) -> float | None:
         return _rms(values) if np.isfinite(values).any() else None
 
     rows = [
