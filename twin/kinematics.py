@@ -121,6 +121,16 @@ def jacobian(arm: str, q: np.ndarray, tool_tip: np.ndarray | None = None) -> tup
     return tip, jac
 
 
+def rotation_exp(v: np.ndarray) -> np.ndarray:
+    """Rotation matrix (3, 3) of a rotation vector v (3,) rad (axis times angle; Rodrigues' formula)."""
+    theta = float(np.linalg.norm(v))
+    if theta == 0.0:
+        return np.eye(3)
+    k = np.asarray(v, dtype=float) / theta
+    kx = np.array([[0.0, -k[2], k[1]], [k[2], 0.0, -k[0]], [-k[1], k[0], 0.0]])
+    return np.eye(3) + np.sin(theta) * kx + (1.0 - np.cos(theta)) * kx @ kx
+
+
 def rotation_log(r: np.ndarray) -> np.ndarray:
     """Rotation vector (3,) rad of a rotation matrix (3, 3); robust near 0 and pi."""
     cos = np.clip(0.5 * (np.trace(r) - 1.0), -1.0, 1.0)

@@ -17,6 +17,7 @@ from fe.electrodes import ElectrodeParameters
 from fe.params import SkinParameters
 from twin.backend import ARMS
 from twin.effects import EffectValues, check_values
+from twin.kinematics import rotation_exp
 from twin.registration import ENCODER_NOISE_RAD, PAPER_JOINT_OFFSET_STD
 
 
@@ -157,11 +158,7 @@ def joint_offsets(rng: np.random.Generator, rms: float) -> np.ndarray:
 
 def rigid_transform(rotation_vector: np.ndarray, translation: np.ndarray) -> np.ndarray:
     """4x4 transform from a rotation vector (rad, axis * angle) and a translation (m)."""
-    theta = float(np.linalg.norm(rotation_vector))
     pose = np.eye(4)
-    if theta > 0.0:
-        k = np.asarray(rotation_vector) / theta
-        kx = np.array([[0.0, -k[2], k[1]], [k[2], 0.0, -k[0]], [-k[1], k[0], 0.0]])
-        pose[:3, :3] = np.eye(3) + np.sin(theta) * kx + (1.0 - np.cos(theta)) * kx @ kx
+    pose[:3, :3] = rotation_exp(rotation_vector)
     pose[:3, 3] = translation
     return pose

@@ -48,11 +48,11 @@ from twin.analysis.data import CampaignData, TrajectoryRecord
 from twin.analysis.fit import Fit, GaussNewtonHooks, GaussNewtonSettings, Parameters, Prior, gauss_newton, linear_step
 from twin.analysis.fit import uncertainty as fit_uncertainty
 from twin.analysis.onset import onset_estimate
+from twin.analysis.pose_error import ArmPath, arm_path, pose_error, pose_jacobian
 from twin.analysis.predict import Predictor, TwinModel
-from twin.analysis.residual import Base, base_residual, model_requests
+from twin.analysis.residual import Base, ModelFor, base_residual, model_requests
 from twin.backend import N_JOINTS
 from twin.effects import EFFECTS, REGISTRATION, EffectParameter, registration_values, registration_vector
-from twin.kinematics import jacobian as arm_jacobian
 from twin.registration import PAPER_JOINT_OFFSET_STD
 
 SKIN_NUISANCES = ("skin_thickness", "skin_modulus", "indenter_friction")
@@ -63,17 +63,27 @@ JOINT_OFFSET = "joint_offset"
 """The nuisance of an arm's joint zero offsets (not a library effect: it acts through `tip_sensitivity`)."""
 JOINT_PARAMETERS = tuple(EffectParameter(f"q{j + 1}", 0.0, -0.01, 0.01, 1e-3, "rad") for j in range(N_JOINTS))
 """The joint offsets' parameters, chain order (bounds: 5x the prior)."""
+REGISTRATION_ROTATION = "registration_rotation"
+"""The nuisance of an arm's registration rotation (not a library effect: it acts through the pose error)."""
+ROTATION_PARAMETERS = tuple(EffectParameter(f"r{axis}", 0.0, -0.04, 0.04, 1e-3, "rad") for axis in "xyz")
+"""The registration rotation's parameters: a rotation vector (rad, biotac frame, about its origin; bounds 4x the
+prior)."""
+DERIVED = (REGISTRATION_ROTATION, JOINT_OFFSET)
+"""Nuisances whose sensitivities come by the chain rule from the pose error's (`_derived_columns`), not replays."""
+POSE_STEPS = {"indenter_tilt": 2e-3, "path_slope": 5e-3}
+"""Finite-difference step of each pose error (`TwinModel`; rad, and m per m of depth: 15 um at 3 mm)."""
 PRIORS = {
     "skin_thickness": 0.1,
     "skin_modulus": 0.1,
     "indenter_friction": 0.3,
     REGISTRATION: 1.5e-3,
+    REGISTRATION_ROTATION: 1e-2,
     JOINT_OFFSET: PAPER_JOINT_OFFSET_STD,
 }
 """1-sigma prior of each nuisance about the model's value (scale factors: relative; registration: m per
-axis; joint offsets: rad per joint), about twice a real campaign's spread (5 % skin, 10 % friction,
-registration 0.5-1.5 mm); the joint offsets' is the RMS that reproduces the paper's registration band
-(`twin.registration.PAPER_JOINT_OFFSET_STD`)."""
+axis; registration rotation: rad per axis; joint offsets: rad per joint), about twice a real campaign's spread
+(5 % skin, 10 % friction, registration 0.5-1.5 mm, a mount placed to 2 mrad); the joint offsets' is the RMS that
+reproduces the paper's registration band (`twin.registration.PAPER_JOINT_OFFSET_STD`)."""
 REGISTRATION_STARTS = tuple(
     np.array(v) for v in ((1e-3, 0, 0), (-1e-3, 0, 0), (0, 1e-3, 0), (0, -1e-3, 0), (0, 0, 1e-3), (0, 0, -1e-3))
 )
@@ -118,29 +128,48 @@ class Slot:
 
 @dataclass(frozen=True)
 class NuisanceValues:
-    """Values of the nuisance slots; `model_for` is the model of one trajectory (a `ModelFor`)."""
+    """Values of the nuisance slots; `model_for` is the model of one trajectory (a `ModelFor`); `paths` holds
+    the trajectories' `ArmPath`s by (sensor, trajectory id) (worked out when first asked for)."""
 
     slots: tuple[Slot, ...]
     values: tuple[float, ...]
+    paths: dict[tuple[int, int], ArmPath] = field(default_factory=dict, compare=False)
 
     def model_for(self, model: TwinModel, trajectory: TrajectoryRecord) -> TwinModel:
-        """`model` with the nuisances of `trajectory`'s sensor and arm merged into its effects; its joint
-        offsets move its path on top of its arm's registration offset (`tip_sensitivity`)."""
+        """`model` with the nuisances of `trajectory`'s sensor and arm merged into its effects; its registration
+        rotation and joint offsets move its path on top of its arm's registration offset, turn the press and tilt
+        the indenter (`twin.analysis.pose_error`)."""
         effects: dict[str, dict[str, float]] = {}
-        joints = np.zeros(N_JOINTS)
         for slot, value in zip(self.slots, self.values, strict=True):
-            if not slot.applies(trajectory):
-                continue
-            if slot.effect == JOINT_OFFSET:
-                joints[_joint(slot)] = value
-            else:
+            if slot.applies(trajectory) and slot.effect not in DERIVED:
                 effects.setdefault(slot.effect, {})[slot.parameter] = value
-        if joints.any():
-            given = {**model.effects.get(REGISTRATION, {}), **effects.get(REGISTRATION, {})}
-            effects[REGISTRATION] = registration_values(
-                registration_vector(given) + tip_sensitivity(trajectory) @ joints
-            )
-        return model.with_effects(effects)
+        rotation, joints = self.arm_pose(trajectory)
+        if not (joints.any() or rotation.any()):
+            return model.with_effects(effects)
+        error = pose_error(self.path(trajectory), rotation, joints)
+        given = {**model.effects.get(REGISTRATION, {}), **effects.get(REGISTRATION, {})}
+        effects[REGISTRATION] = registration_values(registration_vector(given) + error.offset)
+        return replace(
+            model.with_effects(effects),
+            indenter_tilt=tuple(float(v) for v in np.add(model.indenter_tilt, error.tilt)),
+            path_slope=tuple(float(v) for v in np.add(model.path_slope, error.slope)),
+        )
+
+    def arm_pose(self, trajectory: TrajectoryRecord) -> tuple[np.ndarray, np.ndarray]:
+        """(registration rotation (3,) rad, joint offsets (7,) rad) of `trajectory`'s sensor and arm (zero where
+        not fitted)."""
+        rotation, joints = np.zeros(3), np.zeros(N_JOINTS)
+        for slot, value in zip(self.slots, self.values, strict=True):
+            if slot.effect in DERIVED and slot.applies(trajectory):
+                (joints if slot.effect == JOINT_OFFSET else rotation)[_index(slot)] = value
+        return rotation, joints
+
+    def path(self, trajectory: TrajectoryRecord) -> ArmPath:
+        """`trajectory`'s `ArmPath` (kept in `paths`)."""
+        key = (trajectory.sensor_id, trajectory.trajectory_id)
+        if key not in self.paths:
+            self.paths[key] = arm_path(trajectory)
+        return self.paths[key]
 
     @property
     def parameters(self) -> Parameters:
@@ -156,7 +185,7 @@ class NuisanceValues:
 
     def at(self, parameters: Parameters) -> NuisanceValues:
         """These slots at `parameters`' values."""
-        return NuisanceValues(self.slots, tuple(float(v) for v in parameters.values))
+        return replace(self, values=tuple(float(v) for v in parameters.values))
 
     def moved(self, delta: np.ndarray) -> NuisanceValues:
         """Values moved by `delta` and clipped to each parameter's bounds."""
@@ -168,21 +197,14 @@ class NuisanceValues:
 
 
 def _parameter(slot: Slot) -> EffectParameter:
-    parameters = JOINT_PARAMETERS if slot.effect == JOINT_OFFSET else EFFECTS[slot.effect].parameters
+    derived = {JOINT_OFFSET: JOINT_PARAMETERS, REGISTRATION_ROTATION: ROTATION_PARAMETERS}
+    parameters = derived[slot.effect] if slot.effect in derived else EFFECTS[slot.effect].parameters
     return next(p for p in parameters if p.name == slot.parameter)
 
 
-def _joint(slot: Slot) -> int:
-    """The chain index of a joint-offset slot."""
-    return int(slot.parameter[1:]) - 1
-
-
-def tip_sensitivity(trajectory: TrajectoryRecord) -> np.ndarray:
-    """(3, 7) m/rad: how the tool tip moves, in the biotac frame, per radian of each joint's zero offset at
-    the trajectory's mean joint reading (first order: the linear rows of the arm's geometric Jacobian,
-    rotated by the estimated registration)."""
-    _, jac = arm_jacobian(trajectory.arm, trajectory.raw.joints.mean(axis=0), trajectory.tool_tip)
-    return trajectory.registration[:3, :3].T @ jac[:3]
+def _index(slot: Slot) -> int:
+    """The chain index of a joint-offset slot, the axis of a registration rotation's."""
+    return int(slot.parameter[1:]) - 1 if slot.effect == JOINT_OFFSET else "xyz".index(slot.parameter[1])
 
 
 def _prior(values: NuisanceValues) -> Prior:
@@ -198,7 +220,7 @@ def model_values(slots: tuple[Slot, ...], model: TwinModel) -> NuisanceValues:
         slots,
         tuple(
             _parameter(s).off
-            if s.effect == JOINT_OFFSET
+            if s.effect in DERIVED
             else EFFECTS[s.effect].values(model.effects.get(s.effect))[s.parameter]
             for s in slots
         ),
@@ -215,6 +237,7 @@ def nuisance_slots(trajectories: list[TrajectoryRecord]) -> tuple[Slot, ...]:
         for arm in sorted({t.arm for t in trajectories if t.sensor_id == sensor}):
             slots += [Slot(REGISTRATION, p.name, sensor, arm) for p in EFFECTS[REGISTRATION].parameters]
             if not any(t.rows_only for t in trajectories if (t.sensor_id, t.arm) == (sensor, arm)):
+                slots += [Slot(REGISTRATION_ROTATION, p.name, sensor, arm) for p in ROTATION_PARAMETERS]
                 slots += [Slot(JOINT_OFFSET, p.name, sensor, arm) for p in JOINT_PARAMETERS]
     return tuple(slots)
 
@@ -347,54 +370,79 @@ def by_trajectory(base: Base, heldout: np.ndarray) -> list[dict]:
     return sorted(rows, key=lambda row: (row["held_out"] is None, -(row["held_out"] or 0.0)))
 
 
-def _shifted(base: Base, model: TwinModel, predictor: Predictor, values: NuisanceValues) -> np.ndarray:
-    """Profiled change of the whitened prediction from `base` to the model with `values` (NaN where the
-    fe replay failed)."""
-    return replace(base, model_for=values.model_for).shifted(predictor, model)
+def _shifted(base: Base, model: TwinModel, predictor: Predictor, model_for: ModelFor) -> np.ndarray:
+    """Profiled change of the whitened prediction from `base` to the model of each trajectory by `model_for` (a
+    `NuisanceValues.model_for`; NaN where the fe replay failed)."""
+    return replace(base, model_for=model_for).shifted(predictor, model)
+
+
+def _posed(values: NuisanceValues, error: str, axis: int) -> ModelFor:
+    """The models of `values` with every trajectory's pose error `error` (a `POSE_STEPS` field of `TwinModel`)
+    moved by its step along `axis`."""
+
+    def model_for(model: TwinModel, trajectory: TrajectoryRecord) -> TwinModel:
+        at = values.model_for(model, trajectory)
+        moved = np.array(getattr(at, error))
+        moved[axis] += POSE_STEPS[error]
+        return replace(at, **{error: tuple(float(v) for v in moved)})
+
+    return model_for
 
 
 def _jacobian(base: Base, model: TwinModel, predictor: Predictor, values: NuisanceValues) -> np.ndarray:
     """(N, k) finite-difference sensitivity of `base`'s profiled whitened prediction to each slot: forward
     (backward at an upper bound), and the other way too when the first step's replay fails on samples the
     current values reach (the one that fails on fewer is kept); `base` must be the residual at `values` or
-    the nominal one (differences only). The replays of the values and of every first step are solved as
-    one batch. The joint offsets' columns come from the registration offset's (`_joint_columns`)."""
-    steps = [() if s.effect == JOINT_OFFSET else _steps(values, i) for i, s in enumerate(values.slots)]
-    first = [values.moved(_along(len(steps), i, tries[0])) for i, tries in enumerate(steps) if tries]
-    _prefetch(base, model, predictor, [values, *first])
-    here = _shifted(base, model, predictor, values)
+    the nominal one (differences only). The replays of the values, of every first step and of every pose error's
+    step are solved as one batch. The registration rotations' and joint offsets' columns come from the registration
+    offset's and the pose errors' (`_derived_columns`)."""
+    steps = [() if s.effect in DERIVED else _steps(values, i) for i, s in enumerate(values.slots)]
+    first = [values.moved(_along(len(steps), i, tries[0])).model_for for i, tries in enumerate(steps) if tries]
+    derived = any(s.effect in DERIVED for s in values.slots)
+    posed = {(error, axis): _posed(values, error, axis) for error in POSE_STEPS for axis in range(3)} if derived else {}
+    _prefetch(base, model, predictor, [values.model_for, *first, *posed.values()])
+    here = _shifted(base, model, predictor, values.model_for)
     columns = np.zeros((len(here), len(steps)))
     for i, tries in enumerate(steps):
         tried = []
         for step in tries:
-            tried.append((_shifted(base, model, predictor, values.moved(_along(len(steps), i, step))) - here) / step)
+            moved = values.moved(_along(len(steps), i, step))
+            tried.append((_shifted(base, model, predictor, moved.model_for) - here) / step)
             if np.isfinite(tried[-1]).sum() == np.isfinite(here).sum():
                 break
         if tried:
             columns[:, i] = max(tried, key=lambda c: np.isfinite(c).sum())
-    _joint_columns(columns, base, values.slots)
+    if derived:
+        shift = {key: _shifted(base, model, predictor, model_for) - here for key, model_for in posed.items()}
+        pose = {e: np.column_stack([shift[(e, a)] for a in range(3)]) / step for e, step in POSE_STEPS.items()}
+        _derived_columns(columns, base, values, pose)
     return _usable(columns)
 
 
-def _joint_columns(columns: np.ndarray, base: Base, slots: tuple[Slot, ...]) -> None:
-    """Fill the joint offsets' columns in place by the chain rule: on trajectory k's rows, d r / d q_j =
-    sum over axes of (d r / d offset_axis) J_k[axis, j], the registration offset's columns restricted to
-    those rows (a trajectory's prediction depends on its own path offset only). Exact for the raw change; the
-    columns are profiled, and the PDC gain's profiling couples a sensor's trajectories, so the split is exact to
-    within that profiling's share of each column (a Gauss-Newton step is then judged on real replays)."""
+def _derived_columns(columns: np.ndarray, base: Base, values: NuisanceValues, pose: dict[str, np.ndarray]) -> None:
+    """Fill the registration rotations' and joint offsets' columns in place by the chain rule: on trajectory k's
+    rows, d r / d p = (d r / d offset) (d offset / d p) + (d r / d slope) (d slope / d p) + (d r / d tilt)
+    (d tilt / d p), the first factor the registration offset's columns restricted to those rows (a trajectory's
+    prediction depends on its own pose only), the next two `pose`'s (N, 3) columns of the pose errors, and the
+    second factors `pose_error`'s (linear). Exact for the raw change; the columns are profiled, and the PDC gain's
+    profiling couples a sensor's trajectories, so the split is exact to within that profiling's share of each
+    column (a Gauss-Newton step is then judged on real replays)."""
+    slots = values.slots
     position = {(s.effect, s.parameter, s.sensor, s.arm): c for c, s in enumerate(slots)}
     index = base.residual.trajectory_index
     for k, trajectory in enumerate(base.trajectories):
-        mine = [i for i, slot in enumerate(slots) if slot.effect == JOINT_OFFSET and slot.applies(trajectory)]
+        mine = [i for i, slot in enumerate(slots) if slot.effect in DERIVED and slot.applies(trajectory)]
         if not mine:
             continue
-        rows, sensitivity = index == k, tip_sensitivity(trajectory)
+        rows = index == k
         axes = [
             position[(REGISTRATION, p.name, trajectory.sensor_id, trajectory.arm)]
             for p in EFFECTS[REGISTRATION].parameters
         ]
+        by_error = np.hstack([columns[np.ix_(rows, axes)], pose["path_slope"][rows], pose["indenter_tilt"][rows]])
+        chain = pose_jacobian(values.path(trajectory), *values.arm_pose(trajectory))  # (9, 3 rotation + 7 joints)
         for i in mine:
-            columns[rows, i] = columns[np.ix_(rows, axes)] @ sensitivity[:, _joint(slots[i])]
+            columns[rows, i] = by_error @ chain[:, _index(slots[i]) + (3 if slots[i].effect == JOINT_OFFSET else 0)]
 
 
 def _steps(values: NuisanceValues, i: int) -> tuple[float, ...]:
@@ -412,10 +460,11 @@ def _along(k: int, i: int, step: float) -> np.ndarray:
     return delta
 
 
-def _prefetch(base: Base, model: TwinModel, predictor: Predictor, candidates: list[NuisanceValues]) -> None:
-    """Solve the replays `_shifted` needs for every one of `candidates` as one batch (those not cached)."""
+def _prefetch(base: Base, model: TwinModel, predictor: Predictor, candidates: list[ModelFor]) -> None:
+    """Solve the replays `_shifted` needs for every one of `candidates` (each a `NuisanceValues.model_for`) as one
+    batch (those not cached)."""
     predictor.prefetch_many(
-        [request for v in candidates for request in model_requests([model], base.trajectories, v.model_for)]
+        [request for model_for in candidates for request in model_requests([model], base.trajectories, model_for)]
     )
 
 
@@ -447,7 +496,7 @@ def _gauss_newton(
     gaussian = _prior(prior)
 
     def residual(at: Parameters) -> np.ndarray:
-        return nominal.residual.values - _shifted(nominal, model, predictor, start.at(at))
+        return nominal.residual.values - _shifted(nominal, model, predictor, start.at(at).model_for)
 
     def cost(r: np.ndarray, values: np.ndarray) -> float:
         return float("inf") if np.isnan(r).any() else nominal.nuisance.chi2(r) + gaussian.cost(values)
@@ -473,10 +522,10 @@ def _best_starts(
     index = nominal.residual.trajectory_index
     trials = [_onset_start(nominal, model, predictor, fitted, arms)]
     trials += [_with_registration(fitted, {arm: offset for arm in arms}) for offset in REGISTRATION_STARTS]
-    _prefetch(nominal, model, predictor, trials)  # every start's replays in one batch
+    _prefetch(nominal, model, predictor, [t.model_for for t in trials])  # every start's replays in one batch
     best = {arm: (_arm_cost(residual, index, nominal, arm), fitted) for arm in arms}
     for trial in trials:
-        moved = nominal.residual.values - _shifted(nominal, model, predictor, trial)
+        moved = nominal.residual.values - _shifted(nominal, model, predictor, trial.model_for)
         for arm in arms:
             cost = _arm_cost(moved, index, nominal, arm)
             if cost < best[arm][0]:
@@ -485,7 +534,7 @@ def _best_starts(
         best[(s.sensor, s.arm)][1].values[i] if s.effect in (REGISTRATION, JOINT_OFFSET) else v
         for i, (s, v) in enumerate(zip(fitted.slots, fitted.values, strict=True))
     )
-    return NuisanceValues(fitted.slots, chosen)
+    return replace(fitted, values=chosen)
 
 
 def _onset_start(
@@ -494,8 +543,8 @@ def _onset_start(
     """`fitted` moved, arm by arm, to what the contact onsets about it say (`twin.analysis.onset`, from the fit's
     replays): the registration offset alone where the arm has no joint offsets; else the registration offset
     and the joint offsets together, the bounded least squares (`twin.analysis.fit.linear_step`) of each path's
-    shift s_k = row_k . (dt + J_k dq) (`tip_sensitivity`) with a Gaussian prior (`PRIORS`) on the step about
-    the fit, since each pose is off by its own amount."""
+    shift s_k = row_k . (dt + J_k dq) (J_k: `_joint_offset_rows`, the tip where contact begins) with a
+    Gaussian prior (`PRIORS`) on the step about the fit, since each pose is off by its own amount."""
     offsets, moved = {}, np.array(fitted.values)
     everything = fitted.parameters
     for arm in arms:
@@ -507,14 +556,20 @@ def _onset_start(
         if joints and used:
             registration = [i for i, s in enumerate(fitted.slots) if _is_arm(s, arm)]  # dx, dy, dz
             at = everything.subset(registration + joints)
-            rows = np.array([np.r_[s.row, s.row @ tip_sensitivity(t)] / s.std for t, s in used])
+            rows = np.array([np.r_[s.row, s.row @ _joint_offset_rows(fitted, t)] / s.std for t, s in used])
             sigma = np.r_[[PRIORS[REGISTRATION]] * len(registration), [PRIORS[JOINT_OFFSET]] * len(joints)]
             step = linear_step(rows, np.array([s.shift / s.std for _, s in used]), at, Prior(at.values, sigma))
             offsets[arm] = _arm_offset(fitted, arm) + step[:3]
             moved[joints] = moved[joints] + step[3:]
     bounds = fitted.parameters
-    start = NuisanceValues(fitted.slots, tuple(float(v) for v in np.clip(moved, bounds.lower, bounds.upper)))
+    start = replace(fitted, values=tuple(float(v) for v in np.clip(moved, bounds.lower, bounds.upper)))
     return _with_registration(start, offsets)
+
+
+def _joint_offset_rows(values: NuisanceValues, trajectory: TrajectoryRecord) -> np.ndarray:
+    """(3, 7) m/rad: how the tip where `trajectory`'s commanded depth is zero moves per radian of each joint offset
+    about `values`."""
+    return pose_jacobian(values.path(trajectory), *values.arm_pose(trajectory))[:3, 3:]
 
 
 def _arm_offset(values: NuisanceValues, arm: tuple[int, str]) -> np.ndarray:
@@ -532,9 +587,9 @@ def _with_registration(values: NuisanceValues, offsets: dict[tuple[int, str], np
     """`values` with each (sensor, arm)'s registration set to its offset (m, (3,)) in `offsets`, clipped to
     the effect's bounds."""
     moved = {arm: registration_values(offset) for arm, offset in offsets.items()}
-    return NuisanceValues(
-        values.slots,
-        tuple(
+    return replace(
+        values,
+        values=tuple(
             moved[(s.sensor, s.arm)][s.parameter] if s.effect == REGISTRATION else v
             for s, v in zip(values.slots, values.values, strict=True)
         ),

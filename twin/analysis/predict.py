@@ -48,6 +48,7 @@ from twin.effects import (
     read_pdc,
 )
 from twin.fe_models import INFLATION_RULES, ModelCache
+from twin.kinematics import rotation_exp
 from twin.lanes import usable_cpus
 from twin.processing import ProcessedRows, lowpass, process
 from twin.readout import SensorReadout, ft_load
@@ -80,6 +81,11 @@ HELD_SOLVES_FIRST = 1
 """Events a replay solves at the start of every held pose besides its last (`held_solves`): 2 of a 5 s pause's 50."""
 
 
+NO_POSE_ERROR = (0.0, 0.0, 0.0)
+POSE_ERRORS = ("indenter_tilt", "path_slope")
+"""The `TwinModel` fields of an indenter pose error (each a 3-vector, biotac frame)."""
+
+
 @dataclass(frozen=True)
 class TwinModel:
     """What predicts: nominal skin parameters, effect values, fe mesh size (m) and how the skin is
@@ -90,11 +96,22 @@ class TwinModel:
     effects: EffectValues = field(default_factory=dict)
     mesh_max_edge: float = 2e-3
     inflation: str = "thickness"
+    indenter_tilt: tuple[float, float, float] = NO_POSE_ERROR
+    """Rotation vector (rad, biotac frame) of the indenter about its tip against each trajectory's recorded
+    orientation: the orientation error an arm's joint offsets and a registration's rotation leave (the nuisance
+    fit's, per trajectory; zero for a nominal model)."""
+    path_slope: tuple[float, float, float] = NO_POSE_ERROR
+    """The tip's displacement (biotac frame) per metre of commanded depth besides the commanded direction: how
+    those errors turn and stretch the press (zero for a nominal model)."""
 
     def __post_init__(self) -> None:
         check_values(self.effects)
         if self.inflation not in INFLATION_RULES:
             raise ValueError(f"inflation must be one of {INFLATION_RULES}, got {self.inflation!r}")
+        for name in POSE_ERRORS:
+            value = getattr(self, name)
+            if len(value) != 3 or not np.isfinite(value).all():
+                raise ValueError(f"{name} must be three finite numbers, got {value!r}")
 
     def with_effects(self, effects: EffectValues) -> TwinModel:
         """The same model with `effects` merged over its own (per effect, per parameter)."""
@@ -104,12 +121,14 @@ class TwinModel:
         return replace(self, effects=merged)
 
     def to_dict(self) -> dict:
-        """JSON-ready description."""
+        """JSON-ready description (a pose error only where it is not zero)."""
+        pose = {name: list(getattr(self, name)) for name in POSE_ERRORS if any(getattr(self, name))}
         return {
             "skin": asdict(self.skin),
             "effects": self.effects,
             "mesh_max_edge": self.mesh_max_edge,
             "inflation": self.inflation,
+            **pose,
         }
 
     @classmethod
@@ -120,6 +139,7 @@ class TwinModel:
             data.get("effects", {}),
             float(data["mesh_max_edge"]),
             data.get("inflation", "thickness"),
+            **{name: tuple(float(v) for v in data[name]) for name in POSE_ERRORS if name in data},
         )
 
     def key(self) -> str:
@@ -142,11 +162,12 @@ class Prediction:
 @dataclass(frozen=True)
 class _ReplayPlan:
     """What a trajectory's replay under a model needs: its cache key, indenter tip of each path index (m,
-    biotac frame), events (see `solve_events`), whether the skin relaxes (timed solves), which events are
-    solved (`held_solves`; the others are filled, `fill_holds`) and the skin's relaxation time (s)."""
+    biotac frame) and orientation, events (see `solve_events`), whether the skin relaxes (timed solves), which
+    events are solved (`held_solves`; the others are filled, `fill_holds`) and the skin's relaxation time (s)."""
 
     key: tuple
     tips: np.ndarray
+    rotation: np.ndarray  # (3, 3) indenter body -> biotac frame
     events: tuple[np.ndarray, np.ndarray]
     timed: bool
     solved: np.ndarray
@@ -465,10 +486,16 @@ class Predictor:
         skin = apply_skin(model.skin, model.effects)
         timed = skin.relaxation_fraction > 0.0
         commanded, loads, events, solved = self._trajectory_path(trajectory, timed)
+        if any(model.path_slope):
+            commanded = commanded + np.outer(_path_depths(trajectory.raw), model.path_slope)
         tips = apply_path(commanded, model.effects, loads)
+        rotation = np.asarray(trajectory.rotation, dtype=np.float64)
+        if any(model.indenter_tilt):
+            rotation = rotation_exp(np.array(model.indenter_tilt)) @ rotation
         model_key = (tuple(sorted(asdict(skin).items())), model.mesh_max_edge, model.inflation)
-        key = (model_key, trajectory.sensor_id, trajectory.trajectory_id, tips.round(12).tobytes())
-        return _ReplayPlan(key, tips, events, timed, solved, skin.relaxation_time_s)
+        pose = (tips.round(12).tobytes(), rotation.round(12).tobytes())  # the replay's indenter poses
+        key = (model_key, trajectory.sensor_id, trajectory.trajectory_id, *pose)
+        return _ReplayPlan(key, tips, rotation, events, timed, solved, skin.relaxation_time_s)
 
     def _trajectory_path(
         self, trajectory: TrajectoryRecord, timed: bool
@@ -521,9 +548,8 @@ class Predictor:
         jobs: dict[tuple, _ReplayJob] = {}
         for model, trajectory, plan in self._missing(requests):
             skin = apply_skin(model.skin, model.effects)
-            rotation = np.asarray(trajectory.rotation, dtype=np.float64)
             job = _ReplayJob(
-                skin, model.mesh_max_edge, model.inflation, trajectory.indenter, rotation, plan, self.electrodes
+                skin, model.mesh_max_edge, model.inflation, trajectory.indenter, plan.rotation, plan, self.electrodes
             )
             jobs.setdefault(plan.key, job)
         work = list(jobs.values())
@@ -572,7 +598,7 @@ class Predictor:
                 stepper = fe.stepper(trajectory.indenter, self.device)
                 times, indices = plan.solves
                 tips, at = plan.tips[indices], times if plan.timed else None
-                increments = step_through(stepper, trajectory.rotation, tips, at)
+                increments = step_through(stepper, plan.rotation, tips, at)
             self._replays[plan.key] = _replay_of(self.readout(fe), plan, increments, self.electrodes)
         replay = self._replays[plan.key]
         tips, raw = plan.tips, trajectory.raw
