@@ -29,15 +29,20 @@ def frictional_biotac() -> BioTacModel:
 
 
 def tiny_campaign_file(
-    out: Path, plant=None, angled_depth: float = 0.2e-3, normal_depth: float = 0.4e-3, pause_s: float = 0.1
+    out: Path,
+    plant=None,
+    angled_depth: float = 0.2e-3,
+    normal_depth: float = 0.4e-3,
+    pause_s: float = 0.1,
+    indenter: str = "sphere_medium",
 ) -> Path:
-    """Sensor 2, sphere_medium, one normal (`normal_depth` m) and one angled (`angled_depth` m) trajectory,
+    """Sensor 2, `indenter`, one normal (`normal_depth` m) and one angled (`angled_depth` m) trajectory,
     `pause_s` pauses, 2 mm mesh; `plant` as in twin.campaign.run_campaign (None: the default plant)."""
     from twin.campaign import QUICK_CONFIG, run_campaign
     from twin.protocol import QUICK_SETTINGS
 
     settings = replace(QUICK_SETTINGS, normal_depth=normal_depth, angled_depth=angled_depth, pause_s=pause_s)
-    config = replace(QUICK_CONFIG, sensors=(2,), indenters=("sphere_medium",), settings=settings)
+    config = replace(QUICK_CONFIG, sensors=(2,), indenters=(indenter,), settings=settings)
     return run_campaign(config, out, workers=1, plant=plant).files[2]
 
 
