@@ -28,7 +28,7 @@ every solve.
 from __future__ import annotations
 
 from collections.abc import Callable
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import numpy as np
 from scipy.optimize import lsq_linear, minimize, minimize_scalar
@@ -220,7 +220,9 @@ class GaussNewtonSettings:
     each step lowers the cost by at least the fraction `extra_if_drop` (a fit still converging fast is not cut
     short; one that stalls is); a step that does not lower the cost is halved up to `backtracks` times, then the
     fit stops; it also stops after a step that moves every parameter by less than `step_tolerance` of its scale;
-    `whitened` says whether the residual's variance is 1 (the intervals' s^2)."""
+    `whitened` says whether the residual's variance is 1 (the intervals' s^2); `trust`, with a prior, bounds each
+    step to that many of each parameter's prior sigmas (a trust region: where the data barely see a direction, a
+    full step along it is decided by the linearisation alone; None: unbounded)."""
 
     iterations: int = 4
     backtracks: int = 2
@@ -228,6 +230,7 @@ class GaussNewtonSettings:
     whitened: bool = True
     extra_iterations: int = 0
     extra_if_drop: float = 0.1
+    trust: float | None = None
 
 
 @dataclass(frozen=True)
@@ -288,7 +291,7 @@ def gauss_newton(
             if hooks.at_noise is not None and hooks.at_noise(state[1]):
                 break
             jac = hooks.jacobian(state[0])
-        delta = linear_step(jac, state[1], state[0], prior)
+        delta = linear_step(jac, state[1], _trusted(state[0], prior, settings.trust), prior)
         if hooks.promising is not None and not hooks.promising(state[1], state[1] - jac @ delta):
             break
         trial = evaluated(state[0].moved(delta))
@@ -312,6 +315,14 @@ def gauss_newton(
             used, start.scale, None if settings.whitened else r, prior.sigma if prior is not None else None
         )
     return Fit(parameters, r, c, used, interval, parameters.at_bound(), evaluations)
+
+
+def _trusted(at: Parameters, prior: Prior | None, trust: float | None) -> Parameters:
+    """`at` with its bounds narrowed to `trust` prior sigmas either side of its values (unchanged without both)."""
+    if prior is None or trust is None:
+        return at
+    reach = trust * prior.sigma
+    return replace(at, lower=np.maximum(at.lower, at.values - reach), upper=np.minimum(at.upper, at.values + reach))
 
 
 def polish(cost: Callable[[np.ndarray], float], start: Parameters, reach: float = 5.0, evaluations: int = 60) -> Fit:

@@ -70,8 +70,12 @@ ROTATION_PARAMETERS = tuple(EffectParameter(f"r{axis}", 0.0, -0.04, 0.04, 1e-3, 
 prior)."""
 DERIVED = (REGISTRATION_ROTATION, JOINT_OFFSET)
 """Nuisances whose sensitivities come by the chain rule from the pose error's (`_derived_columns`), not replays."""
-POSE_STEPS = {"indenter_tilt": 2e-3, "path_slope": 5e-3}
-"""Finite-difference step of each pose error (`TwinModel`; rad, and m per m of depth: 15 um at 3 mm)."""
+POSE_STEPS = {"indenter_tilt": 5e-4, "path_slope": 2e-3}
+"""Finite-difference step of each pose error (`TwinModel`; rad, and m per m of depth: 6 um at 3 mm)."""
+STEPS = {REGISTRATION: 2e-5, "skin_thickness": 0.01, "skin_modulus": 0.01, "indenter_friction": 0.05}
+"""Finite-difference step of each fitted nuisance (m, scale factors): a press's force is far from linear over the
+library's steps (a 0.2 mm registration step: the chain rule's columns 7-68 % off direct ones on the paper-depth
+presses of tests/test_nuisances.py; 1-16 % at 20 um), and the fit must place the indenter to microns."""
 PRIORS = {
     "skin_thickness": 0.1,
     "skin_modulus": 0.1,
@@ -93,6 +97,10 @@ ITERATIONS = 4
 EXTRA_ITERATIONS = 8
 """Iterations past `ITERATIONS` while each step still lowers the cost by a tenth (measured on a realistic null of 31
 presses: four steps took 48.8x the noise to 3.3x, the last still a third lower)."""
+TRUST = 1.0
+"""Prior sigmas a Gauss-Newton step may move each nuisance (`GaussNewtonSettings.trust`): two presses leave most of
+an arm's 13 pose parameters to the prior, and full steps along those directions took the paper-depth presses of
+tests/test_nuisances.py to a registration 3 mm off and a joint 5 sigmas off (6.3x the noise)."""
 BACKTRACKS = 2
 """Halvings of a step that does not lower the cost."""
 REFITS_ON_REACHED = 2
@@ -449,7 +457,8 @@ def _steps(values: NuisanceValues, i: int) -> tuple[float, ...]:
     """Finite-difference steps of slot i to try in turn: forward then backward (backward alone at an upper
     bound), those that stay within its bounds."""
     p = _parameter(values.slots[i])
-    steps = (p.scale, -p.scale) if values.values[i] + p.scale <= p.upper else (-p.scale,)
+    size = STEPS[values.slots[i].effect]
+    steps = (size, -size) if values.values[i] + size <= p.upper else (-size,)
     return tuple(step for step in steps if p.lower <= values.values[i] + step <= p.upper)
 
 
@@ -507,7 +516,7 @@ def _gauss_newton(
         cost=cost,
         on_iteration=lambda i, r: report(f"iteration {i + 1}: RMS {_rms(r):.2f}x the noise"),
     )
-    settings = GaussNewtonSettings(ITERATIONS, BACKTRACKS, extra_iterations=EXTRA_ITERATIONS)
+    settings = GaussNewtonSettings(ITERATIONS, BACKTRACKS, extra_iterations=EXTRA_ITERATIONS, trust=TRUST)
     return gauss_newton(residual, start.parameters, hooks, settings, gaussian)
 
 
