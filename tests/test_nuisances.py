@@ -300,8 +300,9 @@ def test_the_nuisances_are_fitted_on_every_sample_their_values_reach(
     assert sorted((p["trajectory"], p["path"]) for p in pressed) == sorted(
         (t.trajectory_id, "normal" if t.normal else "angled") for t in data.trajectories
     )
-    held = [p["held_out"] for p in pressed]
-    assert held == sorted(held, reverse=True) and min(held) <= fit.heldout_rms <= max(held), (held, fit.heldout_rms)
+    held = [p["held_out_predictive"] for p in pressed]
+    assert held == sorted(held, reverse=True), held
+    assert min(held) <= fit.heldout_predictive_rms <= max(held), (held, fit.heldout_predictive_rms)
     assert all(p["in_sample"] < 1.2 for p in pressed), pressed
     _print_nuisances(fit.to_dict())
     printed = capsys.readouterr().out

@@ -180,6 +180,22 @@ def linear_step(jac: np.ndarray, residual: np.ndarray, at: Parameters, prior: Pr
     return lsq_linear(matrix, target, bounds=bounds).x * at.scale
 
 
+def predictive_whitened(residual: np.ndarray, jac: np.ndarray, precision: np.ndarray) -> np.ndarray:
+    """A held-out `residual` (n,) of unit-variance noise, predicted by a linear fit whose parameters carry the
+    posterior `precision` (k, k: the inverse covariance in the units of jac's (n, k) columns), whitened by its
+    predictive covariance I + jac precision^-1 jac^T (the noise plus what the fit leaves uncertain): for a right
+    model and prior its sum of squares is a chi-square of n degrees. With jac precision^(-1/2) = Q S W^T (thin SVD),
+    (I + Q S^2 Q^T)^(-1/2) = I + Q ((1 + S^2)^(-1/2) - 1) Q^T. Rows with a non-finite entry are left NaN."""
+    out = np.full_like(residual, np.nan)
+    rows = np.isfinite(residual) & np.isfinite(jac).all(axis=1)
+    values, vectors = np.linalg.eigh(precision)
+    spread = jac[rows] @ (vectors / np.sqrt(np.clip(values, 1e-300, None)))
+    q, s, _ = np.linalg.svd(spread, full_matrices=False)
+    r = residual[rows]
+    out[rows] = r + q @ ((1.0 / np.sqrt(1.0 + s**2) - 1.0) * (q.T @ r))
+    return out
+
+
 def reduced(jac: np.ndarray, residual: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """The least-squares problem |residual - jac x|^2 (jac (n, p)) over its rows without a non-finite entry, in
     at most p rows when it has many more: with the thin QR factorisation jac = Q R, |residual - jac x|^2 =

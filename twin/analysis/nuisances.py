@@ -45,7 +45,17 @@ from dataclasses import dataclass, field, replace
 import numpy as np
 
 from twin.analysis.data import CampaignData, TrajectoryRecord
-from twin.analysis.fit import Fit, GaussNewtonHooks, GaussNewtonSettings, Parameters, Prior, gauss_newton, linear_step
+from twin.analysis.fit import (
+    Fit,
+    GaussNewtonHooks,
+    GaussNewtonSettings,
+    Parameters,
+    Prior,
+    gauss_newton,
+    linear_step,
+    predictive_whitened,
+    reduced,
+)
 from twin.analysis.fit import uncertainty as fit_uncertainty
 from twin.analysis.onset import onset_estimate
 from twin.analysis.pose_error import ArmPath, arm_path, pose_error, pose_jacobian
@@ -261,12 +271,13 @@ class NuisanceFit:
     rms_before: float  # the model without nuisances fitted
     rms_after: float
     heldout_rms: float  # each trajectory predicted by the nuisances fitted without it
-    heldout_is_noise: bool
+    heldout_is_noise: bool  # those predictions, whitened by their predictive spread, pass the noise test
     is_noise: bool  # the in-sample residual passes the noise test (fitted parameters counted)
     correlation: list[list[float]]
     at_bound: list[str]
     confounded: dict[str, float] = field(default_factory=dict)  # effect -> fraction in the nuisance span
     heldout_by_trajectory: list[dict] = field(default_factory=list)  # `by_trajectory`: where the held-out test fails
+    heldout_predictive_rms: float | None = None  # the held-out predictions whitened by their predictive spread
 
     def project(self, columns: np.ndarray) -> np.ndarray:
         """Columns (N, k) (or a vector) with their least-squares component on the nuisance signatures
@@ -300,6 +311,7 @@ class NuisanceFit:
             "rms_before": self.rms_before,
             "rms_after": self.rms_after,
             "heldout_rms": self.heldout_rms,
+            "heldout_predictive_rms": self.heldout_predictive_rms,
             "heldout_is_noise": self.heldout_is_noise,
             "is_noise": self.is_noise,
             "correlation": self.correlation,
@@ -339,7 +351,7 @@ def fit_nuisances(
     jac = fitted.jacobian
     if jac is None or not same_samples:
         jac = _jacobian(base, model, predictor, values)
-    heldout = _leave_one_trajectory_out(base, jac, values, prior)
+    heldout, predictive = _leave_one_trajectory_out(base, jac, values, prior)
     return NuisanceFit(
         values,
         base,
@@ -347,18 +359,20 @@ def fit_nuisances(
         _profiled_rms(nominal, nominal.residual.values),
         _profiled_rms(base, base.residual.values),
         _rms(heldout),
-        base.noise_test(heldout, 0).is_noise,
+        base.noise_test(predictive, 0).is_noise,
         base.noise_test(base.residual.values).is_noise,
         _correlation(jac, values),
         list(fitted.at_bound),
-        heldout_by_trajectory=by_trajectory(base, heldout),
+        heldout_by_trajectory=by_trajectory(base, heldout, predictive),
+        heldout_predictive_rms=_rms(predictive),
     )
 
 
-def by_trajectory(base: Base, heldout: np.ndarray) -> list[dict]:
-    """Per trajectory of `base`, worst held out first: its sensor, id, indenter and path ("normal" or "angled"), and
-    the whitened RMS of its residual at the fit ("in_sample") and predicted by the nuisances fitted without it
-    ("held_out"; `heldout`, (N,) in `base`'s sample order); None where none of its samples was predicted."""
+def by_trajectory(base: Base, heldout: np.ndarray, predictive: np.ndarray) -> list[dict]:
+    """Per trajectory of `base`, worst held out first (by its predictive figure): its sensor, id, indenter and path
+    ("normal" or "angled"), and the whitened RMS of its residual at the fit ("in_sample"), predicted by the
+    nuisances fitted without it ("held_out"; `heldout`, (N,) in `base`'s sample order) and that prediction whitened
+    by its predictive spread ("held_out_predictive"; `predictive`); None where none of its samples was predicted."""
     index = base.residual.trajectory_index
 
     def rms(values: np.ndarray) -> float | None:
@@ -372,10 +386,12 @@ def by_trajectory(base: Base, heldout: np.ndarray) -> list[dict]:
             "path": "normal" if t.normal else "angled",
             "in_sample": rms(base.residual.values[index == k]),
             "held_out": rms(heldout[index == k]),
+            "held_out_predictive": rms(predictive[index == k]),
         }
         for k, t in enumerate(base.trajectories)
     ]
-    return sorted(rows, key=lambda row: (row["held_out"] is None, -(row["held_out"] or 0.0)))
+    worst = "held_out_predictive"
+    return sorted(rows, key=lambda row: (row[worst] is None, -(row[worst] or 0.0)))
 
 
 def _shifted(base: Base, model: TwinModel, predictor: Predictor, model_for: ModelFor) -> np.ndarray:
@@ -612,18 +628,25 @@ def _arm_cost(residual: np.ndarray, index: np.ndarray, base: Base, arm: tuple[in
     return float(np.sum(values**2)) if np.isfinite(values).all() else float("inf")
 
 
-def _leave_one_trajectory_out(base: Base, jac: np.ndarray, fitted: NuisanceValues, prior: NuisanceValues) -> np.ndarray:
-    """Each trajectory's residual predicted by the nuisances fitted (linearised at the fit, priors kept)
-    without it (N,)."""
+def _leave_one_trajectory_out(
+    base: Base, jac: np.ndarray, fitted: NuisanceValues, prior: NuisanceValues
+) -> tuple[np.ndarray, np.ndarray]:
+    """Each trajectory's residual predicted by the nuisances fitted (linearised at the fit, priors kept) without it,
+    and that prediction whitened by its predictive spread (`twin.analysis.fit.predictive_whitened`: the noise plus
+    what the other trajectories and the priors leave of the nuisances uncertain), each (N,)."""
     residual = base.residual.values
     index = base.residual.trajectory_index
-    out = np.full_like(residual, np.nan)
+    raw, predictive = np.full_like(residual, np.nan), np.full_like(residual, np.nan)
+    gaussian, scale = _prior(prior), fitted.parameters.scale
     for i in range(len(base.trajectories)):
         test = index == i
-        train_jac = np.where(test[:, None], np.nan, jac)
-        delta = linear_step(train_jac, np.where(test, np.nan, residual), fitted.parameters, _prior(prior))
-        out[test] = residual[test] - jac[test] @ delta
-    return out
+        train_jac, train = np.where(test[:, None], np.nan, jac), np.where(test, np.nan, residual)
+        delta = linear_step(train_jac, train, fitted.parameters, gaussian)
+        raw[test] = residual[test] - jac[test] @ delta
+        matrix = reduced(train_jac * scale, train)[0]
+        precision = matrix.T @ matrix + np.diag((scale / gaussian.sigma) ** 2)
+        predictive[test] = predictive_whitened(raw[test], jac[test] * scale, precision)
+    return raw, predictive
 
 
 def _correlation(jac: np.ndarray, values: NuisanceValues) -> list[list[float]]:

@@ -258,6 +258,9 @@ def large_campaign_hint(
 def _print_nuisances(fit: dict) -> None:
     """The nuisance stage of `twin diagnose --nuisances`: fitted values and the residual before / after."""
     held = "-" if fit["heldout_rms"] is None else f"{fit['heldout_rms']:.2f}"
+    if fit.get("heldout_predictive_rms") is not None:
+        judged = "passes" if fit["heldout_is_noise"] else "fails"
+        held += f"; {fit['heldout_predictive_rms']:.2f} of its predictive spread: {judged} the noise test"
     out_console.print(
         f"nuisances fitted first: RMS {fit['rms_before']:.2f} -> {fit['rms_after']:.2f} x noise (held out {held})"
     )
@@ -269,6 +272,7 @@ def _print_nuisances(fit: dict) -> None:
     if not fit["heldout_is_noise"] and fit["heldout_by_trajectory"]:
         worst = ", ".join(
             f"sensor {t['sensor']} trajectory {t['trajectory']} ({t['indenter']}, {t['path']}) {t['held_out']:.2f}x"
+            f" ({t['held_out_predictive']:.2f} of its spread)"
             for t in fit["heldout_by_trajectory"][:HELDOUT_WORST_SHOWN]
             if t["held_out"] is not None
         )
