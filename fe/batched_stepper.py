@@ -541,7 +541,7 @@ class BatchedStepper:
         clearance = np.full(self.batch, np.inf)
         if self._core_parts is not None:
             clearance = shell.indenter_clearance(self._core_parts, self._core_floor, finished)
-        reach = shell.indenter_skin_clearance(shell.x, self._skin_spacing, self._skin_floor, finished)
+        reach = shell.indenter_skin_clearance(shell.x, self._skin_spacing, self._skin_floor, finished & state.converged)
         forces, balances = self._force_balance(rows, state.pressure[rows])
         contact_areas = pressed_areas(x_rows, gap_rows < 0.0, self.skin.triangles)
         results = {}
