@@ -224,11 +224,10 @@ def test_the_nuisance_model_at_the_plants_own_values_explains_its_campaign(
         assert at_noise == rotation, (rotation, float(np.sqrt(np.nanmean(base.residual.values**2))))
 
 
-@pytest.mark.xfail(reason=SURFACE_CONTACT_NUISANCES, strict=False)
 def test_a_realistic_null_is_nothing_beyond_the_nuisances(
-    realistic_null: Path, predictor: Predictor, capsys: pytest.CaptureFixture[str]
+    deep_paths: Path, predictor: Predictor, capsys: pytest.CaptureFixture[str]
 ) -> None:
-    data = load_campaign(realistic_null)
+    data = load_campaign(deep_paths)
     model = TwinModel(mesh_max_edge=data.mesh_max_edge)
     plain = diagnose([data], model, predictor, candidates=[], top=0)
     assert plain.base_rms > 2.0 * plain.rms_threshold, "the nuisances must show without their fit"
@@ -247,11 +246,8 @@ def test_a_realistic_null_is_nothing_beyond_the_nuisances(
     assert f"{summary['rms_before']:.2f} -> {summary['rms_after']:.2f}" in printed and "fill_volume" in printed
 
 
-@pytest.mark.xfail(reason=SURFACE_CONTACT_NUISANCES, strict=False)
-def test_a_hidden_delay_on_a_realistic_plant_is_named(
-    realistic_null: Path, predictor: Predictor, tmp_path: Path
-) -> None:
-    delayed = load_campaign(apply_ft_delay(realistic_null, tmp_path / "delayed.hdf5", DELAY_SAMPLES))
+def test_a_hidden_delay_on_a_realistic_plant_is_named(deep_paths: Path, predictor: Predictor, tmp_path: Path) -> None:
+    delayed = load_campaign(apply_ft_delay(deep_paths, tmp_path / "delayed.hdf5", DELAY_SAMPLES))
     model = TwinModel(mesh_max_edge=delayed.mesh_max_edge)
     found = diagnose([delayed], model, predictor, CANDIDATES, top=1, nuisances=True)
     assert found.verdict == "time_delay", found.reason

@@ -7,16 +7,21 @@ spread; the paper calibrates t_s, mu_NH and mu_fr per sensor). These are fitted 
 calibrates them, and diagnosis then ranks candidate effects on what remains:
 
 - `registration_offset` (dx, dy, dz; m, biotac frame) per (sensor, arm): the arms are registered apart;
+- `registration_rotation` (rx, ry, rz; rad, biotac frame, about its origin) per (sensor, arm): the rest of the
+  registration's rigid error;
 - `joint_offset` (q1..q7; rad) per (sensor, arm): the arm's joint zero offsets against its kinematic model. They
-  move the tool tip by an amount that depends on the arm's pose, so presses of one arm in different poses (a
+  move the tool by an amount that depends on the arm's pose, so presses of one arm in different poses (a
   normal and a 30-degree press at one point) are off by different amounts, which one offset per arm cannot
-  take (measured: 0.29 mm apart on the realistic plant of tests/test_nuisances.py, predicted to 3 um by the
-  first-order displacement below). Each trajectory's path moves by its arm's registration offset plus
-  J_k q (`tip_sensitivity`: the tip's linear Jacobian at the trajectory's mean joint reading, in the biotac
-  frame through the estimated registration). Their sensitivities cost no replay: a trajectory's prediction
-  depends on its own path offset only, so the registration offset's columns, split by trajectory and
-  multiplied by J_k, are the joint offsets' columns (chain rule). Row-only files have no joint readings and
-  get the registration offset alone;
+  take (measured: 0.29 mm apart on the realistic plant of tests/test_nuisances.py). The registration rotation and
+  the joint offsets act through each trajectory's pose error (`twin.analysis.pose_error`, exact kinematics at its
+  joint readings): the tip where the commanded depth is zero moves (on top of the registration offset), the press
+  turns and stretches (`TwinModel.path_slope`) and the indenter tilts (`TwinModel.indenter_tilt`); at the plant's
+  own values they leave a realistic null's 31 presses at the noise (0.998x; 1.53x with the tips moved but the
+  indenter neither tilted nor the press turned, docs/analysis.md). Their sensitivities cost six replay sets (the
+  pose errors' three tilts and three slopes, every trajectory at once): a trajectory's prediction depends on its
+  own pose only, so its rows of the registration offset's and the pose errors' columns, times the pose error's
+  derivatives (`pose_jacobian`), are theirs (chain rule). Row-only files have no joint readings and get the
+  registration offset alone;
 - `skin_thickness`, `skin_modulus`, `indenter_friction` (scale factors) per sensor.
 
 The F/T bias is removed by taring and each trajectory's channel offsets are projected out of the
@@ -25,16 +30,20 @@ mount's pose is what registration measures (its holes); what registration gets w
 per-arm offset.
 
 The fit is damped Gauss-Newton on the whitened residual with a Gaussian prior on each nuisance about the model's own
-value (`PRIORS`, wide: about twice the spread a real campaign shows), finite-difference sensitivities (a
-registration column replays only that arm's trajectories), started from each arm's best registration start (its
+value (`PRIORS`, wide: about twice the spread a real campaign shows) and each step within a prior sigma (`TRUST`),
+finite-difference sensitivities of microns (`STEPS`; a registration column replays only that arm's trajectories),
+started from each arm's best registration start (its
 contact-onset estimate, `REGISTRATION_STARTS` or the model's values) because a large offset is nonlinear, and, when
 the result is not yet at the noise, the registration starts tried again about the fit. A
 fit is judged on the samples its residual's replays reached; when its values reach more (a nominal model pressing
 deeper than the plant may stop where its fe does not converge), it is taken again on the residual at those values,
 so no sample the fitted model predicts is left out of the fit. Whether the nuisances explain the data is judged held
-out: each trajectory is predicted by the nuisances fitted (linearised at the fit) without it. Which candidate
-effects the campaign cannot tell apart from the nuisances is the fraction of each effect's signature that lies in
-the span of the nuisances' signatures (`confounded`).
+out: each trajectory is predicted by the nuisances fitted (linearised at the fit) without it, and that prediction is
+whitened by its predictive spread, the noise plus what the other trajectories and the priors leave of the nuisances
+uncertain (at 0.01 N of noise against Newtons of force, no campaign fixes an arm's pose well enough for the raw
+prediction to be noise; a press that the others predict worse than their uncertainty allows still fails). Which
+candidate effects the campaign cannot tell apart from the nuisances is the fraction of each effect's signature that
+lies in the span of the nuisances' signatures (`confounded`).
 """
 
 from __future__ import annotations
@@ -70,7 +79,7 @@ SKIN_NUISANCES = ("skin_thickness", "skin_modulus", "indenter_friction")
 NUISANCE_EFFECTS = (*SKIN_NUISANCES, REGISTRATION)
 """Library effects the nuisance stage fits; diagnosis does not offer them as missing effects."""
 JOINT_OFFSET = "joint_offset"
-"""The nuisance of an arm's joint zero offsets (not a library effect: it acts through `tip_sensitivity`)."""
+"""The nuisance of an arm's joint zero offsets (not a library effect: it acts through the pose error)."""
 JOINT_PARAMETERS = tuple(EffectParameter(f"q{j + 1}", 0.0, -0.01, 0.01, 1e-3, "rad") for j in range(N_JOINTS))
 """The joint offsets' parameters, chain order (bounds: 5x the prior)."""
 REGISTRATION_ROTATION = "registration_rotation"
