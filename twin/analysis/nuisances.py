@@ -126,6 +126,9 @@ REFITS_ON_REACHED = 2
 """Times the fit is taken again, from its values and on the residual they reach, when those values reach samples
 the residual it was fitted on did not (a replay that stopped early, e.g. a nominal model pressing too deep for its
 fe to converge, leaves the rest of its trajectory out of that fit's chi-square)."""
+REACHED_MORE = 1e-3
+"""Fraction of the data's samples the fitted values must reach besides those fitted on to be fitted again (the 46-press
+GPU fit refitted for one sample more: a sensitivity wave and steps for nothing, docs/scale.md session 30)."""
 USABLE_ROWS = 0.9
 """A sensitivity column whose replay reached fewer than this fraction of the samples is not used."""
 CONFOUNDED_FRACTION = 0.9
@@ -352,7 +355,7 @@ def fit_nuisances(
             fitted = min(fitted, again, key=lambda f: f.cost)
         values = prior.at(fitted.parameters)
         base = base_residual(datasets, model, predictor, values.model_for, len(slots), nominal.sigma)
-        if base.reached <= fitted_on.reached or refits == REFITS_ON_REACHED:
+        if base.reached - fitted_on.reached <= REACHED_MORE * base.samples or refits == REFITS_ON_REACHED:
             break
         report(f"fitted again on the {base.reached - fitted_on.reached} samples its values reach besides")
         fitted_on, start = base, values
