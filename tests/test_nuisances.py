@@ -4,10 +4,11 @@ sought; a null ends "nothing beyond the nuisances" and a hidden effect is still 
 The plant is this repository's default realistic one (`make_plant` defaults: 5 % unit-to-unit skin
 spread, 10 % friction, simulated registration with the arms' joint offsets, mount placement error, F/T
 bias), on the tiny campaign of `conftest.tiny_campaign_file` (sensor 2, sphere_medium, one normal and
-one angled path on one arm). The hidden effect, a stream delay of whole samples, is applied to the null
-campaign's raw F/T streams by `effect_generator`, code apart from the plant and the analysis. The
-contact-onset estimate of a registration offset (`twin.analysis.onset`) is checked on the paths of a deeper
-variant (1.5 mm normal, 1.0 mm angled) measured by the model itself with a known 1.0 mm offset.
+one angled path on one arm) pressed 1.5 mm (normal) and 1.0 mm (angled), past the plant's registration error (at
+the tiny campaign's own 0.4 / 0.2 mm its indenter never touches this plant's skin, and no effect of the force can
+show). The hidden effect, a stream delay of whole samples, is applied to the null campaign's raw F/T streams by
+`effect_generator`, code apart from the plant and the analysis. The contact-onset estimate of a registration offset
+(`twin.analysis.onset`) is checked on the same paths measured by the model itself with a known 1.0 mm offset.
 """
 
 from dataclasses import replace
@@ -50,21 +51,13 @@ CANDIDATES = ["fill_volume", "skin_stiffening", "time_delay", "ft_drift", "ft_ga
 """Two physics effects (each an fe replay set per parameter) and the F/T chain's (none), to keep the test short."""
 
 
-SURFACE_CONTACT_NUISANCES = (
-    "since the indenter contact is integrated over the skin triangles (session 11, merge 12a8146) the plant's "
-    "indenter never touches its skin in this campaign: its registration error leaves the deepest true pose 0.03 mm "
-    "(normal) and 0.02 mm (angled) past the touch point, and both trajectories' forces are noise (0.99-1.17x); the "
-    "vertex contact's 0.12 mm deeper depth zero gave the normal press a 0.05 N graze, which the old pass rested on. "
-    "With no contact the skin nuisances are unconstrained (the fit ends at its bounds, 1.22x held out) and a delay "
-    "is unobservable; the campaign must press past the registration error (docs/analysis.md). Pressed past it "
-    "(1.5 mm normal, 1.0 mm angled; 2026-11-27, with the contact-onset start) both paths touch but the per-arm "
-    "translation and skin scales stop at 1.38x in sample, 2.34x held out (offset (-1.82, +0.64, +1.30) mm, "
-    "friction x1.63), 385 s a test: a translation per arm does not take this plant's registration. With each arm's "
-    "joint offsets as nuisances (session 15) the deeper campaign reaches 1.02x in sample but 2.39x held out (ten "
-    "registration parameters per arm are not determined by two presses; twelve presses of one arm, session 29: "
-    "1.047x in sample with the plant's skin to 0.1 %, 2.19x held out); open defect"
+DELAY_RANKED_LAST = (
+    "the nuisances (pose error and skin, session 30) take the delayed presses to 1.99x the noise, and the delay is "
+    "what the residual holds (its held-out screen 1.49x, the best of the six; its signature 1 % in the nuisances' "
+    "span), but its linearised fit after the nuisance projection raises the chi-square (evidence -1030), so it ranks "
+    "last and the top-1 refit is ft_drift's: unexplained (docs/analysis.md); open defect"
 )
-"""Why the two realistic-plant cases are expected failures for now (measured; see docs/analysis.md)."""
+"""Why the hidden delay on a realistic plant is an expected failure for now (measured)."""
 
 
 KNOWN_OFFSET = {"dx": 0.62e-3, "dy": -0.78e-3, "dz": 0.13e-3}
@@ -74,11 +67,6 @@ KNOWN_OFFSET = {"dx": 0.62e-3, "dy": -0.78e-3, "dz": 0.13e-3}
 @pytest.fixture(scope="module")
 def predictor() -> Predictor:
     return Predictor()
-
-
-@pytest.fixture(scope="module")
-def realistic_null(tmp_path_factory: pytest.TempPathFactory) -> Path:
-    return tiny_campaign_file(tmp_path_factory.mktemp("realistic"), make_plant([2], SEED))
 
 
 @pytest.fixture(scope="module")
@@ -227,6 +215,9 @@ def test_the_nuisance_model_at_the_plants_own_values_explains_its_campaign(
 def test_a_realistic_null_is_nothing_beyond_the_nuisances(
     deep_paths: Path, predictor: Predictor, capsys: pytest.CaptureFixture[str]
 ) -> None:
+    """The two presses of the realistic plant, nothing hidden: far from the noise without the nuisances, at it with
+    them (in sample, and held out by the predictive spread: two presses leave most of the arm's pose to the priors),
+    so the verdict is "nothing beyond the nuisances"; what the campaign cannot tell from them is said."""
     data = load_campaign(deep_paths)
     model = TwinModel(mesh_max_edge=data.mesh_max_edge)
     plain = diagnose([data], model, predictor, candidates=[], top=0)
@@ -246,6 +237,7 @@ def test_a_realistic_null_is_nothing_beyond_the_nuisances(
     assert f"{summary['rms_before']:.2f} -> {summary['rms_after']:.2f}" in printed and "fill_volume" in printed
 
 
+@pytest.mark.xfail(reason=DELAY_RANKED_LAST, strict=False)
 def test_a_hidden_delay_on_a_realistic_plant_is_named(deep_paths: Path, predictor: Predictor, tmp_path: Path) -> None:
     delayed = load_campaign(apply_ft_delay(deep_paths, tmp_path / "delayed.hdf5", DELAY_SAMPLES))
     model = TwinModel(mesh_max_edge=delayed.mesh_max_edge)
