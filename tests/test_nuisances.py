@@ -281,9 +281,10 @@ def test_the_nuisances_are_fitted_on_every_sample_their_values_reach(
     ):
         expected = getattr(truth, field) / getattr(nominal_skin, field)
         assert values[f"sensor 2 {effect}.scale"] == pytest.approx(expected, rel=tolerance), (effect, values)
-    # Two presses cannot fix the arm's registration: held out, each is predicted from the other alone (48.6x in
-    # session 28). Which press fails is said per trajectory, worst first, and printed.
-    assert not fit.heldout_is_noise, fit.heldout_rms
+    # Two presses cannot fix the arm's pose: each predicted from the other alone is far off (140x, session 30), but
+    # within what the other leaves uncertain (its predictive spread: 1.00x), which is what the held-out test asks.
+    # Which press fails is said per trajectory, worst first, and printed.
+    assert fit.heldout_rms > 10.0 and fit.heldout_is_noise, (fit.heldout_rms, fit.heldout_predictive_rms)
     pressed = fit.heldout_by_trajectory
     assert sorted((p["trajectory"], p["path"]) for p in pressed) == sorted(
         (t.trajectory_id, "normal" if t.normal else "angled") for t in data.trajectories
@@ -293,6 +294,10 @@ def test_the_nuisances_are_fitted_on_every_sample_their_values_reach(
     assert min(held) <= fit.heldout_predictive_rms <= max(held), (held, fit.heldout_predictive_rms)
     assert all(p["in_sample"] < 1.2 for p in pressed), pressed
     _print_nuisances(fit.to_dict())
+    printed = capsys.readouterr().out
+    said = f"held out {fit.heldout_rms:.2f}; {fit.heldout_predictive_rms:.2f} of its"
+    assert said in printed and "passes the noise test" in printed, printed
+    _print_nuisances({**fit.to_dict(), "heldout_is_noise": False})  # as a fit that does not hold out prints it
     printed = capsys.readouterr().out
     worst = pressed[0]
     said = f"trajectory {worst['trajectory']} ({worst['indenter']}, {worst['path']}) {worst['held_out']:.2f}x"
