@@ -293,12 +293,16 @@ class NuisanceFit:
 
     def project(self, columns: np.ndarray) -> np.ndarray:
         """Columns (N, k) (or a vector) with their least-squares component on the nuisance signatures
-        removed (rows with a NaN anywhere are left NaN): what a joint refit with the nuisances leaves."""
+        removed in the chi-square's metric (its squares plus the PDC gains' prior cost, `GainNuisance.penalty_rows`;
+        rows with a NaN anywhere are left NaN): what a joint refit with the nuisances leaves."""
         matrix = np.asarray(columns, dtype=float)
         flat = matrix.reshape(len(matrix), -1)
         rows = np.isfinite(flat).all(axis=1) & np.isfinite(self.jacobian).all(axis=1)
         out = np.full_like(flat, np.nan)
-        coefficients = np.linalg.lstsq(self.jacobian[rows], flat[rows], rcond=1e-10)[0]
+        jac, target = np.where(rows[:, None], self.jacobian, 0.0), np.where(rows[:, None], flat, 0.0)
+        penalty = self.base.nuisance.penalty_rows
+        system = np.vstack([jac[rows], penalty(jac)]), np.vstack([target[rows], penalty(target)])
+        coefficients = np.linalg.lstsq(*system, rcond=1e-10)[0]
         out[rows] = flat[rows] - self.jacobian[rows] @ coefficients
         return out.reshape(matrix.shape)
 

@@ -112,6 +112,13 @@ class GainNuisance:
         """Profiled chi-square of a projected whitened residual: its squares plus the gains' prior cost."""
         return float(np.nansum(projected**2)) + self.penalty(projected)
 
+    def penalty_rows(self, columns: np.ndarray) -> np.ndarray:
+        """(G, k): the rows that `penalty` adds to a least-squares problem in columns (N, k) (NaN counted as 0):
+        |v|^2 + |penalty_rows(v)|^2 is `chi2(v)`, so a fit with them is a fit in the chi-square's own metric."""
+        values = np.nan_to_num(np.asarray(columns, dtype=float).reshape(len(columns), -1))
+        rows = [PDC_GAIN_PRIOR * n @ values[index] for index, n, _ in self._groups]
+        return np.array(rows).reshape(-1, values.shape[1])
+
     def project(self, values: np.ndarray) -> np.ndarray:
         """The vector (N,) or the columns of (N, k) with the gain directions profiled out."""
         out = np.array(values, dtype=float)
