@@ -186,7 +186,8 @@ def diagnose(
     come close to the best's (`twin.analysis.verdict.to_refit`).
     With `nuisances`, the standard unknowns of a real campaign (`twin.analysis.nuisances`: registration
     per arm, skin per sensor) are fitted first, candidates are ranked on what remains (their signatures
-    less what the nuisances can absorb) and are never the nuisance effects themselves.
+    less what the nuisances can absorb) and are never the nuisance effects themselves; when none is named, the
+    closest is fitted again jointly with the nuisances (`named_jointly`).
     on_progress(stage, effect) is called before each candidate is scored ("evidence"; every candidate's
     sensitivity is solved first, their replays batched, `sensitivities`) and refitted
     ("refit"), and with ("nuisances", what) during the nuisance fit.
@@ -349,6 +350,10 @@ def diagnose(
     ordered = order_candidates([c for c, _ in ranked])
     threshold = base_test.rms_threshold
     outcome, reason, tied = verdict(base_rms, is_noise, threshold, ordered, fitted is not None)
+    if fitted is not None and outcome == "unexplained":  # the closest found about nuisances fitted without it
+        jointly = named_jointly(datasets, model, predictor, ordered, cannot_tell, report)
+        if jointly is not None:
+            outcome, reason, tied = jointly
     if outcome in ("nothing", NOTHING_BEYOND_NUISANCES):  # a residual at the noise rests on the model's own fits
         unheld = [c for c in judge_model_effects(model, predictor, base) if c.heldout_is_noise is False]
         if unheld:
@@ -384,6 +389,39 @@ def diagnose(
         rank_mesh,
         samples,
     )
+
+
+def named_jointly(
+    datasets: list[CampaignData],
+    model: TwinModel,
+    predictor: Predictor,
+    ordered: list[Candidate],
+    cannot_tell: set[str],
+    report: Callable[[str, str], None],
+) -> tuple[str, str, list] | None:
+    """With the nuisances fitted first, the closest refitted candidate that they can be told from is fitted again
+    jointly with them (`fit_nuisances(..., jointly=...)`, from its refit): the nuisances were fitted with its effect in
+    the data and may have taken part of it (a delay during a constant-speed press looks like a depth offset), which
+    biases its refit about them. (its name, the reason, no ties) when the joint fit reaches the noise in sample (its
+    parameters counted) and held out (each trajectory predicted by the nuisances and the effect fitted without it,
+    whitened by its predictive spread); its refit parameters become the joint fit's. None otherwise."""
+    lead = next((c for c in ordered if c.refitted and c.identifiable and c.name not in cannot_tell), None)
+    if lead is None or not lead.refit_parameters:
+        return None
+    report("nuisances", f"{lead.name} fitted jointly with them")
+    start = model.with_effects({lead.name: lead.refit_parameters})
+    joint = fit_nuisances(datasets, start, predictor, lambda text: report("nuisances", text), (lead.name,))
+    if not (joint.is_noise and joint.heldout_is_noise):
+        return None
+    values = joint.values.as_dict()
+    lead.refit_parameters = {name: values[f"{lead.name}.{name}"] for name in lead.refit_parameters}
+    bound = [label for label in joint.at_bound if label.startswith(f"{lead.name}.")]
+    reason = (
+        f"fitted jointly with the nuisances (fitted without it, they took part of it), {lead.name} brings the residual "
+        f"to the noise: {joint.rms_after:.2f}x in sample, held out {joint.heldout_predictive_rms:.2f}x of its "
+        f"predictive spread ({joint.heldout_rms:.2f}x raw)" + (f"; {', '.join(bound)} at a bound" if bound else "")
+    )
+    return lead.name, reason, []
 
 
 def ranking_base(

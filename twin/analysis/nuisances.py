@@ -138,22 +138,25 @@ signatures cannot be told apart from them on this campaign."""
 
 @dataclass(frozen=True)
 class Slot:
-    """One fitted nuisance parameter: an effect's parameter for one sensor (skin) or one (sensor, arm)."""
+    """One fitted nuisance parameter: an effect's parameter for one sensor (skin) or one (sensor, arm), or, for an
+    effect fitted jointly with the nuisances, for every trajectory (sensor None)."""
 
     effect: str
     parameter: str
-    sensor: int
+    sensor: int | None  # None: every sensor (an effect fitted jointly)
     arm: str | None  # None: every arm of the sensor (skin nuisances)
 
     @property
     def label(self) -> str:
-        """`sensor 2 left registration_offset.dx` style name."""
+        """`sensor 2 left registration_offset.dx` style name (`time_delay.seconds` for an effect fitted jointly)."""
+        if self.sensor is None:
+            return f"{self.effect}.{self.parameter}"
         where = f"sensor {self.sensor}" + (f" {self.arm}" if self.arm else "")
         return f"{where} {self.effect}.{self.parameter}"
 
     def applies(self, trajectory: TrajectoryRecord) -> bool:
         """Whether this parameter acts on `trajectory`."""
-        return trajectory.sensor_id == self.sensor and self.arm in (None, trajectory.arm)
+        return self.sensor in (None, trajectory.sensor_id) and self.arm in (None, trajectory.arm)
 
 
 @dataclass(frozen=True)
@@ -239,8 +242,12 @@ def _index(slot: Slot) -> int:
 
 def _prior(values: NuisanceValues) -> Prior:
     """The Gaussian prior about `values`: 1 sigma in each parameter's units (a relative prior times the off
-    value for scale factors)."""
-    sigma = [PRIORS[s.effect] * (_parameter(s).off or 1.0) for s in values.slots]
+    value for scale factors; an effect fitted jointly: its range)."""
+    parameters = [_parameter(s) for s in values.slots]
+    sigma = [  # an effect fitted jointly: as wide as its range
+        PRIORS[s.effect] * (p.off or 1.0) if s.effect in PRIORS else p.upper - p.lower
+        for s, p in zip(values.slots, parameters, strict=True)
+    ]
     return Prior(np.array(values.values), np.array(sigma))
 
 
@@ -257,9 +264,10 @@ def model_values(slots: tuple[Slot, ...], model: TwinModel) -> NuisanceValues:
     )
 
 
-def nuisance_slots(trajectories: list[TrajectoryRecord]) -> tuple[Slot, ...]:
+def nuisance_slots(trajectories: list[TrajectoryRecord], jointly: tuple[str, ...] = ()) -> tuple[Slot, ...]:
     """The slots a campaign has: skin scales per sensor, registration offsets per (sensor, arm) used, and that
-    arm's joint offsets where every one of its trajectories has joint readings (not a row-only file)."""
+    arm's registration rotation and joint offsets where every one of its trajectories has joint readings (not a
+    row-only file); then the parameters of the library effects `jointly` fitted with them (every trajectory's)."""
     slots = []
     for sensor in sorted({t.sensor_id for t in trajectories}):
         for effect in SKIN_NUISANCES:
@@ -269,6 +277,7 @@ def nuisance_slots(trajectories: list[TrajectoryRecord]) -> tuple[Slot, ...]:
             if not any(t.rows_only for t in trajectories if (t.sensor_id, t.arm) == (sensor, arm)):
                 slots += [Slot(REGISTRATION_ROTATION, p.name, sensor, arm) for p in ROTATION_PARAMETERS]
                 slots += [Slot(JOINT_OFFSET, p.name, sensor, arm) for p in JOINT_PARAMETERS]
+    slots += [Slot(effect, p.name, None, None) for effect in jointly for p in EFFECTS[effect].parameters]
     return tuple(slots)
 
 
@@ -343,10 +352,13 @@ def fit_nuisances(
     model: TwinModel,
     predictor: Predictor,
     report: Callable[[str], None] = lambda _: None,
+    jointly: tuple[str, ...] = (),
 ) -> NuisanceFit:
-    """Fit the nuisances of `datasets` about `model` (see the module docstring)."""
+    """Fit the nuisances of `datasets` about `model` (see the module docstring), and with them the library effects
+    `jointly` (from `model`'s values of them, with priors as wide as their ranges): a missing effect found about
+    nuisances that were fitted without it, refitted with them."""
     nominal = base_residual(datasets, model, predictor)
-    slots = nuisance_slots(nominal.trajectories)
+    slots = nuisance_slots(nominal.trajectories, jointly)
     prior = model_values(slots, model)
     report("registration starts")  # each arm from its contact onsets first: most of a realistic misfit is registration
     fitted_on, start = nominal, _best_starts(nominal, model, predictor, prior, nominal.residual.values)
@@ -489,7 +501,7 @@ def _steps(values: NuisanceValues, i: int) -> tuple[float, ...]:
     """Finite-difference steps of slot i to try in turn: forward then backward (backward alone at an upper
     bound), those that stay within its bounds."""
     p = _parameter(values.slots[i])
-    size = STEPS[values.slots[i].effect]
+    size = STEPS.get(values.slots[i].effect, p.scale)  # an effect fitted jointly: its library step
     steps = (size, -size) if values.values[i] + size <= p.upper else (-size,)
     return tuple(step for step in steps if p.lower <= values.values[i] + step <= p.upper)
 
