@@ -221,7 +221,7 @@ def _job(skin: int, events: int, mesh: float = 2e-3) -> predict._ReplayJob:
     `_device_shares` read is real)."""
     times = (np.zeros(events), np.zeros(events))
     key = ((skin,), mesh, "thickness")
-    plan = predict._ReplayPlan(key, np.zeros((events, 3)), times, False, np.ones(events, bool), 1.0)
+    plan = predict._ReplayPlan(key, np.zeros((events, 3)), np.eye(3), times, False, np.ones(events, bool), 1.0)
     return predict._ReplayJob(SkinParameters(), mesh, "thickness", "sphere_small", np.eye(3), plan)
 
 

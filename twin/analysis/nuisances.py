@@ -32,18 +32,17 @@ per-arm offset.
 The fit is damped Gauss-Newton on the whitened residual with a Gaussian prior on each nuisance about the model's own
 value (`PRIORS`, wide: about twice the spread a real campaign shows) and each step within a prior sigma (`TRUST`),
 finite-difference sensitivities of microns (`STEPS`; a registration column replays only that arm's trajectories),
-started from each arm's best registration start (its
-contact-onset estimate, `REGISTRATION_STARTS` or the model's values) because a large offset is nonlinear, and, when
-the result is not yet at the noise, the registration starts tried again about the fit. A
-fit is judged on the samples its residual's replays reached; when its values reach more (a nominal model pressing
-deeper than the plant may stop where its fe does not converge), it is taken again on the residual at those values,
-so no sample the fitted model predicts is left out of the fit. Whether the nuisances explain the data is judged held
-out: each trajectory is predicted by the nuisances fitted (linearised at the fit) without it, and that prediction is
-whitened by its predictive spread, the noise plus what the other trajectories and the priors leave of the nuisances
-uncertain (at 0.01 N of noise against Newtons of force, no campaign fixes an arm's pose well enough for the raw
-prediction to be noise; a press that the others predict worse than their uncertainty allows still fails). Which
-candidate effects the campaign cannot tell apart from the nuisances is the fraction of each effect's signature that
-lies in the span of the nuisances' signatures (`confounded`).
+started from each arm's best registration start (its contact-onset estimate, `REGISTRATION_STARTS` or the model's
+values) because a large offset is nonlinear, and, when the result is not yet at the noise, the registration starts
+tried again about the fit. A fit is judged on the samples its residual's replays reached; when its values reach more
+(a nominal model pressing deeper than the plant may stop where its fe does not converge), it is taken again on the
+residual at those values, so no sample the fitted model predicts is left out of the fit. Whether the nuisances
+explain the data is judged held out: each trajectory is predicted by the nuisances fitted (linearised at the fit)
+without it, and that prediction is whitened by its predictive spread, the noise plus what the other trajectories and
+the priors leave of the nuisances uncertain (at 0.01 N of noise against Newtons of force, no campaign fixes an arm's
+pose well enough for the raw prediction to be noise; a press that the others predict worse than their uncertainty
+allows still fails). Which candidate effects the campaign cannot tell apart from the nuisances is the fraction of
+each effect's signature that lies in the span of the nuisances' signatures (`confounded`).
 """
 
 from __future__ import annotations
