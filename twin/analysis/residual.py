@@ -106,7 +106,7 @@ class GainNuisance:
         """Prior cost sum (g / prior)^2 of the gains profiled out of a projected residual (N,).
 
         For the projected vector v = P r, n.v = prior^-2 g, so the cost is (n.v)^2 prior^2."""
-        return float(sum(np.nansum(n * projected[index]) ** 2 * PDC_GAIN_PRIOR**2 for index, n, _ in self._groups))
+        return float(np.sum(self.penalty_rows(projected) ** 2))
 
     def chi2(self, projected: np.ndarray) -> float:
         """Profiled chi-square of a projected whitened residual: its squares plus the gains' prior cost."""
