@@ -238,7 +238,9 @@ def _realistic(out: Path, seeds: list[int], names: list[str], jobs: int) -> list
     plants = sorted({(seed, NONE if name in GENERATED else name) for seed in seeds for name in names})
     cases = []
     with ProcessPoolExecutor(jobs, mp_context=multiprocessing.get_context("spawn")) as pool:
-        list(pool.map(partial(_realistic_campaign, out), [name for _, name in plants], [seed for seed, _ in plants]))
+        made = pool.map(partial(_realistic_campaign, out), [name for _, name in plants], [seed for seed, _ in plants])
+        for (seed, name), _ in zip(plants, made, strict=True):
+            print(f"campaign of seed {seed}'s realistic plant with {name} made", flush=True)
         workers = max(1, usable_cpus() // jobs)
         runs = [pool.submit(_realistic_case, out, name, seed, workers) for name in names for seed in seeds]
         for run in as_completed(runs):
