@@ -186,7 +186,8 @@ def _diagnosed(path: Path, seed: int, hidden: str, sizes: dict, predictor: Predi
     names = [c.name for c in diagnosis.candidates]
     first = diagnosis.candidates[0] if names else None
     named = first is not None and diagnosis.verdict in (first.name, "ambiguous")
-    stage = diagnosis.nuisances or {}
+    stage, joint = diagnosis.nuisances or {}, diagnosis.jointly or {}
+    jointly = joint.get("named", False)  # named by its fit jointly with the nuisances: that fit's figures
     return {
         "seed": seed,
         "hidden": hidden,
@@ -197,9 +198,10 @@ def _diagnosed(path: Path, seed: int, hidden: str, sizes: dict, predictor: Predi
         "fitted": first.refit_parameters if named else None,
         "rms_before": diagnosis.base_rms,
         "noise_rms_threshold": diagnosis.rms_threshold,
-        "rms_after": first.refit_rms if named else None,
-        "heldout_rms": first.heldout_rms if named else None,
+        "rms_after": joint["rms_after"] if jointly else first.refit_rms if named else None,
+        "heldout_rms": joint["heldout_predictive_rms"] if jointly else first.heldout_rms if named else None,
         **{f"nuisances_{k}": stage.get(k) for k in ("rms_before", "rms_after", "heldout_predictive_rms")},
+        "jointly": {k: joint[k] for k in ("effect", "named", "rms_after", "heldout_predictive_rms")} if joint else None,
         "cannot_tell_apart": stage.get("cannot_tell_apart"),
         "seconds": {"total": time.perf_counter() - start},
         "reason": diagnosis.reason,

@@ -37,7 +37,7 @@ from twin.analysis.residual import base_residual
 from twin.analysis.sensitivity import linearise
 from twin.analysis.verdict import NOTHING_BEYOND_NUISANCES, Candidate
 from twin.campaign import CampaignConfig, true_biotac_pose
-from twin.cli.loop import _print_nuisances
+from twin.cli.loop import _print_diagnosis, _print_nuisances
 from twin.effects import EFFECTS, REGISTRATION
 from twin.kinematics import forward, rotation_log
 from twin.label_truth import true_tip_locations
@@ -228,7 +228,9 @@ def test_a_realistic_null_is_nothing_beyond_the_nuisances(
     assert f"{summary['rms_before']:.2f} -> {summary['rms_after']:.2f}" in printed and "fill_volume" in printed
 
 
-def test_a_hidden_delay_on_a_realistic_plant_is_named(deep_paths: Path, predictor: Predictor, tmp_path: Path) -> None:
+def test_a_hidden_delay_on_a_realistic_plant_is_named(
+    deep_paths: Path, predictor: Predictor, tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
     """An 80 ms delay on the realistic plant's two presses: the nuisances, fitted with it in the data, take part of it
     (10.6x -> 1.99x; a delay during a constant-speed press looks like a depth offset), the delay ranks first about
     them, and refitted jointly with them it brings the residual to the noise in sample and held out: named, its
@@ -241,6 +243,13 @@ def test_a_hidden_delay_on_a_realistic_plant_is_named(deep_paths: Path, predicto
     rate = delayed.trajectories[0].rate_hz
     assert seconds == pytest.approx(DELAY_SAMPLES / rate, abs=0.01)
     assert np.isfinite(found.nuisances["rms_after"]) and found.nuisances["rms_after"] > found.rms_threshold
+    joint = found.to_dict()["jointly"]  # the joint fit's own figures, as `twin diagnose --json` gives them
+    assert joint["effect"] == "time_delay" and joint["named"], joint
+    assert joint["is_noise"] and joint["heldout_is_noise"] and joint["rms_after"] <= found.rms_threshold, joint
+    assert joint["values"]["time_delay.seconds"] == seconds
+    _print_diagnosis(found, model.mesh_max_edge)  # what `twin diagnose --nuisances` prints
+    printed = capsys.readouterr().out
+    assert f"time_delay, fitted jointly with the nuisances: RMS {joint['rms_after']:.2f}" in printed, printed
 
 
 @pytest.fixture(scope="module")

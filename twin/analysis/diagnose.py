@@ -98,6 +98,7 @@ class Diagnosis:
     sampled: dict | None = None  # the trajectories diagnosed (`subset.RankedOn`), every stage; None: all
     ranked_mesh: float | None = None  # fe mesh (m) the candidates were ranked and refitted on; None: the model's
     samples: dict | None = None  # {"reached": residual samples the base model's replays reached, "of": the data's}
+    jointly: dict | None = None  # the closest candidate fitted jointly with the nuisances (`named_jointly`) when it ran
 
     def to_dict(self) -> dict:
         """JSON-ready form (the `twin diagnose --json` shape)."""
@@ -114,6 +115,7 @@ class Diagnosis:
             "sampled": self.sampled,
             "ranked_mesh_mm": None if self.ranked_mesh is None else 1e3 * self.ranked_mesh,
             "samples": self.samples,
+            "jointly": self.jointly,
         }
 
     def next_step(self) -> Candidate | None:
@@ -350,10 +352,11 @@ def diagnose(
     ordered = order_candidates([c for c, _ in ranked])
     threshold = base_test.rms_threshold
     outcome, reason, tied = verdict(base_rms, is_noise, threshold, ordered, fitted is not None)
+    joint = None
     if fitted is not None and outcome == "unexplained":  # the closest found about nuisances fitted without it
-        jointly = named_jointly(datasets, model, predictor, ordered, cannot_tell, report)
-        if jointly is not None:
-            outcome, reason, tied = jointly
+        joint = named_jointly(datasets, model, predictor, ordered, cannot_tell, report)
+        if joint is not None and joint["named"]:
+            outcome, reason, tied = joint["effect"], joint["reason"], []
     if outcome in ("nothing", NOTHING_BEYOND_NUISANCES):  # a residual at the noise rests on the model's own fits
         unheld = [c for c in judge_model_effects(model, predictor, base) if c.heldout_is_noise is False]
         if unheld:
@@ -388,6 +391,7 @@ def diagnose(
         sampled_on.to_dict() if sampled_on is not None else None,
         rank_mesh,
         samples,
+        joint,
     )
 
 
@@ -398,30 +402,33 @@ def named_jointly(
     ordered: list[Candidate],
     cannot_tell: set[str],
     report: Callable[[str, str], None],
-) -> tuple[str, str, list] | None:
+) -> dict | None:
     """With the nuisances fitted first, the closest refitted candidate that they can be told from is fitted again
     jointly with them (`fit_nuisances(..., jointly=...)`, from its refit): the nuisances were fitted with its effect in
     the data and may have taken part of it (a delay during a constant-speed press looks like a depth offset), which
-    biases its refit about them. (its name, the reason, no ties) when the joint fit reaches the noise in sample (its
-    parameters counted) and held out (each trajectory predicted by the nuisances and the effect fitted without it,
-    whitened by its predictive spread); its refit parameters become the joint fit's. None otherwise."""
+    biases its refit about them. It is named when the joint fit reaches the noise in sample (its parameters counted)
+    and held out (each trajectory predicted by the nuisances and the effect fitted without it, whitened by its
+    predictive spread); its refit parameters then become the joint fit's. The joint fit's summary
+    (`NuisanceFit.to_dict`) with "effect", "named" and the verdict's "reason"; None when no candidate qualifies."""
     lead = next((c for c in ordered if c.refitted and c.identifiable and c.name not in cannot_tell), None)
     if lead is None or not lead.refit_parameters:
         return None
     report("nuisances", f"{lead.name} fitted jointly with them")
     start = model.with_effects({lead.name: lead.refit_parameters})
     joint = fit_nuisances(datasets, start, predictor, lambda text: report("nuisances", text), (lead.name,))
-    if not (joint.is_noise and joint.heldout_is_noise):
-        return None
+    named = bool(joint.is_noise and joint.heldout_is_noise)
+    summary = {"effect": lead.name, "named": named, "reason": None, **joint.to_dict()}
+    if not named:
+        return summary
     values = joint.values.as_dict()
     lead.refit_parameters = {name: values[f"{lead.name}.{name}"] for name in lead.refit_parameters}
     bound = [label for label in joint.at_bound if label.startswith(f"{lead.name}.")]
-    reason = (
+    summary["reason"] = (
         f"fitted jointly with the nuisances (fitted without it, they took part of it), {lead.name} brings the residual "
         f"to the noise: {joint.rms_after:.2f}x in sample, held out {joint.heldout_predictive_rms:.2f}x of its "
         f"predictive spread ({joint.heldout_rms:.2f}x raw)" + (f"; {', '.join(bound)} at a bound" if bound else "")
     )
-    return lead.name, reason, []
+    return summary
 
 
 def ranking_base(

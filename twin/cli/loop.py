@@ -153,18 +153,23 @@ def diagnose(
     if as_json:
         print(result.to_json())
         return
+    _print_diagnosis(result, twin_model.mesh_max_edge)
+
+
+def _print_diagnosis(result: "Diagnosis", mesh_max_edge: float) -> None:
+    """`twin diagnose`'s table, stages and verdict; `mesh_max_edge` (m) the diagnosed model's fe mesh."""
     table = Table("rank", "effect", "kind", "evidence", "explains", "held-out RMS/noise", "refit RMS/noise", "fit")
     for rank, c in enumerate(result.candidates, start=1):
         bound = set(c.at_bound)
         fit = ", ".join(
             f"{k}={v:.4g}{' (at bound)' if k in bound else ''}" for k, v in (c.refit_parameters or c.parameters).items()
         )
-        held = "-" if c.heldout_rms is None else f"{c.heldout_rms:.2f}"
+        held = _figure(c.heldout_rms)
         if c.heldout_is_noise is not None:
             held += " (noise)" if c.heldout_is_noise else " (not noise)"
         if c.heldout_has_power is False:
             held += f"; the base passes it too ({c.heldout_base_rms:.2f})"
-        refit = "-" if c.refit_rms is None else f"{c.refit_rms:.2f}"
+        refit = _figure(c.refit_rms)
         table.add_row(str(rank), c.name, c.kind, f"{c.evidence:.0f}", f"{c.explained_fraction:.0%}", held, refit, fit)
     out_console.print(
         f"residual RMS = {result.base_rms:.2f} x noise (noise test: {result.rms_threshold:.3f} x noise on these data)"
@@ -176,6 +181,13 @@ def diagnose(
         )
     if result.nuisances is not None:
         _print_nuisances(result.nuisances)
+    if (joint := result.jointly) is not None:
+        judged = "named" if joint["named"] else "not the noise"
+        out_console.print(
+            f"the closest, {joint['effect']}, fitted jointly with the nuisances: RMS {joint['rms_after']:.2f} x noise "
+            f"(held out {_figure(joint['heldout_rms'])}; {_figure(joint['heldout_predictive_rms'])} of its predictive "
+            f"spread): {judged}"
+        )
     if (on := result.sampled) is not None:
         out_console.print(
             f"diagnosed on {len(on['trajectories'])} of {on['of']} trajectories (at most {on['per_stratum']} per "
@@ -189,7 +201,7 @@ def diagnose(
     if result.ranked_mesh is not None:
         out_console.print(
             f"candidates ranked and refitted on a {1e3 * result.ranked_mesh:g} mm fe mesh; the held-out judgements "
-            f"about the residual at each fit on the model's ({1e3 * twin_model.mesh_max_edge:g} mm)"
+            f"about the residual at each fit on the model's ({1e3 * mesh_max_edge:g} mm)"
         )
     out_console.print(table)
     out_console.print(f"verdict: [bold]{result.verdict}[/bold] - {result.reason}")
@@ -228,7 +240,7 @@ def _search_in_turn(
         d, fit = turn.diagnosis, turn.fit
         line = f"turn {k}: residual {d.base_rms:.2f} x noise, verdict {d.verdict}"
         if fit is not None:
-            held = "-" if fit.heldout_rms is None else f"{fit.heldout_rms:.2f}"
+            held = _figure(fit.heldout_rms)
             line += f"; added {turn.added} ({turn.via}): {fit.rms_before:.2f} -> {fit.rms_after:.2f} x noise"
             line += f", held out {held}"
         out_console.print(line)
@@ -255,9 +267,14 @@ def large_campaign_hint(
     )
 
 
+def _figure(value: float | None) -> str:
+    """A whitened RMS as printed (- when there is none)."""
+    return "-" if value is None else f"{value:.2f}"
+
+
 def _print_nuisances(fit: dict) -> None:
     """The nuisance stage of `twin diagnose --nuisances`: fitted values and the residual before / after."""
-    held = "-" if fit["heldout_rms"] is None else f"{fit['heldout_rms']:.2f}"
+    held = _figure(fit["heldout_rms"])
     if fit.get("heldout_predictive_rms") is not None:
         judged = "passes" if fit["heldout_is_noise"] else "fails"
         held += f"; {fit['heldout_predictive_rms']:.2f} of its predictive spread: {judged} the noise test"
@@ -340,7 +357,7 @@ def _print_fit(fit: "EffectFit", add: str) -> None:
     table = Table("", "RMS / noise")
     table.add_row("before", f"{fit.rms_before:.2f}")
     table.add_row(f"after adding {add}", f"{fit.rms_after:.2f}")
-    held = "-" if fit.heldout_rms is None else f"{fit.heldout_rms:.2f}"
+    held = _figure(fit.heldout_rms)
     if fit.heldout_is_noise is not None:
         held += " (passes the noise test)" if fit.heldout_is_noise else " (fails the noise test)"
     if fit.heldout_rms_threshold is not None:
@@ -382,7 +399,7 @@ def show_history(
             e["added"]["effect"],
             f"{e['rms_before']:.2f}",
             f"{e['rms_after']:.2f}",
-            "-" if held is None else f"{held:.2f}",
+            _figure(held),
             ", ".join(Path(d["path"]).name for d in e["datasets"]),
         )
     out_console.print(table)
