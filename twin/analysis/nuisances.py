@@ -130,6 +130,10 @@ REACHED_MORE = 1e-3
 GPU fit refitted for one sample more: a sensitivity wave and steps for nothing, docs/scale.md session 30)."""
 USABLE_ROWS = 0.9
 """A sensitivity column whose replay reached fewer than this fraction of the samples is not used."""
+STANDOFF_LOADED = 5.0
+"""A trajectory starts in contact when its model's force at the standoff pose (where the recording is tared) exceeds
+this many times the largest force channel's noise (sigma, N): its tare is loaded and the arm's move there, not in
+the data, set the skin's friction state (docs/analysis.md, session 31)."""
 CONFOUNDED_FRACTION = 0.9
 """An effect whose signature lies this much (fraction of its squared norm) in the span of the nuisances'
 signatures cannot be told apart from them on this campaign."""
@@ -390,16 +394,24 @@ def fit_nuisances(
         base.noise_test(base.residual.values).is_noise,
         _correlation(jac, values),
         list(fitted.at_bound),
-        heldout_by_trajectory=by_trajectory(base, heldout, predictive),
+        heldout_by_trajectory=by_trajectory(base, heldout, predictive, standoff_forces(base, model, predictor)),
         heldout_predictive_rms=_rms(predictive),
     )
 
 
-def by_trajectory(base: Base, heldout: np.ndarray, predictive: np.ndarray) -> list[dict]:
+def standoff_forces(base: Base, model: TwinModel, predictor: Predictor) -> list[float]:
+    """Per trajectory of `base`, the force (N) its model (`base.model_for`) finds at the standoff pose where the
+    recording is tared (`Predictor.standoff_force`)."""
+    return [predictor.standoff_force(base.model_for(model, t), t) for t in base.trajectories]
+
+
+def by_trajectory(base: Base, heldout: np.ndarray, predictive: np.ndarray, standoff: list[float]) -> list[dict]:
     """Per trajectory of `base`, worst held out first (by its predictive figure): its sensor, id, indenter and path
     ("normal" or "angled"), and the whitened RMS of its residual at the fit ("in_sample"), predicted by the
     nuisances fitted without it ("held_out"; `heldout`, (N,) in `base`'s sample order) and that prediction whitened
-    by its predictive spread ("held_out_predictive"; `predictive`); None where none of its samples was predicted."""
+    by its predictive spread ("held_out_predictive"; `predictive`); None where none of its samples was predicted;
+    "standoff_force" (N; `standoff`) the force at the fit where its recording is tared, and "starts_in_contact" whether
+    that exceeds `STANDOFF_LOADED` times the force noise."""
     index = base.residual.trajectory_index
 
     def rms(values: np.ndarray) -> float | None:
@@ -414,6 +426,8 @@ def by_trajectory(base: Base, heldout: np.ndarray, predictive: np.ndarray) -> li
             "in_sample": rms(base.residual.values[index == k]),
             "held_out": rms(heldout[index == k]),
             "held_out_predictive": rms(predictive[index == k]),
+            "standoff_force": standoff[k],
+            "starts_in_contact": bool(standoff[k] > STANDOFF_LOADED * base.sigma[:3].max()),
         }
         for k, t in enumerate(base.trajectories)
     ]

@@ -585,6 +585,17 @@ class Predictor:
                 if plan.key not in self._replays:
                     yield model, trajectory, plan
 
+    def standoff_force(self, model: TwinModel, trajectory: TrajectoryRecord) -> float:
+        """|force| (N, the fe's, untared) of `model`'s replay of `trajectory` at its first event, the standoff pose
+        where the recording is tared (path index 0); NaN when that replay failed there. Above the F/T noise the press
+        starts in contact: its tare is loaded, and how the indenter got there (the arm's move before the recording,
+        which shapes the skin's friction state) is not in the data, so no replay can follow it exactly."""
+        key = self._plan(model, trajectory).key
+        if key not in self._replays:
+            self.predict(model, trajectory, rows=False)
+        replay = self._replays[key]
+        return float(np.linalg.norm(replay.force[0])) if replay.path_index[0] == 0 else float("nan")
+
     def predict(self, model: TwinModel, trajectory: TrajectoryRecord, rows: bool = True) -> Prediction:
         """The model's prediction of `trajectory` (see the module docstring); `rows=False` leaves the processed
         rows out (None: the residual reads the full-rate signals only); a predictor without electrodes gives none.

@@ -294,6 +294,16 @@ def _print_nuisances(fit: dict) -> None:
             if t["held_out"] is not None
         )
         out_console.print(f"  worst held out (each press predicted by the nuisances fitted without it): {worst}")
+    loaded = ", ".join(
+        f"sensor {t['sensor']} trajectory {t['trajectory']} ({t['indenter']}, {t['path']}) {t['standoff_force']:.2f} N"
+        for t in fit["heldout_by_trajectory"]
+        if t.get("starts_in_contact")
+    )
+    if loaded:
+        out_console.print(
+            "  presses that start in contact at the fitted nuisances (tared under load; the arm's move to the "
+            f"standoff, not in the data, set the skin's friction, so no replay follows them exactly): {loaded}"
+        )
 
 
 @loop_app.command()
