@@ -175,7 +175,7 @@ class SimBackend:
         self._tip_poses: dict[str, np.ndarray] = {}
         """Each arm's tip pose in the biotac frame while its joints and tool stay as they are."""
         self._sensor_in_biotac = np.linalg.inv(scene.biotac_pose) @ scene.ft_sensor_pose
-        self._joints = {arm: scene.joints(arm) for arm in ARMS}
+        self._joints = {arm: self._reachable(arm, scene.joints(arm)) for arm in ARMS}
         self._targets = {arm: self._joints[arm].copy() for arm in ARMS}
         self._tools: dict[str, str | None] = dict.fromkeys(ARMS)
         self._stepper: SkinSolver | None = None
@@ -222,7 +222,7 @@ class SimBackend:
         if dt < 0:
             raise ValueError(f"dt must be >= 0, got {dt!r}")
         for arm in ARMS:
-            target, joints = self._targets[arm], self._joints[arm]
+            target, joints = self._reachable(arm, self._targets[arm]), self._joints[arm]
             if target.tobytes() == joints.tobytes():  # at rest: the clipped step is +0.0
                 self._joints[arm] = joints + 0.0
             else:
@@ -231,7 +231,9 @@ class SimBackend:
             self._place(arm)
         self.time_s += dt
         arm = self._stepper_arm
-        if arm is not None and np.abs(self._targets[arm] - self._joints[arm]).max() <= self.settings.rest_tolerance:
+        if arm is None:
+            return
+        if np.abs(self._reachable(arm, self._targets[arm]) - self._joints[arm]).max() <= self.settings.rest_tolerance:
             self._solve_if_moved(arm)
 
     def read(self) -> Sample:
@@ -256,13 +258,17 @@ class SimBackend:
         """Nothing to release in simulation."""
 
     def _true_joints(self, arm: str) -> np.ndarray:
-        """The arm's true joint angles (reading + zero offset), kept inside the model's joint range.
+        """The arm's true joint angles (rad): its readings plus its joints' zero offsets."""
+        return self._joints[arm] + self.joint_offsets[arm]
 
-        At a joint limit the offset would carry the model past its range by a few mrad; the true arm
-        stops at its hard limit there, so the value is clipped.
-        """
-        limits = self._limits[arm]
-        return np.clip(self._joints[arm] + self.joint_offsets[arm], limits[:, 0], limits[:, 1])
+    def _reachable(self, arm: str, joints: np.ndarray) -> np.ndarray:
+        """Joint readings `joints` (rad) clipped to where the true joints (reading + zero offset) stay inside the joint
+        range: a joint that meets its hard stop stops there, and its encoder with it, so a target past it is never
+        reached (`move_to` then faults) and the readings say where the arm really stopped. Clipping the true joints
+        alone (before session 31) let the readings run on past the stop: data whose kinematics no analysis can
+        follow (a realistic plant's press 4 mrad past a limit left 3.9x the noise at the plant's own values)."""
+        limits, offset = self._limits[arm], self.joint_offsets[arm]
+        return np.clip(joints, limits[:, 0] - offset, limits[:, 1] - offset)
 
     def _place(self, arm: str) -> None:
         """Put the scene's arm at its true joints; MuJoCo's kinematics run only when the joints differ (bit for
