@@ -1,6 +1,6 @@
-"""A press whose standoff pose already touches the skin (issue 20, session 31): the recording is tared there, under
-load, and the arm's move to it (not in the data) set the skin's friction state, so no replay follows such a press
-exactly. `Predictor.standoff_force` tells it from the model's fe; the nuisance stage names such presses."""
+"""A press whose standoff pose already touches the skin: the recording is tared there, under load, and on a real
+testbed the arm's move to it (not in the data) set the skin's friction state. `Predictor.standoff_force` tells it
+from the model's fe; the nuisance stage names such presses (session 31)."""
 
 import pytest
 

@@ -132,8 +132,8 @@ USABLE_ROWS = 0.9
 """A sensitivity column whose replay reached fewer than this fraction of the samples is not used."""
 STANDOFF_LOADED = 5.0
 """A trajectory starts in contact when its model's force at the standoff pose (where the recording is tared) exceeds
-this many times the largest force channel's noise (sigma, N): its tare is loaded and the arm's move there, not in
-the data, set the skin's friction state (docs/analysis.md, session 31)."""
+this many times the largest force channel's noise (sigma, N): its tare is loaded, and on a real testbed the arm's
+move there, not in the data, set the skin's friction state (`Predictor.standoff_force`)."""
 CONFOUNDED_FRACTION = 0.9
 """An effect whose signature lies this much (fraction of its squared norm) in the span of the nuisances'
 signatures cannot be told apart from them on this campaign."""

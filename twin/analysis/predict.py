@@ -588,8 +588,9 @@ class Predictor:
     def standoff_force(self, model: TwinModel, trajectory: TrajectoryRecord) -> float:
         """|force| (N, the fe's, untared) of `model`'s replay of `trajectory` at its first event, the standoff pose
         where the recording is tared (path index 0); NaN when that replay failed there. Above the F/T noise the press
-        starts in contact: its tare is loaded, and how the indenter got there (the arm's move before the recording,
-        which shapes the skin's friction state) is not in the data, so no replay can follow it exactly."""
+        starts in contact and is tared under that load. The replay solves that pose from the rest skin in one step,
+        as the simulated plant does (it solves the skin at rest poses only); a real skin got there along the arm's
+        move, which the data do not hold, so its friction state there may differ."""
         key = self._plan(model, trajectory).key
         if key not in self._replays:
             self.predict(model, trajectory, rows=False)

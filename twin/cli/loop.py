@@ -301,8 +301,8 @@ def _print_nuisances(fit: dict) -> None:
     )
     if loaded:
         out_console.print(
-            "  presses that start in contact at the fitted nuisances (tared under load; the arm's move to the "
-            f"standoff, not in the data, set the skin's friction, so no replay follows them exactly): {loaded}"
+            "  presses that start in contact at the fitted nuisances (tared under load; on a real testbed the arm's "
+            f"move to the standoff, not in the data, sets the skin's friction there): {loaded}"
         )
 
 
