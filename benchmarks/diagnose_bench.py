@@ -178,14 +178,17 @@ def _generated_rng(seed: int, name: str) -> np.random.Generator:
     return np.random.default_rng(np.random.SeedSequence([seed, sum(map(ord, name))]))
 
 
-def _diagnosed(path: Path, seed: int, hidden: str, sizes: dict, predictor: Predictor, start: float, nuisances: bool):
+def _diagnosed(
+    path: Path, seed: int, hidden: str, sizes: dict, predictor: Predictor, start: float, nuisances: bool
+) -> dict:
     """One diagnosis (one refit; the nuisances fitted first with `nuisances`) of the campaign file `path`, where
     `hidden` was hidden at `sizes`: the case's row."""
     data = load_campaign(path)
     diagnosis = diagnose([data], TwinModel(mesh_max_edge=data.mesh_max_edge), predictor, top=1, nuisances=nuisances)
     names = [c.name for c in diagnosis.candidates]
-    first = diagnosis.candidates[0] if names else None
-    named = first is not None and diagnosis.verdict in (first.name, "ambiguous")
+    ambiguous = diagnosis.verdict == "ambiguous"  # the first of the tied ones is added, as the loop does
+    first = next((c for c in diagnosis.candidates if ambiguous or c.name == diagnosis.verdict), None)
+    named = first is not None
     stage, joint = diagnosis.nuisances or {}, diagnosis.jointly or {}
     jointly = joint.get("named", False)  # named by its fit jointly with the nuisances: that fit's figures
     return {
