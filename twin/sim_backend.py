@@ -215,14 +215,14 @@ class SimBackend:
             raise BackendError(f"joint target for {arm} must be 7 finite numbers, got {q!r}")
         if np.any(q < limits[:, 0]) or np.any(q > limits[:, 1]):
             raise BackendError(f"joint target for {arm} is outside the joint limits: {np.round(q, 4)}")
-        self._targets[arm] = q.copy()
+        self._targets[arm] = self._reachable(arm, q)  # where the arm will stop: at a joint stop, short of q
 
     def advance(self, dt: float) -> None:
         """Move both arms toward their targets for `dt` s, then re-solve the skin if the indenter rests."""
         if dt < 0:
             raise ValueError(f"dt must be >= 0, got {dt!r}")
         for arm in ARMS:
-            target, joints = self._reachable(arm, self._targets[arm]), self._joints[arm]
+            target, joints = self._targets[arm], self._joints[arm]
             if target.tobytes() == joints.tobytes():  # at rest: the clipped step is +0.0
                 self._joints[arm] = joints + 0.0
             else:
@@ -231,9 +231,7 @@ class SimBackend:
             self._place(arm)
         self.time_s += dt
         arm = self._stepper_arm
-        if arm is None:
-            return
-        if np.abs(self._reachable(arm, self._targets[arm]) - self._joints[arm]).max() <= self.settings.rest_tolerance:
+        if arm is not None and np.abs(self._targets[arm] - self._joints[arm]).max() <= self.settings.rest_tolerance:
             self._solve_if_moved(arm)
 
     def read(self) -> Sample:
