@@ -23,12 +23,14 @@ from effect_generator import apply_ft_delay
 from twin.analysis.data import CampaignData, load_campaign
 from twin.analysis.diagnose import diagnose
 from twin.analysis.nuisances import (
+    JOINT_OFFSET,
     NUISANCE_EFFECTS,
     REGISTRATION_ROTATION,
     NuisanceValues,
     fit_nuisances,
     nuisance_slots,
 )
+from twin.analysis.nuisances import _jacobian as nuisance_jacobian
 from twin.analysis.onset import onset_estimate
 from twin.analysis.pose_error import pose_error
 from twin.analysis.predict import Predictor, TwinModel
@@ -174,6 +176,36 @@ def test_the_pose_error_at_the_plants_values_is_where_its_indenter_really_was(de
         real = to_true[:3, :3] @ forward(t.arm, q + plant.joint_offset(t.arm), t.tool_tip)[:3, :3]
         assert rotation_log(real @ estimated.T) == pytest.approx(error.tilt, abs=2e-5)
     assert np.linalg.norm(apart[0] - apart[1]) > 0.1e-3, apart  # the two poses really are off by different amounts
+
+
+def test_the_chained_pose_columns_are_the_direct_differences(deep_paths: Path, predictor: Predictor) -> None:
+    """The registration rotations' and joint offsets' sensitivities come by the chain rule through each press's pose
+    error; they must be what replaying the pose itself gives: central differences of 40 urad (tip moves of
+    microns), per column within 15 % (of 1 % of the largest, for a column without a signature: the last joint turns a
+    sphere about its own axis; the chain's registration and pose columns are forward differences). Chained
+    after the PDC gains were profiled out (which couples the presses of a sensor) they were 20-115 % off on seed 6's
+    realistic null (docs/analysis.md, session 32)."""
+    data = load_campaign(deep_paths)
+    model = TwinModel(mesh_max_edge=data.mesh_max_edge)
+    base = base_residual([data], model, predictor)
+    values = plant_values(deep_paths, make_plant([2], SEED), data)
+    jacobian = nuisance_jacobian(base, model, predictor, values)
+    step = 4e-5
+    derived = [i for i, slot in enumerate(values.slots) if slot.effect in (REGISTRATION_ROTATION, JOINT_OFFSET)]
+    errors, norms = {}, {}
+    for i in derived:
+        delta = np.zeros(len(values.slots))
+        delta[i] = step
+        plus, minus = (replace(base, model_for=values.moved(d).model_for) for d in (delta, -delta))
+        direct = (plus.shifted(predictor, model) - minus.shifted(predictor, model)) / (2 * step)
+        finite = np.isfinite(direct) & np.isfinite(jacobian[:, i])
+        assert finite.mean() > 0.9, values.slots[i].label
+        label = values.slots[i].label
+        errors[label] = np.linalg.norm(jacobian[finite, i] - direct[finite])
+        norms[label] = np.linalg.norm(direct[finite])
+    floor = 0.01 * max(norms.values())  # the last joint turns a sphere about its own axis: no signature to compare
+    relative = {label: float(errors[label] / max(norms[label], floor)) for label in errors}
+    assert max(relative.values()) < 0.15, relative
 
 
 @pytest.fixture(scope="module")

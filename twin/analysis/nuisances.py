@@ -460,28 +460,34 @@ def _jacobian(base: Base, model: TwinModel, predictor: Predictor, values: Nuisan
     current values reach (the one that fails on fewer is kept); `base` must be the residual at `values` or
     the nominal one (differences only). The replays of the values, of every first step and of every pose error's
     step are solved as one batch. The registration rotations' and joint offsets' columns come from the registration
-    offset's and the pose errors' (`_derived_columns`)."""
+    offset's and the pose errors' (`_derived_columns`), on the columns before the PDC gains are profiled out (each
+    trajectory's rows its own replays'); every column is profiled last (`GainNuisance.project`, linear)."""
     steps = [() if s.effect in DERIVED else _steps(values, i) for i, s in enumerate(values.slots)]
     first = [values.moved(_along(len(steps), i, tries[0])).model_for for i, tries in enumerate(steps) if tries]
     derived = any(s.effect in DERIVED for s in values.slots)
     posed = {(error, axis): _posed(values, error, axis) for error in POSE_STEPS for axis in range(3)} if derived else {}
     _prefetch(base, model, predictor, [values.model_for, *first, *posed.values()])
-    here = _shifted(base, model, predictor, values.model_for)
+    here = _unprofiled(base, model, predictor, values.model_for)
     columns = np.zeros((len(here), len(steps)))
     for i, tries in enumerate(steps):
         tried = []
         for step in tries:
             moved = values.moved(_along(len(steps), i, step))
-            tried.append((_shifted(base, model, predictor, moved.model_for) - here) / step)
+            tried.append((_unprofiled(base, model, predictor, moved.model_for) - here) / step)
             if np.isfinite(tried[-1]).sum() == np.isfinite(here).sum():
                 break
         if tried:
             columns[:, i] = max(tried, key=lambda c: np.isfinite(c).sum())
     if derived:
-        shift = {key: _shifted(base, model, predictor, model_for) - here for key, model_for in posed.items()}
+        shift = {key: _unprofiled(base, model, predictor, model_for) - here for key, model_for in posed.items()}
         pose = {e: np.column_stack([shift[(e, a)] for a in range(3)]) / step for e, step in POSE_STEPS.items()}
         _derived_columns(columns, base, values, pose)
-    return _usable(columns)
+    return _usable(base.nuisance.project(columns))
+
+
+def _unprofiled(base: Base, model: TwinModel, predictor: Predictor, model_for: ModelFor) -> np.ndarray:
+    """`_shifted` before the PDC gains are profiled out (`Base.unprofiled_shift`)."""
+    return replace(base, model_for=model_for).unprofiled_shift(predictor, model)
 
 
 def _derived_columns(columns: np.ndarray, base: Base, values: NuisanceValues, pose: dict[str, np.ndarray]) -> None:
@@ -489,9 +495,9 @@ def _derived_columns(columns: np.ndarray, base: Base, values: NuisanceValues, po
     rows, d r / d p = (d r / d offset) (d offset / d p) + (d r / d slope) (d slope / d p) + (d r / d tilt)
     (d tilt / d p), the first factor the registration offset's columns restricted to those rows (a trajectory's
     prediction depends on its own pose only), the next two `pose`'s (N, 3) columns of the pose errors, and the
-    second factors `pose_error`'s (linear). Exact for the raw change; the columns are profiled, and the PDC gain's
-    profiling couples a sensor's trajectories, so the split is exact to within that profiling's share of each
-    column (a Gauss-Newton step is then judged on real replays)."""
+    second factors `pose_error`'s (linear). Exact on columns before the PDC gains are profiled out: the gain's
+    profile couples a sensor's trajectories, each moved by its own d offset / d p (chained after profiling, the
+    joint offsets' columns were 20-115 % off direct differences on seed 6's realistic null, docs/analysis.md)."""
     slots = values.slots
     position = {(s.effect, s.parameter, s.sensor, s.arm): c for c, s in enumerate(slots)}
     index = base.residual.trajectory_index

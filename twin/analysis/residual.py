@@ -276,14 +276,22 @@ class Base:
     def shifted(self, predictor: Predictor, model: TwinModel) -> np.ndarray:
         """Profiled change of the whitened prediction from the base to `model` (NaN where it failed): the residual
         less `model`'s `misfit`, so each trajectory's offsets are projected over the samples `model` reached."""
-        return self.shift_of(fullrate_prediction(predictor, model, self.trajectories, self.model_for))
+        return self.nuisance.project(self.unprofiled_shift(predictor, model))
 
     def shift_of(self, predicted: list[np.ndarray]) -> np.ndarray:
         """Profiled change of the whitened prediction from the base to the per-trajectory full-rate predictions
         `predicted` ((T, 4) each, `fullrate_prediction`'s form: N and counts; NaN where there is none), as
         `shifted` makes it of a model's."""
-        changed = whitened(predicted, self.masks, self.sigma)
-        return self.nuisance.project(self._own_misfit - self.misfit(changed))
+        return self.nuisance.project(self.unprofiled_shift_of(predicted))
+
+    def unprofiled_shift(self, predictor: Predictor, model: TwinModel) -> np.ndarray:
+        """`shifted` before the PDC gains are profiled out (`GainNuisance.project`, linear): each trajectory's rows
+        depend on its own replay only (the gain's profile couples a sensor's trajectories)."""
+        return self.unprofiled_shift_of(fullrate_prediction(predictor, model, self.trajectories, self.model_for))
+
+    def unprofiled_shift_of(self, predicted: list[np.ndarray]) -> np.ndarray:
+        """`shift_of` before the PDC gains are profiled out."""
+        return self._own_misfit - self.misfit(whitened(predicted, self.masks, self.sigma))
 
     @cached_property
     def _own_misfit(self) -> np.ndarray:
