@@ -316,10 +316,11 @@ def test_the_nuisances_are_fitted_on_every_sample_their_values_reach(
     ):
         expected = getattr(truth, field) / getattr(nominal_skin, field)
         assert values[f"sensor 2 {effect}.scale"] == pytest.approx(expected, rel=tolerance), (effect, values)
-    # Two presses cannot fix the arm's pose: each predicted from the other alone is far off (140x, session 30), but
-    # within what the other leaves uncertain (its predictive spread: 1.00x), which is what the held-out test asks.
+    # Two presses cannot fix the arm's pose: each predicted from the other alone is far off (7.4x, session 32; 140x
+    # before the chained pose columns were mended), but within what the other leaves uncertain (its predictive
+    # spread: 0.99x), which is what the held-out test asks.
     # Which press fails is said per trajectory, worst first, and printed.
-    assert fit.heldout_rms > 10.0 and fit.heldout_is_noise, (fit.heldout_rms, fit.heldout_predictive_rms)
+    assert fit.heldout_rms > 3.0 and fit.heldout_is_noise, (fit.heldout_rms, fit.heldout_predictive_rms)
     pressed = fit.heldout_by_trajectory
     assert sorted((p["trajectory"], p["path"]) for p in pressed) == sorted(
         (t.trajectory_id, "normal" if t.normal else "angled") for t in data.trajectories

@@ -38,6 +38,12 @@ Z95 = 1.96
 AT_BOUND = 1e-6
 """A value within this fraction of its bound range of a bound is at the bound (the bounded solver's steps stay
 strictly inside, so exact equality is rarely met)."""
+TRUST_SHRINK = 4.0
+"""A Gauss-Newton step in a trust region that does not lower the cost is solved again in a region this many times
+narrower (`GaussNewtonSettings.backtracks` times at most); the region doubles again after each step that holds, up to
+its setting. Measured on a two-arm realistic plant's joint fit (seed 7, 26 pose parameters): the step at one prior
+sigma predicted 1.11x the noise and replayed 3.2x, halved 3.4x, quartered 1.69x (the cost higher each time); a tenth of
+it lowered the cost."""
 
 
 def near_bound(values: np.ndarray, lower: np.ndarray, upper: np.ndarray, tolerance: float = AT_BOUND) -> np.ndarray:
@@ -234,11 +240,14 @@ class Fit:
 class GaussNewtonSettings:
     """Damped Gauss-Newton controls: `iterations` linear steps at most, then up to `extra_iterations` more while
     each step lowers the cost by at least the fraction `extra_if_drop` (a fit still converging fast is not cut
-    short; one that stalls is); a step that does not lower the cost is halved up to `backtracks` times, then the
-    fit stops; it also stops after a step that moves every parameter by less than `step_tolerance` of its scale;
-    `whitened` says whether the residual's variance is 1 (the intervals' s^2); `trust`, with a prior, bounds each
-    step to that many of each parameter's prior sigmas (a trust region: where the data barely see a direction, a
-    full step along it is decided by the linearisation alone; None: unbounded)."""
+    short; one that stalls is); a step that does not lower the cost is halved up to `backtracks` times (in a trust
+    region: solved again in a `TRUST_SHRINK` times narrower one), then the fit stops; it also stops after a step that
+    moves every parameter by less than `step_tolerance` of its scale;
+    `whitened` says whether the residual's variance is 1 (the intervals' s^2); `extra_over_noise`: that drop is a
+    fraction of the cost's excess over the noise's, one per finite entry of a whitened residual (a step from 1.05x
+    the noise to 1.01x lowers the cost by 7 %, its excess by 80 %); `trust`, with a prior, bounds each step to that
+    many of each parameter's prior sigmas (a trust region: where the data barely see a direction, a full step along
+    it is decided by the linearisation alone; None: unbounded)."""
 
     iterations: int = 4
     backtracks: int = 2
@@ -246,6 +255,7 @@ class GaussNewtonSettings:
     whitened: bool = True
     extra_iterations: int = 0
     extra_if_drop: float = 0.1
+    extra_over_noise: bool = False
     trust: float | None = None
 
 
@@ -297,7 +307,7 @@ def gauss_newton(
         state = evaluated(start)
     else:
         state = (start, start_residual, cost(start_residual, start.values))
-    jac, used, falling = start_jacobian, None, True
+    jac, used, falling, trust = start_jacobian, None, True, settings.trust
     for iteration in range(settings.iterations + settings.extra_iterations):
         if iteration >= settings.iterations and not falling:
             break
@@ -307,18 +317,20 @@ def gauss_newton(
             if hooks.at_noise is not None and hooks.at_noise(state[1]):
                 break
             jac = hooks.jacobian(state[0])
-        delta = linear_step(jac, state[1], _trusted(state[0], prior, settings.trust), prior)
+        delta = linear_step(jac, state[1], _trusted(state[0], prior, trust), prior)
         if hooks.promising is not None and not hooks.promising(state[1], state[1] - jac @ delta):
             break
         trial = evaluated(state[0].moved(delta))
         for _ in range(settings.backtracks):
             if trial[2] < state[2]:
                 break
-            delta = delta / 2.0
+            delta, trust = _shorter(delta, jac, state, prior, trust)
             trial = evaluated(state[0].moved(delta))
         if not trial[2] < state[2]:
             break
-        falling = trial[2] <= (1.0 - settings.extra_if_drop) * state[2]
+        trust = None if trust is None else min(settings.trust, 2.0 * trust)  # widened again while steps hold
+        floor = float(np.isfinite(state[1]).sum()) if settings.extra_over_noise else 0.0
+        falling = state[2] - trial[2] >= settings.extra_if_drop * (state[2] - floor)
         state, used = trial, jac
         if np.all(np.abs(delta) < settings.step_tolerance * start.scale):
             break
@@ -331,6 +343,23 @@ def gauss_newton(
             used, start.scale, None if settings.whitened else r, prior.sigma if prior is not None else None
         )
     return Fit(parameters, r, c, used, interval, parameters.at_bound(), evaluations)
+
+
+def _shorter(
+    delta: np.ndarray,
+    jac: np.ndarray,
+    state: tuple[Parameters, np.ndarray, float],
+    prior: Prior | None,
+    trust: float | None,
+) -> tuple[np.ndarray, float | None]:
+    """A step shorter than `delta` from `state` (parameters, residual, cost), and the trust it was taken in: with a
+    trust region, the linear step solved again in one `TRUST_SHRINK` times narrower (where that region binds, its
+    direction changes: the well-seen parameters move and the barely-seen ones stay), else `delta` halved."""
+    if trust is None or prior is None:
+        return delta / 2.0, trust
+    trust = trust / TRUST_SHRINK
+    shorter = linear_step(jac, state[1], _trusted(state[0], prior, trust), prior)
+    return (delta / 2.0 if np.allclose(shorter, delta) else shorter), trust
 
 
 def _trusted(at: Parameters, prior: Prior | None, trust: float | None) -> Parameters:

@@ -113,14 +113,15 @@ REGISTRATION_STARTS = tuple(
 ITERATIONS = 4
 """Gauss-Newton iterations of one fit (each a finite-difference sensitivity: one replay set per parameter)."""
 EXTRA_ITERATIONS = 8
-"""Iterations past `ITERATIONS` while each step still lowers the cost by a tenth (measured on a realistic null of 31
-presses: four steps took 48.8x the noise to 3.3x, the last still a third lower)."""
+"""Iterations past `ITERATIONS` while each step still lowers the cost's excess over the noise by a tenth (measured on
+a realistic null of 31 presses: four steps took 48.8x the noise to 3.3x, the last still a third lower)."""
 TRUST = 1.0
 """Prior sigmas a Gauss-Newton step may move each nuisance (`GaussNewtonSettings.trust`): two presses leave most of
 an arm's 13 pose parameters to the prior, and full steps along those directions took the paper-depth presses of
 tests/test_nuisances.py to a registration 3 mm off and a joint 5 sigmas off (6.3x the noise)."""
-BACKTRACKS = 2
-"""Halvings of a step that does not lower the cost."""
+BACKTRACKS = 3
+"""Times a step that does not lower the cost is solved again in a narrower trust region
+(`twin.analysis.fit.TRUST_SHRINK` times narrower each: down to 1/64 of a prior sigma)."""
 REFITS_ON_REACHED = 2
 """Times the fit is taken again, from its values and on the residual they reach, when those values reach samples
 the residual it was fitted on did not (a replay that stopped early, e.g. a nominal model pressing too deep for its
@@ -579,7 +580,9 @@ def _gauss_newton(
         cost=cost,
         on_iteration=lambda i, r: report(f"iteration {i + 1}: RMS {_rms(r):.2f}x the noise"),
     )
-    settings = GaussNewtonSettings(ITERATIONS, BACKTRACKS, extra_iterations=EXTRA_ITERATIONS, trust=TRUST)
+    settings = GaussNewtonSettings(
+        ITERATIONS, BACKTRACKS, extra_iterations=EXTRA_ITERATIONS, extra_over_noise=True, trust=TRUST
+    )
     return gauss_newton(residual, start.parameters, hooks, settings, gaussian)
 
 
