@@ -498,7 +498,8 @@ def _derived_columns(columns: np.ndarray, base: Base, values: NuisanceValues, po
     prediction depends on its own pose only), the next two `pose`'s (N, 3) columns of the pose errors, and the
     second factors `pose_error`'s (linear). Exact on columns before the PDC gains are profiled out: the gain's
     profile couples a sensor's trajectories, each moved by its own d offset / d p (chained after profiling, the
-    joint offsets' columns were 20-115 % off direct differences on seed 6's realistic null, docs/analysis.md)."""
+    rotations' and joint offsets' columns were 5-133 % off direct differences on seed 6's realistic null,
+    docs/analysis.md)."""
     slots = values.slots
     position = {(s.effect, s.parameter, s.sensor, s.arm): c for c, s in enumerate(slots)}
     index = base.residual.trajectory_index
