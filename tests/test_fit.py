@@ -4,6 +4,7 @@ the constrained optimum of orthogonal columns with one bound active, and refused
 
 import numpy as np
 import pytest
+from scipy.optimize import minimize
 
 from twin.analysis.fit import (
     GaussNewtonHooks,
@@ -257,7 +258,6 @@ def test_a_trust_region_step_that_fails_is_solved_again_narrower() -> None:
     stops 796 short of the minimum (measured with halving), solved again in a four times narrower region (the
     well-seen y follows the valley, the barely-seen x moves less) it goes on to the minimum of the cost, which
     scipy's Nelder-Mead finds on the same cost (residual plus prior) independently."""
-    from scipy.optimize import minimize
 
     def residual(p: Parameters) -> np.ndarray:
         x, y = p.values
