@@ -38,12 +38,13 @@ Z95 = 1.96
 AT_BOUND = 1e-6
 """A value within this fraction of its bound range of a bound is at the bound (the bounded solver's steps stay
 strictly inside, so exact equality is rarely met)."""
-TRUST_SHRINK = 4.0
-"""A Gauss-Newton step in a trust region that does not lower the cost is solved again in a region this many times
-narrower (`GaussNewtonSettings.backtracks` times at most); the region doubles again after each step that holds, up to
-its setting. Measured on a two-arm realistic plant's joint fit (seed 7, 26 pose parameters): the step at one prior
-sigma predicted 1.11x the noise and replayed 3.2x, halved 3.4x, quartered 1.69x (the cost higher each time); a tenth of
-it lowered the cost."""
+DAMPING_GROWTH = 4.0
+"""A damped (Levenberg-Marquardt) step that does not lower the cost is solved again with this many times the damping
+(`GaussNewtonSettings.backtracks` times at most); each step that holds divides the damping by it. Measured on a
+two-arm realistic plant's joint fit (seed 7, 26 pose parameters, a whitened residual whose response to a registration
+micron is 22 noise units): from where the fit stalled (chi-square 37231), steps bounded to 1, 1/4 and 1/16 of each
+prior sigma raised it to 256851, 275923 and 206477, while the damped steps with damping 0.1 and 0.3 lowered it to
+33887 and 35072 (docs/analysis.md, session 33)."""
 
 
 def near_bound(values: np.ndarray, lower: np.ndarray, upper: np.ndarray, tolerance: float = AT_BOUND) -> np.ndarray:
@@ -240,14 +241,17 @@ class Fit:
 class GaussNewtonSettings:
     """Damped Gauss-Newton controls: `iterations` linear steps at most, then up to `extra_iterations` more while
     each step lowers the cost by at least the fraction `extra_if_drop` (a fit still converging fast is not cut
-    short; one that stalls is); a step that does not lower the cost is halved up to `backtracks` times (in a trust
-    region: solved again in a `TRUST_SHRINK` times narrower one), then the fit stops; it also stops after a step that
-    moves every parameter by less than `step_tolerance` of its scale;
+    short; one that stalls is); a step that does not lower the cost is halved up to `backtracks` times (damped: solved
+    again with `DAMPING_GROWTH` times the damping), then the fit stops; it also stops after a step that moves every
+    parameter by less than `step_tolerance` of its scale;
     `whitened` says whether the residual's variance is 1 (the intervals' s^2); `extra_over_noise`: that drop is a
     fraction of the cost's excess over the noise's, one per finite entry of a whitened residual (a step from 1.05x
     the noise to 1.01x lowers the cost by 7 %, its excess by 80 %); `trust`, with a prior, bounds each step to that
-    many of each parameter's prior sigmas (a trust region: where the data barely see a direction, a full step along
-    it is decided by the linearisation alone; None: unbounded)."""
+    many of each parameter's prior sigmas (where the data barely see a direction, a full step along it is decided by
+    the linearisation alone; None: unbounded); `damping`, the first step's Levenberg-Marquardt damping lambda (None:
+    undamped steps, halved when they fail): each step minimises the linearised cost plus lambda sum_i c_i delta_i^2,
+    c_i the curvature of parameter i's own term (its column's sum of squares plus its prior's 1 / sigma^2), so each
+    parameter is held back by how strongly the data see it (Marquardt's scaling), not by its units or prior."""
 
     iterations: int = 4
     backtracks: int = 2
@@ -257,6 +261,7 @@ class GaussNewtonSettings:
     extra_if_drop: float = 0.1
     extra_over_noise: bool = False
     trust: float | None = None
+    damping: float | None = None
 
 
 @dataclass(frozen=True)
@@ -307,7 +312,7 @@ def gauss_newton(
         state = evaluated(start)
     else:
         state = (start, start_residual, cost(start_residual, start.values))
-    jac, used, falling, trust = start_jacobian, None, True, settings.trust
+    jac, used, falling, damping = start_jacobian, None, True, settings.damping
     for iteration in range(settings.iterations + settings.extra_iterations):
         if iteration >= settings.iterations and not falling:
             break
@@ -317,18 +322,23 @@ def gauss_newton(
             if hooks.at_noise is not None and hooks.at_noise(state[1]):
                 break
             jac = hooks.jacobian(state[0])
-        delta = linear_step(jac, state[1], _trusted(state[0], prior, trust), prior)
+        trusted = _trusted(state[0], prior, settings.trust)
+        delta = _step(jac, state, trusted, prior, damping)
         if hooks.promising is not None and not hooks.promising(state[1], state[1] - jac @ delta):
             break
         trial = evaluated(state[0].moved(delta))
         for _ in range(settings.backtracks):
             if trial[2] < state[2]:
                 break
-            delta, trust = _shorter(delta, jac, state, prior, trust)
+            if damping is None:
+                delta = delta / 2.0
+            else:
+                damping *= DAMPING_GROWTH
+                delta = _step(jac, state, trusted, prior, damping)
             trial = evaluated(state[0].moved(delta))
         if not trial[2] < state[2]:
             break
-        trust = None if trust is None else min(settings.trust, 2.0 * trust)  # widened again while steps hold
+        damping = None if damping is None else damping / DAMPING_GROWTH
         floor = float(np.isfinite(state[1]).sum()) if settings.extra_over_noise else 0.0
         falling = state[2] - trial[2] >= settings.extra_if_drop * (state[2] - floor)
         state, used = trial, jac
@@ -345,21 +355,29 @@ def gauss_newton(
     return Fit(parameters, r, c, used, interval, parameters.at_bound(), evaluations)
 
 
-def _shorter(
-    delta: np.ndarray,
+def _step(
     jac: np.ndarray,
     state: tuple[Parameters, np.ndarray, float],
+    at: Parameters,
     prior: Prior | None,
-    trust: float | None,
-) -> tuple[np.ndarray, float | None]:
-    """A step shorter than `delta` from `state` (parameters, residual, cost), and the trust it was taken in: with a
-    trust region, the linear step solved again in one `TRUST_SHRINK` times narrower (where that region binds, its
-    direction changes: the well-seen parameters move and the barely-seen ones stay), else `delta` halved."""
-    if trust is None or prior is None:
-        return delta / 2.0, trust
-    trust = trust / TRUST_SHRINK
-    shorter = linear_step(jac, state[1], _trusted(state[0], prior, trust), prior)
-    return (delta / 2.0 if np.allclose(shorter, delta) else shorter), trust
+    damping: float | None,
+) -> np.ndarray:
+    """The linear step from `state` (parameters, residual, cost) within `at`'s bounds: undamped without `damping`;
+    else with lambda c_i delta_i^2 added, c_i parameter i's curvature (its finite column's sum of squares plus the
+    prior's 1 / sigma_i^2; a parameter neither sees is left free). The damping is a Gaussian about the current values
+    of precision lambda c_i, folded with the prior into one (precisions add, means weigh by them), so the bounded
+    solve stays one `linear_step`."""
+    if damping is None:
+        return linear_step(jac, state[1], at, prior)
+    rows = np.isfinite(jac).all(axis=1) & np.isfinite(state[1])
+    information = np.zeros(len(at.values)) if prior is None else prior.sigma**-2.0
+    curvature = np.sum(jac[rows] ** 2, axis=0) + information
+    precision = information + damping * curvature
+    mean = state[0].values if prior is None else prior.mean
+    free = precision <= 0  # neither the data nor a prior see it: no damping row (a zero column's step is zero anyway)
+    folded = (information * mean + damping * curvature * state[0].values) / np.where(free, 1.0, precision)
+    sigma = 1.0 / np.sqrt(np.where(free, 1e-300, precision))
+    return linear_step(jac, state[1], at, Prior(np.where(free, state[0].values, folded), sigma))
 
 
 def _trusted(at: Parameters, prior: Prior | None, trust: float | None) -> Parameters:

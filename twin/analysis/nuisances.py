@@ -29,21 +29,21 @@ residual (`twin.analysis.residual`), as is each sensor's PDC gain: those nuisanc
 mount's pose is what registration measures (its holes); what registration gets wrong of it is the
 per-arm offset.
 
-The fit is damped Gauss-Newton on the whitened residual with a Gaussian prior on each nuisance about the model's own
-value (`PRIORS`, wide: about twice the spread a real campaign shows) and each step within a prior sigma (`TRUST`),
-finite-difference sensitivities of microns (`STEPS`; a registration column replays only that arm's trajectories),
-started from each arm's best registration start (its contact-onset estimate, `REGISTRATION_STARTS` or the model's
-values) because a large offset is nonlinear, and, when the result is not yet at the noise, the registration starts
-tried again about the fit. A fit is judged on the samples its residual's replays reached; when its values reach more
-(a nominal model pressing deeper than the plant may stop where its fe does not converge), it is taken again on the
-residual at those values, so no sample the fitted model predicts is left out of the fit. Whether the nuisances
-explain the data is judged held out: each trajectory is predicted by the nuisances fitted (linearised at the fit)
-without it, and that prediction is whitened by its predictive spread, the noise plus what the other trajectories and
-the priors leave of the nuisances uncertain (at 0.01 N of noise against Newtons of force, no campaign fixes an arm's
-pose well enough for the raw prediction to be noise; a press that the others predict worse than their uncertainty
-allows still fails). Which candidate effects the campaign cannot tell apart from the nuisances is the fraction of
-each effect's signature that lies in the span of the nuisances' signatures (`confounded`).
-"""
+The fit is Levenberg-Marquardt on the whitened residual (`DAMPING`) with a Gaussian prior on each nuisance about the
+model's own value (`PRIORS`, wide: about twice the spread a real campaign shows) and each step within a prior sigma
+(`TRUST`), finite-difference sensitivities of microns (`STEPS`; a registration column replays only that arm's
+trajectories), started from each arm's best registration start (its contact-onset estimate, `REGISTRATION_STARTS` or
+the model's values) because a large offset is nonlinear, and, when the result is not yet at the noise, the
+registration starts tried again about the fit. A fit is judged on the samples its residual's replays reached; when
+its values reach more (a nominal model pressing deeper than the plant may stop where its fe does not converge), it
+is taken again on the residual at those values, so no sample the fitted model predicts is left out of the fit.
+Whether the nuisances explain the data is judged held out: each trajectory is predicted by the nuisances fitted
+(linearised at the fit) without it, and that prediction is whitened by its predictive spread, the noise plus what
+the other trajectories and the priors leave of the nuisances uncertain (at 0.01 N of noise against Newtons of force,
+no campaign fixes an arm's pose well enough for the raw prediction to be noise; a press that the others predict
+worse than their uncertainty allows still fails). Which candidate effects the campaign cannot tell apart from the
+nuisances is the fraction of each effect's signature that lies in the span of the nuisances' signatures
+(`confounded`)."""
 
 from __future__ import annotations
 
@@ -119,9 +119,15 @@ TRUST = 1.0
 """Prior sigmas a Gauss-Newton step may move each nuisance (`GaussNewtonSettings.trust`): two presses leave most of
 an arm's 13 pose parameters to the prior, and full steps along those directions took the paper-depth presses of
 tests/test_nuisances.py to a registration 3 mm off and a joint 5 sigmas off (6.3x the noise)."""
-BACKTRACKS = 3
-"""Times a step that does not lower the cost is solved again in a narrower trust region
-(`twin.analysis.fit.TRUST_SHRINK` times narrower each: down to 1/64 of a prior sigma)."""
+DAMPING = 1e-2
+"""The first step's Levenberg-Marquardt damping (`GaussNewtonSettings.damping`; it adapts: divided by
+`twin.analysis.fit.DAMPING_GROWTH` after a step that holds, multiplied by it when one fails). A registration micron
+moves a whitened residual by tens of noise units, and the pose's response bends within a few microns (forward and
+central differences 12-64 % apart on a cylinder's angled press), so a step of a fixed share of the priors fails where
+one damped by what the data see holds (measured on seed 7's realistic joint fit, `DAMPING_GROWTH`)."""
+BACKTRACKS = 6
+"""Times a step that does not lower the cost is solved again, more damped (up to 4^6 times the damping; a replay set
+each, about a twelfth of a sensitivity's on a two-arm campaign)."""
 REFITS_ON_REACHED = 2
 """Times the fit is taken again, from its values and on the residual they reach, when those values reach samples
 the residual it was fitted on did not (a replay that stopped early, e.g. a nominal model pressing too deep for its
@@ -561,11 +567,12 @@ def _gauss_newton(
     prior: NuisanceValues,
     report: Callable[[str], None],
 ) -> Fit:
-    """Damped Gauss-Newton (`twin.analysis.fit.gauss_newton`) from `start`, the priors centred on `prior`
-    (the model's values); stops at the noise, after `ITERATIONS` or when a step (halved up to `BACKTRACKS`
-    times) does not lower the cost: the chi-square plus the priors', infinite where the replay fails on
-    samples the nominal model reaches (a fit must not buy a lower chi-square by losing samples); past `ITERATIONS`
-    it goes on while each step lowers the cost by a tenth (`EXTRA_ITERATIONS` at most). Its Jacobian is the last
+    """Levenberg-Marquardt (`twin.analysis.fit.gauss_newton`, damping `DAMPING`, each step within `TRUST` prior
+    sigmas) from `start`, the priors centred on `prior` (the model's values); stops at the noise, after `ITERATIONS`
+    or when a step (solved again more damped up to `BACKTRACKS` times) does not lower the cost: the chi-square plus
+    the priors', infinite where the replay fails on samples the nominal model reaches (a fit must not buy a lower
+    chi-square by losing samples); past `ITERATIONS` it goes on while each step lowers the cost's excess over the
+    noise by a tenth (`EXTRA_ITERATIONS` at most). Its Jacobian is the last
     sensitivity a step used (at the point before the last step)."""
     gaussian = _prior(prior)
 
@@ -582,7 +589,12 @@ def _gauss_newton(
         on_iteration=lambda i, r: report(f"iteration {i + 1}: RMS {_rms(r):.2f}x the noise"),
     )
     settings = GaussNewtonSettings(
-        ITERATIONS, BACKTRACKS, extra_iterations=EXTRA_ITERATIONS, extra_over_noise=True, trust=TRUST
+        ITERATIONS,
+        BACKTRACKS,
+        extra_iterations=EXTRA_ITERATIONS,
+        extra_over_noise=True,
+        trust=TRUST,
+        damping=DAMPING,
     )
     return gauss_newton(residual, start.parameters, hooks, settings, gaussian)
 
