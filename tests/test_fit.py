@@ -11,6 +11,7 @@ from twin.analysis.fit import (
     GaussNewtonSettings,
     Parameters,
     Prior,
+    _step,
     gauss_newton,
     linear_step,
     polish,
@@ -254,10 +255,11 @@ def test_a_held_out_prediction_whitened_by_its_predictive_spread_is_unit_noise()
 
 def test_a_damped_step_that_fails_is_solved_again_more_damped() -> None:
     """A curved valley, r = (100 (y - 3 sin x), 10 (x - 1)), with a Gaussian prior (sigma 3 about the start (-2, 0)):
-    from the start the Gauss-Newton step overshoots the valley's bend. Levenberg-Marquardt steps (damping 0.01, up to
-    six times four times more damped when a step fails, less after one that holds) go on to the minimum of the cost,
-    which scipy's Nelder-Mead finds on the same cost (residual plus prior) independently; steps bounded to a prior
-    sigma and halved when they fail stop 796 above it (measured), damped steps given three tries 852 above."""
+    from the start the Gauss-Newton step overshoots the valley's bend. A step that fails solved again damped
+    (Levenberg-Marquardt: damping 0.01, then four times more up to six tries; eased after one that holds) goes on to the
+    minimum of the cost, which scipy's Nelder-Mead finds on the same cost (residual plus prior) independently; steps
+    bounded to a prior sigma and halved when they fail stop 796 above it (measured), damped ones given three tries
+    852 above."""
 
     def residual(p: Parameters) -> np.ndarray:
         x, y = p.values
@@ -280,17 +282,13 @@ def test_a_damped_step_that_fails_is_solved_again_more_damped() -> None:
 
 
 def test_a_damped_step_holds_each_parameter_back_by_what_the_data_see_of_it() -> None:
-    """On a linear residual r = b - J x whose two columns differ a thousandfold in size, one step with damping 1
+    """On a linear residual r = b - J x whose two columns differ a thousandfold in size, the step with damping 1
     minimises |b - J d|^2 + sum_i c_i d_i^2, c_i = |J_i|^2 (Marquardt's scaling): with orthogonal columns each
     parameter goes half its Gauss-Newton way (b_i / J_ii / 2), whatever its column's size; a damping in the parameters'
     own units (sum_i d_i^2) would hold back the small column's parameter alone, the large one going its whole way."""
     jac = np.diag([1.0, 1000.0])
     target = np.array([2.0, 3000.0])
-
-    def residual(p: Parameters) -> np.ndarray:
-        return target - jac @ p.values
-
     start = _parameters([0.0, 0.0], lower=[-10.0, -10.0], upper=[10.0, 10.0])
-    settings = GaussNewtonSettings(iterations=1, backtracks=0, damping=1.0)
-    fit = gauss_newton(residual, start, GaussNewtonHooks(), settings, start_jacobian=jac)
-    assert fit.values == pytest.approx([1.0, 1.5], rel=1e-6)
+    state = (start, target, float(target @ target))
+    assert _step(jac, state, start, None, 1.0) == pytest.approx([1.0, 1.5], rel=1e-6)
+    assert _step(jac, state, start, None, 0.0) == pytest.approx([2.0, 3.0], rel=1e-6)

@@ -251,7 +251,11 @@ class GaussNewtonSettings:
     the linearisation alone; None: unbounded); `damping`, the first step's Levenberg-Marquardt damping lambda (None:
     undamped steps, halved when they fail): each step minimises the linearised cost plus lambda sum_i c_i delta_i^2,
     c_i the curvature of parameter i's own term (its column's sum of squares plus its prior's 1 / sigma^2), so each
-    parameter is held back by how strongly the data see it (Marquardt's scaling), not by its units or prior."""
+    parameter is held back by how strongly the data see it (Marquardt's scaling), not by its units or prior; a step
+    that fails is solved again `DAMPING_GROWTH` times more damped, and each that holds eases the damping by as much;
+    `settle_at_noise`: at the noise (`GaussNewtonHooks.at_noise`) the fit stops only once its last step lowered the
+    cost by less than the number of parameters (a Gauss-Newton step lowers a quadratic cost by the squared distance
+    to its minimum in posterior sigmas), not at once: a residual at the noise need not be at its minimum."""
 
     iterations: int = 4
     backtracks: int = 2
@@ -262,6 +266,7 @@ class GaussNewtonSettings:
     extra_over_noise: bool = False
     trust: float | None = None
     damping: float | None = None
+    settle_at_noise: bool = False
 
 
 @dataclass(frozen=True)
@@ -313,13 +318,15 @@ def gauss_newton(
     else:
         state = (start, start_residual, cost(start_residual, start.values))
     jac, used, falling, damping = start_jacobian, None, True, settings.damping
+    drop = float("inf")  # the last step's lowering of the cost
     for iteration in range(settings.iterations + settings.extra_iterations):
         if iteration >= settings.iterations and not falling:
             break
         if hooks.on_iteration is not None:
             hooks.on_iteration(iteration, state[1])
         if jac is None:
-            if hooks.at_noise is not None and hooks.at_noise(state[1]):
+            settled = not settings.settle_at_noise or drop < len(start.values)
+            if hooks.at_noise is not None and settled and hooks.at_noise(state[1]):
                 break
             jac = hooks.jacobian(state[0])
         trusted = _trusted(state[0], prior, settings.trust)
@@ -340,7 +347,8 @@ def gauss_newton(
             break
         damping = None if damping is None else damping / DAMPING_GROWTH
         floor = float(np.isfinite(state[1]).sum()) if settings.extra_over_noise else 0.0
-        falling = state[2] - trial[2] >= settings.extra_if_drop * (state[2] - floor)
+        drop = state[2] - trial[2]
+        falling = drop >= settings.extra_if_drop * (state[2] - floor)
         state, used = trial, jac
         if np.all(np.abs(delta) < settings.step_tolerance * start.scale):
             break
@@ -362,12 +370,12 @@ def _step(
     prior: Prior | None,
     damping: float | None,
 ) -> np.ndarray:
-    """The linear step from `state` (parameters, residual, cost) within `at`'s bounds: undamped without `damping`;
-    else with lambda c_i delta_i^2 added, c_i parameter i's curvature (its finite column's sum of squares plus the
-    prior's 1 / sigma_i^2; a parameter neither sees is left free). The damping is a Gaussian about the current values
-    of precision lambda c_i, folded with the prior into one (precisions add, means weigh by them), so the bounded
-    solve stays one `linear_step`."""
-    if damping is None:
+    """The linear step from `state` (parameters, residual, cost) within `at`'s bounds: undamped without `damping` (or
+    at 0); else with lambda c_i delta_i^2 added, c_i parameter i's curvature (its finite column's sum of squares
+    plus the prior's 1 / sigma_i^2; a parameter neither sees is left free). The damping is a Gaussian about the
+    current values of precision lambda c_i, folded with the prior into one (precisions add, means weigh by them), so
+    the bounded solve stays one `linear_step`."""
+    if not damping:
         return linear_step(jac, state[1], at, prior)
     rows = np.isfinite(jac).all(axis=1) & np.isfinite(state[1])
     information = np.zeros(len(at.values)) if prior is None else prior.sigma**-2.0

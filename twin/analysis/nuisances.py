@@ -120,8 +120,8 @@ TRUST = 1.0
 an arm's 13 pose parameters to the prior, and full steps along those directions took the paper-depth presses of
 tests/test_nuisances.py to a registration 3 mm off and a joint 5 sigmas off (6.3x the noise)."""
 DAMPING = 1e-2
-"""The first step's Levenberg-Marquardt damping (`GaussNewtonSettings.damping`; it adapts: divided by
-`twin.analysis.fit.DAMPING_GROWTH` after a step that holds, multiplied by it when one fails). A registration micron
+"""The first step's Levenberg-Marquardt damping (`GaussNewtonSettings.damping`; it adapts: multiplied by
+`twin.analysis.fit.DAMPING_GROWTH` while a step fails, divided by it after one that holds). A registration micron
 moves a whitened residual by tens of noise units, and the pose's response bends within a few microns (forward and
 central differences 12-64 % apart on a cylinder's angled press), so a step of a fixed share of the priors fails where
 one damped by what the data see holds (measured on seed 7's realistic joint fit, `DAMPING_GROWTH`)."""
@@ -373,11 +373,11 @@ def fit_nuisances(
     report("registration starts")  # each arm from its contact onsets first: most of a realistic misfit is registration
     fitted_on, start = nominal, _best_starts(nominal, model, predictor, prior, nominal.residual.values)
     for refits in range(REFITS_ON_REACHED + 1):
-        fitted = _gauss_newton(fitted_on, model, predictor, start, prior, report)
+        fitted = _gauss_newton(fitted_on, model, predictor, start, prior, report, settle=refits > 0)
         if not (np.isfinite(fitted.cost) and fitted_on.noise_test(fitted.residual, len(slots)).is_noise):
             report("registration starts")  # each arm its best start about the fit, and the fit of lower cost kept
             starts = _best_starts(fitted_on, model, predictor, prior.at(fitted.parameters), fitted.residual)
-            again = _gauss_newton(fitted_on, model, predictor, starts, prior, report)
+            again = _gauss_newton(fitted_on, model, predictor, starts, prior, report, settle=refits > 0)
             fitted = min(fitted, again, key=lambda f: f.cost)
         values = prior.at(fitted.parameters)
         base = base_residual(datasets, model, predictor, values.model_for, len(slots), nominal.sigma)
@@ -566,13 +566,16 @@ def _gauss_newton(
     start: NuisanceValues,
     prior: NuisanceValues,
     report: Callable[[str], None],
+    settle: bool = False,
 ) -> Fit:
     """Levenberg-Marquardt (`twin.analysis.fit.gauss_newton`, damping `DAMPING`, each step within `TRUST` prior
     sigmas) from `start`, the priors centred on `prior` (the model's values); stops at the noise, after `ITERATIONS`
     or when a step (solved again more damped up to `BACKTRACKS` times) does not lower the cost: the chi-square plus
     the priors', infinite where the replay fails on samples the nominal model reaches (a fit must not buy a lower
     chi-square by losing samples); past `ITERATIONS` it goes on while each step lowers the cost's excess over the
-    noise by a tenth (`EXTRA_ITERATIONS` at most). Its Jacobian is the last
+    noise by a tenth (`EXTRA_ITERATIONS` at most); `settle`: at the noise, on until a step lowers the cost by less
+    than the number of nuisances (`GaussNewtonSettings.settle_at_noise`; the fit on the samples its first values
+    reached, where a fit stopped at the noise was measured 2.3 % off the plant's skin modulus). Its Jacobian is the last
     sensitivity a step used (at the point before the last step)."""
     gaussian = _prior(prior)
 
@@ -595,6 +598,7 @@ def _gauss_newton(
         extra_over_noise=True,
         trust=TRUST,
         damping=DAMPING,
+        settle_at_noise=settle,
     )
     return gauss_newton(residual, start.parameters, hooks, settings, gaussian)
 
