@@ -298,8 +298,10 @@ def test_the_nuisances_are_fitted_on_every_sample_their_values_reach(
 ) -> None:
     """A fit judged only on the samples the nominal replay reached leaves the rest of a press out of its chi-square
     (measured before the refit on reached samples: 1.06x on those, 3.66x on all, the skin thickness 5.9 % and modulus
-    8.7 % off the plant's). Fitted again on what its values reach, the fit is near the noise on every sample and
-    recovers the plant's own skin (its draw, `make_plant`), which the analysis never reads."""
+    8.7 % off the plant's). Fitted again on what its values reach, and settled there (on at the noise while a step
+    still lowers the cost by the number of nuisances or more), the fit is near the noise on every sample and recovers
+    the plant's own skin (its draw, `make_plant`), which the analysis never reads: within 0.1 % (session 33; stopped at
+    the noise, the modulus was 2.3 % off).
     data = load_campaign(paper_depth_presses)
     model = TwinModel(mesh_max_edge=data.mesh_max_edge)
     nominal = base_residual([data], model, predictor)
@@ -310,9 +312,9 @@ def test_the_nuisances_are_fitted_on_every_sample_their_values_reach(
     truth, nominal_skin = make_plant([2], 0).sensor(2).skin, model.skin
     values = fit.values.as_dict()
     for effect, field, tolerance in (
-        ("skin_thickness", "thickness", 0.02),
-        ("skin_modulus", "mu_nh", 0.02),
-        ("indenter_friction", "friction", 0.04),
+        ("skin_thickness", "thickness", 0.005),
+        ("skin_modulus", "mu_nh", 0.005),
+        ("indenter_friction", "friction", 0.01),
     ):
         expected = getattr(truth, field) / getattr(nominal_skin, field)
         assert values[f"sensor 2 {effect}.scale"] == pytest.approx(expected, rel=tolerance), (effect, values)
