@@ -301,7 +301,7 @@ def test_the_nuisances_are_fitted_on_every_sample_their_values_reach(
     8.7 % off the plant's). Fitted again on what its values reach, and settled there (on at the noise while a step
     still lowers the cost by the number of nuisances or more), the fit is near the noise on every sample and recovers
     the plant's own skin (its draw, `make_plant`), which the analysis never reads: within 0.1 % (session 33; stopped at
-    the noise, the modulus was 2.3 % off).
+    the noise, the modulus was 2.3 % off)."""
     data = load_campaign(paper_depth_presses)
     model = TwinModel(mesh_max_edge=data.mesh_max_edge)
     nominal = base_residual([data], model, predictor)
