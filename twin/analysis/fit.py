@@ -43,8 +43,8 @@ DAMPING_GROWTH = 4.0
 (`GaussNewtonSettings.backtracks` times at most); each step that holds divides the damping by it. Measured on a
 two-arm realistic plant's joint fit (seed 7, 26 pose parameters, a whitened residual whose response to a registration
 micron is 22 noise units): from where the fit stalled (chi-square 37231), steps bounded to 1, 1/4 and 1/16 of each
-prior sigma raised it to 256851, 275923 and 206477, while the damped steps with damping 0.1 and 0.3 lowered it to
-33887 and 35072 (docs/analysis.md, session 33)."""
+prior sigma raised it to 256851, 275923 and 206477, while the damped steps with damping 0.3 and 1 lowered it to
+35258 and 36178 (0.1 to 33887 with central-difference columns; docs/analysis.md, session 33)."""
 
 
 def near_bound(values: np.ndarray, lower: np.ndarray, upper: np.ndarray, tolerance: float = AT_BOUND) -> np.ndarray:
