@@ -255,9 +255,9 @@ def test_a_held_out_prediction_whitened_by_its_predictive_spread_is_unit_noise()
 
 def test_a_damped_step_that_fails_is_solved_again_more_damped() -> None:
     """A curved valley, r = (100 (y - 3 sin x), 10 (x - 1)), with a Gaussian prior (sigma 3 about the start (-2, 0)):
-    from the start the Gauss-Newton step overshoots the valley's bend. A step that fails solved again damped
-    (Levenberg-Marquardt: damping 0.01, then four times more up to six tries; eased after one that holds) goes on to the
-    minimum of the cost, which scipy's Nelder-Mead finds on the same cost (residual plus prior) independently; steps
+    from the start the Gauss-Newton step overshoots the valley's bend. Levenberg-Marquardt steps (damping 0.01, a step
+    that fails solved again four times more damped, up to six tries; eased after one that holds) go on to the minimum
+    of the cost, which scipy's Nelder-Mead finds on the same cost (residual plus prior) independently; steps
     bounded to a prior sigma and halved when they fail stop 796 above it (measured), damped ones given three tries
     852 above."""
 

@@ -318,7 +318,7 @@ def test_the_nuisances_are_fitted_on_every_sample_their_values_reach(
     ):
         expected = getattr(truth, field) / getattr(nominal_skin, field)
         assert values[f"sensor 2 {effect}.scale"] == pytest.approx(expected, rel=tolerance), (effect, values)
-    # Two presses cannot fix the arm's pose: each predicted from the other alone is far off (7.4x, session 32; 140x
+    # Two presses cannot fix the arm's pose: each predicted from the other alone is far off (5.3x, session 33; 140x
     # before the chained pose columns were mended), but within what the other leaves uncertain (its predictive
     # spread: 0.99x), which is what the held-out test asks.
     # Which press fails is said per trajectory, worst first, and printed.

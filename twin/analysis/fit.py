@@ -10,7 +10,7 @@ arrays out; the caller's residual function holds whatever model it predicts with
 - `linear_step`: the bounded linear least-squares step of a residual on its Jacobian (optionally with a
   Gaussian prior on each parameter as extra rows).
 - `gauss_newton`: damped Gauss-Newton (each linear step re-predicted nonlinearly, halved while it does not
-  lower the cost), returning a frozen `Fit`.
+  lower the cost, or, with a damping, Levenberg-Marquardt in Marquardt's scaling), returning a frozen `Fit`.
 - `polish`: bounded derivative-free minimisation of a scalar cost (a signal that moves in whole samples,
   like a delay, has no useful derivative).
 - `uncertainty`: the Gauss-Newton (linearised) covariance cov = s^2 (J_s^T J_s + P)^+ in scaled units, mapped
