@@ -280,6 +280,25 @@ def test_a_nuisance_effect_cannot_also_be_a_candidate() -> None:
         diagnose([], TwinModel(), None, ["time_delay", "skin_modulus"], nuisances=True)
 
 
+def test_an_unexplained_residual_closest_to_nuisances_points_to_the_nuisance_stage() -> None:
+    """The issue's realistic null without the stage: "unexplained", registration_offset closest (refit 3.84x). The
+    nuisance effects among the closest (by held-out RMS, as the reason shows them) are named for the stage; not once
+    it ran, nor on a named verdict, nor beyond the closest shown."""
+    closest = [
+        _candidate("ft_gain", 300.0, 5.0, 6.0, False),
+        _candidate("skin_thickness", 200.0, 4.5, 5.0, False),
+        _candidate("registration_offset", 100.0, 3.84, 4.1, False),
+        _candidate("time_delay", 50.0, 5.5, 5.8, False),
+        _candidate("skin_modulus", 40.0, 7.0, 7.5, False),
+    ]
+    outcome, reason, tied = verdict(10.5, False, 1.02, order_candidates(closest))
+    unexplained = Diagnosis(10.5, {}, closest, outcome, reason, tied, 1.02)
+    assert outcome == "unexplained"
+    assert unexplained.nuisances_closest() == ["registration_offset", "skin_thickness"]
+    assert replace(unexplained, nuisances={"values": {}}).nuisances_closest() == []
+    assert replace(unexplained, verdict="ft_gain").nuisances_closest() == []
+
+
 def _profiled_held_out_test(base: Base, target: np.ndarray, jac: np.ndarray) -> NoiseTest:
     """The held-out test (one parameter, leave one indenter out, sigma known) of `target` on `jac`."""
     lin = Linearisation({"scale": 1.0}, np.zeros_like(target), jac[:, None])

@@ -70,6 +70,7 @@ from twin.analysis.sensitivity import (
 )
 from twin.analysis.subset import sampled
 from twin.analysis.verdict import (
+    CLOSEST_SHOWN,
     NOTHING_BEYOND_NUISANCES,
     Candidate,
     candidate_figures,
@@ -129,6 +130,16 @@ class Diagnosis:
         if closest is None or not closest.heldout_rms < self.base_rms:
             return None
         return closest
+
+    def nuisances_closest(self) -> list[str]:
+        """On an "unexplained" verdict without the nuisance stage, the nuisance effects (`NUISANCE_EFFECTS`: what every
+        real campaign carries, registration and unit-to-unit skin) among its closest candidates (the refitted ones
+        of least held-out RMS, as many as the reason shows), best first: the residual may be those nuisances
+        together, which `diagnose(..., nuisances=True)` fits first. Empty otherwise."""
+        if self.verdict != "unexplained" or self.nuisances is not None:
+            return []
+        refitted = sorted((c for c in self.candidates if c.refitted), key=lambda c: c.heldout_rms or float("inf"))
+        return [c.name for c in refitted[:CLOSEST_SHOWN] if c.name in NUISANCE_EFFECTS]
 
     def to_json(self) -> str:
         """Strict JSON text of `to_dict` (a NaN or infinite number becomes null)."""

@@ -212,6 +212,12 @@ def _print_diagnosis(result: "Diagnosis", mesh_max_edge: float) -> None:
             "improved model: keep it only if the effect named next brings the held-out residual to the noise; a "
             "'nothing' there is no proof (docs/analysis.md, two effects at once)"
         )
+    if nuisances := result.nuisances_closest():
+        out_console.print(
+            f"note: {', '.join(nuisances)} among the closest: every real campaign carries registration and "
+            "unit-to-unit skin errors together; `twin diagnose --nuisances` fits them first and searches what remains "
+            "(docs/analysis.md, nuisances first)"
+        )
 
 
 def _search_in_turn(
