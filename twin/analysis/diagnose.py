@@ -74,6 +74,7 @@ from twin.analysis.verdict import (
     NOTHING_BEYOND_NUISANCES,
     Candidate,
     candidate_figures,
+    closest_refitted,
     on_every_sample,
     order_candidates,
     to_refit,
@@ -138,8 +139,7 @@ class Diagnosis:
         together, which `diagnose(..., nuisances=True)` fits first. Empty otherwise."""
         if self.verdict != "unexplained" or self.nuisances is not None:
             return []
-        refitted = sorted((c for c in self.candidates if c.refitted), key=lambda c: c.heldout_rms or float("inf"))
-        return [c.name for c in refitted[:CLOSEST_SHOWN] if c.name in NUISANCE_EFFECTS]
+        return [c.name for c in closest_refitted(self.candidates)[:CLOSEST_SHOWN] if c.name in NUISANCE_EFFECTS]
 
     def to_json(self) -> str:
         """Strict JSON text of `to_dict` (a NaN or infinite number becomes null)."""

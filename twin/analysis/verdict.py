@@ -134,6 +134,12 @@ def order_candidates(candidates: list[Candidate]) -> list[Candidate]:
     return refitted + rest
 
 
+def closest_refitted(candidates: list[Candidate]) -> list[Candidate]:
+    """The refitted candidates, least held-out RMS first (those not held out last): the closest an "unexplained"
+    verdict's reason shows (`CLOSEST_SHOWN` of them)."""
+    return sorted((c for c in candidates if c.refitted), key=lambda c: c.heldout_rms or float("inf"))
+
+
 def verdict(
     base_rms: float,
     base_is_noise: bool,
@@ -154,7 +160,7 @@ def verdict(
         return "unexplained", "no candidate effect explains a significant part of the residual", []
     named = [c for c in candidates if c.refitted and c.supported_heldout and c.identifiable]
     if not named:
-        closest = sorted((c for c in candidates if c.refitted), key=lambda c: c.heldout_rms or float("inf"))
+        closest = closest_refitted(candidates)
         shown = "; ".join(candidate_figures(c) for c in closest[:CLOSEST_SHOWN]) or "none refitted"
         why = ["no refitted candidate brings the held-out residual to the noise"]
         if closest and all(c.heldout_rms is None for c in closest):
