@@ -21,6 +21,8 @@ from dataclasses import dataclass, field, fields
 import numpy as np
 from scipy.spatial import ConvexHull, cKDTree
 
+from assets.refine import Refinement, refine_near
+
 MM = 1e-3
 
 # Electrode table of the BioTac Product Manual: x, y, z (mm), nx, ny, nz.
@@ -564,8 +566,30 @@ def outer_surface(skin: SkinMesh, thickness: float) -> np.ndarray:
     return skin.vertices + 0.5 * thickness * vertex_normals(skin.vertices, skin.triangles)
 
 
-def make_biotac(max_edge: float = 0.5e-3, dims: BioTacDimensions = DEFAULT_DIMENSIONS) -> BioTacGeometry:
-    """Parametric BioTac geometry: skin mid-surface mesh (edges <= max_edge, m), core mesh, electrodes."""
+def project_to_skin(points: np.ndarray, d: BioTacDimensions) -> np.ndarray:
+    """(N, 3) m: the closest points of the unpressurised skin mid-surface (its cylinder for x <= tip_center_x,
+    its tip sphere beyond) to `points` (N, 3) m, biotac frame."""
+    centre = np.array([d.tip_center_x, 0.0, d.axis_z])
+    on_axis = centre + np.outer(np.minimum(points[:, 0] - centre[0], 0.0), [1.0, 0.0, 0.0])
+    return on_axis + d.skin_mid_radius * _unit(points - on_axis)
+
+
+def refine_skin(skin: SkinMesh, refinement: Refinement, d: BioTacDimensions) -> SkinMesh:
+    """`skin` with its edges halved `refinement.levels` times about the skin point nearest `refinement.centre`
+    (`assets.refine.refine_near`), new vertices on the mid-surface, regions flagged again by the rules of `d`."""
+    centre = project_to_skin(np.asarray(refinement.centre, dtype=float)[None], d)[0]
+    refined = refine_near(
+        skin.vertices, skin.triangles, centre, refinement.radius, refinement.levels, lambda p: project_to_skin(p, d)
+    )
+    anchored, ventral = region_flags(refined.vertices, refined.triangles, d)
+    return SkinMesh(refined.vertices, refined.triangles.astype(np.int32), anchored, ventral)
+
+
+def make_biotac(
+    max_edge: float = 0.5e-3, dims: BioTacDimensions = DEFAULT_DIMENSIONS, refinement: Refinement | None = None
+) -> BioTacGeometry:
+    """Parametric BioTac geometry: skin mid-surface mesh (edges <= max_edge, m; finer about a press point with
+    a `refinement`), core mesh, electrodes."""
     d = dims
     if not np.isfinite(max_edge) or max_edge <= 0.0:
         raise ValueError(f"make_biotac: max_edge must be a positive length in metres, got {max_edge!r}")
@@ -574,8 +598,9 @@ def make_biotac(max_edge: float = 0.5e-3, dims: BioTacDimensions = DEFAULT_DIMEN
             f"make_biotac: max_edge {max_edge!r} m is too coarse (limit {0.5 * d.skin_mid_radius:.4g} m); "
             "did you pass millimetres?"
         )
+    skin = make_skin(max_edge, d)
     return BioTacGeometry(
-        skin=make_skin(max_edge, d),
+        skin=skin if refinement is None else refine_skin(skin, refinement, d),
         core=make_core(max_edge, d),
         electrodes=electrode_table(),
         dorsal_top_z=d.dorsal_top_z,

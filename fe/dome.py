@@ -9,6 +9,7 @@ from dataclasses import dataclass, replace
 import numpy as np
 
 from assets.indenters import KIND_SPHERE, Indenter
+from assets.refine import refine_near
 from fe.batched import InflatedSkin
 from fe.batched_stepper import BatchedStepper
 from fe.indentation import IncrementResult, IndentationStepper, Trajectory, drive
@@ -94,6 +95,23 @@ def disk_mesh(radius: float, max_edge: float, clamp_rings: int = 2) -> ShellMesh
     return ShellMesh(v, t, fixed)
 
 
+def refined_at_apex(mesh: ShellMesh, radius: float, levels: int) -> ShellMesh:
+    """`mesh` (a hemisphere about the origin, apex on +z) with its edges halved `levels` times within
+    `radius` (m) of the apex (`assets.refine.refine_near`); new vertices on the sphere, held where both
+    vertices of their edge are."""
+    sphere = np.linalg.norm(mesh.vertices[0])
+    apex = mesh.vertices[np.argmax(mesh.vertices[:, 2])]
+    refined = refine_near(mesh.vertices, mesh.triangles, apex, radius, levels, lambda p: sphere * _unit_rows(p))
+    fixed = np.concatenate([mesh.fixed, np.zeros(len(refined.parents), dtype=bool)])
+    for i, (a, b) in enumerate(refined.parents, start=len(mesh.vertices)):
+        fixed[i] = fixed[a] and fixed[b]
+    return ShellMesh(refined.vertices, refined.triangles, fixed)
+
+
+def _unit_rows(p: np.ndarray) -> np.ndarray:
+    return p / np.linalg.norm(p, axis=1, keepdims=True)
+
+
 @dataclass(frozen=True)
 class DomeResult:
     """Inflated state and indentation increments of the dome benchmark."""
@@ -115,14 +133,18 @@ def run_dome(
     depths: np.ndarray | None = None,
     max_edge: float | None = None,
     contact: ContactSettings = ContactSettings(),
+    refine_levels: int = 0,
+    refine_radius: float = 1.5e-3,
 ) -> DomeResult:
     """Inflate the dome to `volume_ratio` V0 with volume control, then optionally indent its apex.
 
     The indenter is a frictionless rigid sphere touching the skin mid-surface; depth 0 is first touch.
+    `refine_levels` halves the mesh's edges that many times within `refine_radius` (m) of the apex
+    (`refined_at_apex`), where the contact patch is.
     """
     if volume_ratio <= 0:
         raise ValueError("volume_ratio must be positive")
-    mesh = hemisphere_mesh(radius, max_edge or radius / 12)
+    mesh = refined_at_apex(hemisphere_mesh(radius, max_edge or radius / 12), refine_radius, refine_levels)
     params = SkinParameters(thickness=thickness, mu_nh=mu, friction=0.0, bending=bending)
     rest = InflatedSkin.at_rest(mesh.vertices, mesh.triangles, mesh.fixed, params, contact, indenter_offset=0.0)
     sphere = Indenter("dome_sphere", KIND_SPHERE, (indenter_radius or radius, 0.0, 0.0, 0.0), "frictionless sphere")

@@ -57,6 +57,8 @@ def test_balloon_reaches_the_largest_ratio_in_few_steps_on_membrane_theory() -> 
         ("indent", "--speed-mm-s", "inf"),
         ("dome", "--depth-mm", "nan"),
         ("dome", "--volume-ratio", "inf"),
+        ("indent", "--refine-radius-mm", "nan"),
+        ("dome", "--refine-radius-mm", "inf"),
     ],
 )
 def test_fe_commands_refuse_non_finite_numbers(command: str, option: str, value: str) -> None:

@@ -12,6 +12,7 @@ from collections.abc import Callable
 from dataclasses import asdict
 
 from assets.biotac import BioTacGeometry, make_biotac
+from assets.refine import Refinement
 from fe.params import SkinParameters
 from fe.sensor import SENSOR_THICKNESS, BioTacModel, InflationResult
 
@@ -29,11 +30,12 @@ def inflated_model(geometry: BioTacGeometry, params: SkinParameters) -> BioTacMo
 
 
 def inflated_fe_model(
-    skin: SkinParameters, mesh_max_edge: float, inflation: str = "thickness"
+    skin: SkinParameters, mesh_max_edge: float, inflation: str = "thickness", refinement: Refinement | None = None
 ) -> tuple[BioTacModel, InflationResult]:
-    """A BioTac fe model of `skin` meshed at `mesh_max_edge` (m) and inflated by the rule `inflation` (see the
-    module docstring), with its InflationResult (which says whether it converged)."""
-    model = BioTacModel(make_biotac(mesh_max_edge), skin)
+    """A BioTac fe model of `skin` meshed at `mesh_max_edge` (m), finer about a press point with a `refinement`,
+    and inflated by the rule `inflation` (see the module docstring), with its InflationResult (which says
+    whether it converged)."""
+    model = BioTacModel(make_biotac(mesh_max_edge, refinement=refinement), skin)
     return model, model.inflate(SENSOR_THICKNESS if inflation == "thickness" else None)
 
 

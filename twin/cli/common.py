@@ -22,6 +22,7 @@ from rich.markup import escape
 from rich.progress import BarColumn, Progress, TextColumn, TimeElapsedColumn, TimeRemainingColumn
 
 if TYPE_CHECKING:
+    from assets.refine import Refinement
     from fe.params import SkinParameters
     from fe.sensor import BioTacModel, InflationResult
     from twin.analysis.data import CampaignData
@@ -154,11 +155,12 @@ FE_MODEL_HELP = (
 
 
 def inflated_twin_model(
-    model_path: Path | None, mesh_mm: float | None
+    model_path: Path | None, mesh_mm: float | None, refinement: Refinement | None = None
 ) -> tuple[TwinModel, BioTacModel, InflationResult]:
     """The `--model` TwinModel JSON (None: the nominal model) with its mesh size overridden by `mesh_mm` (mm;
-    None: the model's, `FE_MESH_MM` without a model), and its fe model: skin with the effects applied, inflated
-    by the model's rule (`twin.fe_models.inflated_fe_model`), with the InflationResult. Bad input
+    None: the model's, `FE_MESH_MM` without a model), and its fe model: skin with the effects applied, meshed
+    finer about a press point with a `refinement`, inflated by the model's rule
+    (`twin.fe_models.inflated_fe_model`), with the InflationResult. Bad input
     (unreadable or invalid model, bad mesh size): one-line message and exit code 2."""
     from twin.effects import apply_skin
     from twin.fe_models import inflated_fe_model
@@ -177,7 +179,9 @@ def inflated_twin_model(
         f"model: {escape(str(model_path or 'nominal'))}; skin mesh {twin_model.mesh_max_edge * 1e3:g} mm; "
         f"inflating ({twin_model.inflation} rule) ..."
     )
-    model, inflation = guarded(lambda: inflated_fe_model(skin, twin_model.mesh_max_edge, twin_model.inflation))
+    model, inflation = guarded(
+        lambda: inflated_fe_model(skin, twin_model.mesh_max_edge, twin_model.inflation, refinement)
+    )
     return twin_model, model, inflation
 
 

@@ -20,6 +20,14 @@ from twin.cli.common import parse_floats as _floats
 from twin.cli.common import progress_bar as _progress
 from twin.cli.fe_batch import batch
 
+RefineLevels = Annotated[
+    int,
+    typer.Option(
+        min=0, max=3, help="Halve the mesh's edges this many times about the press point (contact patch; docs/fe.md)."
+    ),
+]
+RefineRadiusMm = Annotated[float, typer.Option(help="Reach of the finest --refine-levels level from the point (mm).")]
+
 fe_app = typer.Typer(help="Finite-element skin model: physics checks and indentations.", no_args_is_help=True)
 fe_app.command("batch")(batch)
 
@@ -81,6 +89,8 @@ def dome(
     depth_mm: Annotated[float, typer.Option(help="Depth past first touch (mm).")] = 0.0,
     step_mm: Annotated[float, typer.Option(help="Depth increment (mm).")] = 0.25,
     mesh_mm: Annotated[float | None, typer.Option(help="Maximum edge length (mm); default R/12.")] = None,
+    refine_levels: RefineLevels = 0,
+    refine_radius_mm: RefineRadiusMm = 1.5,
     as_json: Annotated[bool, typer.Option("--json", help="Print JSON.")] = False,
 ) -> None:
     """Hemispherical membrane pinned to a flat base, fluid-filled, inflated, then indented at the apex."""
@@ -89,10 +99,10 @@ def dome(
     if bending not in ("on", "off"):
         raise typer.BadParameter("--bending must be on or off")
     sizes = {"--radius-mm": radius_mm, "--thickness-mm": thickness_mm, "--mu-pa": mu_pa, "--volume-ratio": volume_ratio}
-    sizes |= {"--depth-mm": depth_mm, "--step-mm": step_mm}
+    sizes |= {"--depth-mm": depth_mm, "--step-mm": step_mm, "--refine-radius-mm": refine_radius_mm}
     _guarded(lambda: _check_finite(sizes))
-    if depth_mm < 0 or step_mm <= 0:
-        raise typer.BadParameter("--depth-mm must be >= 0 and --step-mm > 0")
+    if depth_mm < 0 or step_mm <= 0 or refine_radius_mm <= 0:
+        raise typer.BadParameter("--depth-mm must be >= 0, --step-mm and --refine-radius-mm > 0")
     depths = np.arange(0, int(round(depth_mm / step_mm)) + 1) * step_mm * 1e-3
     result = _guarded(
         lambda: run_dome(
@@ -104,6 +114,8 @@ def dome(
             None if indenter_radius_mm is None else indenter_radius_mm * 1e-3,
             depths if indenter_radius_mm is not None else None,
             None if mesh_mm is None else mesh_mm * 1e-3,
+            refine_levels=refine_levels,
+            refine_radius=refine_radius_mm * 1e-3,
         )
     )
     records = [
@@ -156,22 +168,26 @@ def indent(
         float, typer.Option(help="Indentation speed (mm/s) timing the increments; only a relaxing skin feels it.")
     ] = 1.0,
     mesh_mm: Annotated[float | None, typer.Option(help=FE_MESH_HELP)] = None,
+    refine_levels: RefineLevels = 0,
+    refine_radius_mm: RefineRadiusMm = 1.5,
     model_json: Annotated[Path | None, typer.Option("--model", help=FE_MODEL_HELP)] = None,
     device: Annotated[str, typer.Option(help="Warp device of the indentation: cpu, cuda, cuda:0, ...")] = "cpu",
     as_json: Annotated[bool, typer.Option("--json", help="Print JSON records.")] = False,
 ) -> None:
     """Inflate the BioTac (nominal or a --model), then indent it at a point and print the force-depth table."""
     from assets.indenters import get_indenter
+    from assets.refine import Refinement
 
     point = np.array(_floats(point_mm, 3, "--point-mm")) * 1e-3
     _guarded(lambda: get_indenter(indenter))
     numbers = {"--point-mm": point * 1e3, "--angle-deg": angle_deg, "--azimuth-deg": azimuth_deg}
     numbers |= {"--depth-mm": depth_mm, "--step-mm": step_mm, "--speed-mm-s": speed_mm_s}
-    _guarded(lambda: _check_finite(numbers))
-    if depth_mm < 0 or step_mm <= 0 or speed_mm_s <= 0:
-        raise typer.BadParameter("--depth-mm must be >= 0, --step-mm and --speed-mm-s > 0")
+    _guarded(lambda: _check_finite(numbers | {"--refine-radius-mm": refine_radius_mm}))
+    if depth_mm < 0 or step_mm <= 0 or speed_mm_s <= 0 or refine_radius_mm <= 0:
+        raise typer.BadParameter("--depth-mm must be >= 0, --step-mm, --speed-mm-s and --refine-radius-mm > 0")
     _guarded(lambda: _check_device(device))
-    _, model, inflation = _inflated_twin_model(model_json, mesh_mm)
+    refinement = Refinement(tuple(point), refine_radius_mm * 1e-3, refine_levels) if refine_levels else None
+    _, model, inflation = _inflated_twin_model(model_json, mesh_mm, refinement)
     _err.print(
         f"inflated {len(model.geometry.skin.vertices)} skin vertices: "
         f"+{inflation.volume_change * 1e9:.1f} mm^3, p = {inflation.pressure / 1e3:.2f} kPa, "
