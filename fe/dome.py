@@ -15,6 +15,7 @@ from fe.batched_stepper import BatchedStepper
 from fe.indentation import IncrementResult, IndentationStepper, Trajectory, drive
 from fe.params import ContactSettings, SkinParameters
 from fe.shell import ShellMesh
+from fe.surface_quadrature import rule
 
 
 def _zip_rings(lower: np.ndarray, upper: np.ndarray, lower_angles: np.ndarray, upper_angles: np.ndarray) -> list:
@@ -112,6 +113,14 @@ def _unit_rows(p: np.ndarray) -> np.ndarray:
     return p / np.linalg.norm(p, axis=1, keepdims=True)
 
 
+def _contact_radius(x: np.ndarray, triangles: np.ndarray, centre: np.ndarray, radius: float, points: str) -> float:
+    """Largest distance (m) from the z axis of the contact quadrature points (`points`, the surface rule) of
+    the skin at x (V, 3) m that lie inside the sphere (centre (3,) m, radius m): where the contact acts."""
+    q = np.einsum("qk,tkd->tqd", rule(points)[:, :3], x[triangles]).reshape(-1, 3)
+    inside = np.linalg.norm(q - centre, axis=1) < radius
+    return float(np.linalg.norm(q[inside, :2], axis=1).max(initial=0.0))
+
+
 @dataclass(frozen=True)
 class DomeResult:
     """Inflated state and indentation increments of the dome benchmark."""
@@ -138,7 +147,8 @@ def run_dome(
 ) -> DomeResult:
     """Inflate the dome to `volume_ratio` V0 with volume control, then optionally indent its apex.
 
-    The indenter is a frictionless rigid sphere touching the skin mid-surface; depth 0 is first touch.
+    The indenter is a frictionless rigid sphere touching the skin mid-surface; depth 0 is first touch. An
+    increment's contact radius is that of its contact quadrature points inside the sphere (`_contact_radius`).
     `refine_levels` halves the mesh's edges that many times within `refine_radius` (m) of the apex
     (`refined_at_apex`), where the contact patch is.
     """
@@ -162,5 +172,9 @@ def run_dome(
         # Indenter frame: body along +z, presses along -z; pushing down needs no rotation.
         trajectory = Trajectory(apex, push, np.eye(3), np.asarray(depths, dtype=float))
         inflated = replace(rest, reference=x_ref, pressure=pressure, target_volume=volume_ratio * v0)
-        increments = list(drive(IndentationStepper(inflated, sphere, apex), trajectory))
+        for inc in drive(IndentationStepper(inflated, sphere, apex), trajectory):
+            centre = apex + (inc.depth - indenter_radius) * push  # the sphere's centre, m
+            x = x_ref + inc.displacement
+            at = _contact_radius(x, mesh.triangles, centre, indenter_radius, contact.surface_rule)
+            increments.append(replace(inc, contact_radius=at))
     return DomeResult(v0, volume_ratio * v0, pressure, float(apex[2]), increments)
