@@ -1,6 +1,7 @@
 """The `twin fe` commands keep their JSON contracts and fail cleanly on bad input."""
 
 import json
+import re
 from pathlib import Path
 
 import pytest
@@ -71,6 +72,7 @@ def test_dome_json_contract() -> None:
     assert all(keys <= set(r) for r in records)
     assert records[0]["force_n"] == 0.0 < records[1]["force_n"] < records[2]["force_n"]
     assert abs(records[2]["volume_m3"] / records[0]["volume_m3"] - 1) < 1e-6
+    assert records[0]["contact_radius_mm"] == 0.0 < records[1]["contact_radius_mm"] < records[2]["contact_radius_mm"]
 
 
 def test_indent_json_contract() -> None:
@@ -119,6 +121,18 @@ def test_bad_input_exits_with_a_message() -> None:
 INDENT = ["fe", "indent", "--indenter", "sphere_large", "--point-mm", "-6,0,-9", "--depth-mm", "0.2"]
 INDENT += ["--step-mm", "0.1"]
 """A short indentation (three increments) for the coarse --model runs."""
+
+
+def test_indent_refined_about_its_point_has_more_vertices_and_pushes_back() -> None:
+    """`--refine-levels` halves the skin's edges about the press point: more skin vertices, the same JSON."""
+    counts = []
+    for refine in ([], ["--refine-levels", "1", "--refine-radius-mm", "4"]):
+        result = runner.invoke(app, [*INDENT, "--mesh-mm", "2.5", *refine, "--json"])
+        assert result.exit_code == 0, result.output
+        counts.append(int(re.search(r"inflated (\d+) skin vertices", result.output).group(1)))
+        records = json.loads(result.stdout.strip().splitlines()[-1])
+        assert all(r["converged"] for r in records) and records[-1]["force_n"][2] > 0
+    assert counts[1] > counts[0]
 
 
 def _model_file(path: Path, model: TwinModel) -> Path:
