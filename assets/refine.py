@@ -90,8 +90,9 @@ def refine_near(
     vertices: np.ndarray, triangles: np.ndarray, centre: np.ndarray, radius: float, levels: int, project: Projection
 ) -> RefinedMesh:
     """Halve the edges near `centre` `levels` times: level k (k = 1 ... levels) splits every triangle whose
-    centroid lies within radius * 2^(levels - k) of `centre`, so the finest level covers `radius` and each
-    coarser one twice the distance of the next (a graded transition, a few elements a level).
+    centroid lies within radius * 2^(levels - k) of `centre` (and the nearest one, were none so near), so the
+    finest level covers `radius` and each coarser one twice the distance of the next (a graded transition, a few
+    elements a level).
 
     Args:
         vertices: (V, 3) surface vertices. triangles: (T, 3) vertex ids, consistently oriented.
@@ -108,6 +109,7 @@ def refine_near(
     parents = np.zeros((0, 2), dtype=int)
     for k in range(1, int(levels) + 1):
         distance = np.linalg.norm(v[t].mean(axis=1) - np.asarray(centre, dtype=float), axis=1)
-        v, t, new_parents = _split(v, t, distance <= radius * 2.0 ** (levels - k), project)
+        reach = max(radius * 2.0 ** (levels - k), distance.min())  # the nearest triangle at least
+        v, t, new_parents = _split(v, t, distance <= reach, project)
         parents = np.vstack([parents, new_parents])
     return RefinedMesh(v, t, parents)

@@ -68,6 +68,12 @@ def test_a_closed_sphere_stays_closed_and_on_the_sphere() -> None:
     assert len(refined.vertices) > len(sphere.vertices)
 
 
+def test_a_radius_smaller_than_the_elements_still_splits_the_nearest_triangle() -> None:
+    vertices, triangles = _grid(4, 1.0)
+    refined = refine_near(vertices, triangles, np.array([2.2, 1.3, 0.0]), 1e-3, 1, lambda p: p)
+    assert len(refined.triangles) > len(triangles) and len(refined.parents) >= 3
+
+
 def test_zero_levels_change_nothing_and_bad_input_is_refused() -> None:
     vertices, triangles = _grid(3, 1.0)
     same = refine_near(vertices, triangles, np.zeros(3), 1.0, 0, lambda p: p)
