@@ -567,8 +567,9 @@ def outer_surface(skin: SkinMesh, thickness: float) -> np.ndarray:
 
 
 def project_to_skin(points: np.ndarray, d: BioTacDimensions) -> np.ndarray:
-    """(N, 3) m: the closest points of the unpressurised skin mid-surface (its cylinder for x <= tip_center_x,
-    its tip sphere beyond) to `points` (N, 3) m, biotac frame."""
+    """(N, 3) m: the closest points to `points` (N, 3) m, biotac frame, of the capsule the unpressurised skin
+    mid-surface lies on (its cylinder for x <= tip_center_x, its tip sphere beyond; not cut where the mesh ends).
+    A point on the skin's axis has no closest point (NaN)."""
     centre = np.array([d.tip_center_x, 0.0, d.axis_z])
     on_axis = centre + np.outer(np.minimum(points[:, 0] - centre[0], 0.0), [1.0, 0.0, 0.0])
     return on_axis + d.skin_mid_radius * _unit(points - on_axis)
@@ -582,7 +583,7 @@ def refine_skin(skin: SkinMesh, refinement: Refinement, d: BioTacDimensions) -> 
         skin.vertices, skin.triangles, centre, refinement.radius, refinement.levels, lambda p: project_to_skin(p, d)
     )
     anchored, ventral = region_flags(refined.vertices, refined.triangles, d)
-    return SkinMesh(refined.vertices, refined.triangles.astype(np.int32), anchored, ventral)
+    return SkinMesh(refined.vertices, refined.triangles, anchored, ventral)
 
 
 def make_biotac(

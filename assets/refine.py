@@ -90,9 +90,9 @@ def refine_near(
     vertices: np.ndarray, triangles: np.ndarray, centre: np.ndarray, radius: float, levels: int, project: Projection
 ) -> RefinedMesh:
     """Halve the edges near `centre` `levels` times: level k (k = 1 ... levels) splits every triangle whose
-    centroid lies within radius * 2^(levels - k) of `centre` (and the nearest one, were none so near), so the
-    finest level covers `radius` and each coarser one twice the distance of the next (a graded transition, a few
-    elements a level).
+    centroid lies within radius * 2^(levels - k) of `centre` (and at least those within one and a half of its
+    edges of the nearest one), so the finest level covers about `radius` (centroids of the level's mesh) and each
+    coarser one twice the distance of the next (a graded transition, a few elements a level).
 
     Args:
         vertices: (V, 3) surface vertices. triangles: (T, 3) vertex ids, consistently oriented.
@@ -103,13 +103,21 @@ def refine_near(
     Returns:
         The refined mesh (original vertices first, their ids unchanged) and the parents of its new vertices.
     """
+    centre = np.asarray(centre, dtype=float)
     if not (np.isfinite(radius) and radius > 0) or int(levels) != levels or levels < 0:
         raise ValueError(f"refine_near: radius > 0 and a whole levels >= 0 needed, got {radius!r}, {levels!r}")
+    if centre.shape != (3,) or not np.all(np.isfinite(centre)):
+        raise ValueError(f"refine_near: centre must be 3 finite coordinates, got {centre!r}")
     v, t = np.asarray(vertices, dtype=float), np.asarray(triangles)
     parents = np.zeros((0, 2), dtype=int)
     for k in range(1, int(levels) + 1):
-        distance = np.linalg.norm(v[t].mean(axis=1) - np.asarray(centre, dtype=float), axis=1)
-        reach = max(radius * 2.0 ** (levels - k), distance.min())  # the nearest triangle at least
+        corners = v[t]
+        distance = np.linalg.norm(corners.mean(axis=1) - centre, axis=1)
+        nearest = np.argmin(distance)
+        size = np.linalg.norm(corners[nearest] - np.roll(corners[nearest], -1, axis=0), axis=1).max()
+        # At least the ring about the nearest triangle: split alone, its halved neighbours would be halved
+        # again at the next level, and their angles with them.
+        reach = max(radius * 2.0 ** (levels - k), distance[nearest] + 1.5 * size)
         v, t, new_parents = _split(v, t, distance <= reach, project)
         parents = np.vstack([parents, new_parents])
     return RefinedMesh(v, t, parents)

@@ -100,23 +100,23 @@ def refined_at_apex(mesh: ShellMesh, radius: float, levels: int) -> ShellMesh:
     """`mesh` (a hemisphere about the origin, apex on +z) with its edges halved `levels` times within
     `radius` (m) of the apex (`assets.refine.refine_near`); new vertices on the sphere, held where both
     vertices of their edge are."""
-    sphere = np.linalg.norm(mesh.vertices[0])
     apex = mesh.vertices[np.argmax(mesh.vertices[:, 2])]
-    refined = refine_near(mesh.vertices, mesh.triangles, apex, radius, levels, lambda p: sphere * _unit_rows(p))
+    sphere = np.linalg.norm(apex)
+
+    def onto_sphere(p: np.ndarray) -> np.ndarray:
+        return sphere * p / np.linalg.norm(p, axis=1, keepdims=True)
+
+    refined = refine_near(mesh.vertices, mesh.triangles, apex, radius, levels, onto_sphere)
     fixed = np.concatenate([mesh.fixed, np.zeros(len(refined.parents), dtype=bool)])
-    for i, (a, b) in enumerate(refined.parents, start=len(mesh.vertices)):
+    for i, (a, b) in enumerate(refined.parents, start=len(mesh.vertices)):  # a level's parents may be new ones
         fixed[i] = fixed[a] and fixed[b]
     return ShellMesh(refined.vertices, refined.triangles, fixed)
 
 
-def _unit_rows(p: np.ndarray) -> np.ndarray:
-    return p / np.linalg.norm(p, axis=1, keepdims=True)
-
-
-def _contact_radius(x: np.ndarray, triangles: np.ndarray, centre: np.ndarray, radius: float, points: str) -> float:
-    """Largest distance (m) from the z axis of the contact quadrature points (`points`, the surface rule) of
+def _contact_radius(x: np.ndarray, triangles: np.ndarray, centre: np.ndarray, radius: float, rule_name: str) -> float:
+    """Largest distance (m) from the z axis of the contact quadrature points (the surface rule `rule_name`) of
     the skin at x (V, 3) m that lie inside the sphere (centre (3,) m, radius m): where the contact acts."""
-    q = np.einsum("qk,tkd->tqd", rule(points)[:, :3], x[triangles]).reshape(-1, 3)
+    q = np.einsum("qk,tkd->tqd", rule(rule_name)[:, :3], x[triangles]).reshape(-1, 3)
     inside = np.linalg.norm(q - centre, axis=1) < radius
     return float(np.linalg.norm(q[inside, :2], axis=1).max(initial=0.0))
 

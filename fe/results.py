@@ -24,7 +24,8 @@ class IncrementResult:
     contact_area: float
     """Deformed area of skin vertices in contact with the indenter (m^2)."""
     contact_radius: float
-    """Largest distance of a contact vertex from the indenter's axis (its local z through the tip) (m)."""
+    """Largest distance of a contact vertex from the indenter's axis (its local z through the tip) (m); the dome
+    (`fe.dome.run_dome`) reports that of its contact quadrature points instead."""
     displacement: np.ndarray
     """(V,3) nodal displacements from the reference (inflated) state (m)."""
     newton_iterations: int

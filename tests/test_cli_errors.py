@@ -59,6 +59,7 @@ def test_balloon_reaches_the_largest_ratio_in_few_steps_on_membrane_theory() -> 
         ("dome", "--volume-ratio", "inf"),
         ("indent", "--refine-radius-mm", "nan"),
         ("dome", "--refine-radius-mm", "inf"),
+        ("dome", "--indenter-radius-mm", "nan"),
     ],
 )
 def test_fe_commands_refuse_non_finite_numbers(command: str, option: str, value: str) -> None:

@@ -24,6 +24,17 @@ def _unit_rows(p: np.ndarray) -> np.ndarray:
     return p / np.linalg.norm(p, axis=1, keepdims=True)
 
 
+def _smallest_angle(vertices: np.ndarray, triangles: np.ndarray) -> float:
+    """The smallest corner angle (degrees) of the mesh."""
+    corners = vertices[triangles]
+    edges = np.roll(corners, -1, axis=1) - corners
+    lengths = np.linalg.norm(edges, axis=2)
+    cosines = [
+        np.einsum("ij,ij->i", edges[:, k], -edges[:, k - 1]) / (lengths[:, k] * lengths[:, k - 1]) for k in range(3)
+    ]
+    return float(np.degrees(np.arccos(np.clip(np.max(cosines), -1.0, 1.0))))
+
+
 def _grid(n: int, spacing: float) -> tuple[np.ndarray, np.ndarray]:
     """A flat square of n x n cells in z = 0, two triangles a cell, normals +z."""
     i, j = np.meshgrid(np.arange(n + 1), np.arange(n + 1), indexing="ij")
@@ -74,6 +85,18 @@ def test_a_radius_smaller_than_the_elements_still_splits_the_nearest_triangle() 
     assert len(refined.triangles) > len(triangles) and len(refined.parents) >= 3
 
 
+@pytest.mark.parametrize("radius", [1e-5, 1.5e-3])
+def test_angles_do_not_shrink_level_after_level(radius: float) -> None:
+    """Each level splits at least the ring about the nearest triangle, so a triangle halved at one level is not
+    halved again at the next (that would halve its smallest angle each level: 0.8 degrees after five)."""
+    d = DEFAULT_DIMENSIONS
+    skin = make_biotac(1e-3).skin
+    seam = np.array([d.tip_center_x, 0.0, d.axis_z - 8e-3])
+    for levels in (3, 5):
+        refined = refine_near(skin.vertices, skin.triangles, seam, radius, levels, lambda p: project_to_skin(p, d))
+        assert _smallest_angle(refined.vertices, refined.triangles) > 12.0
+
+
 def test_zero_levels_change_nothing_and_bad_input_is_refused() -> None:
     vertices, triangles = _grid(3, 1.0)
     same = refine_near(vertices, triangles, np.zeros(3), 1.0, 0, lambda p: p)
@@ -81,6 +104,9 @@ def test_zero_levels_change_nothing_and_bad_input_is_refused() -> None:
     for radius, levels in [(0.0, 1), (np.nan, 1), (1.0, -1), (1.0, 1.5)]:
         with pytest.raises(ValueError, match="refine_near"):
             refine_near(vertices, triangles, np.zeros(3), radius, levels, lambda p: p)
+    for centre in (np.full(3, np.nan), np.zeros(2)):
+        with pytest.raises(ValueError, match="centre"):
+            refine_near(vertices, triangles, centre, 1.0, 1, lambda p: p)
 
 
 def test_the_biotac_skin_refined_about_a_press_point() -> None:

@@ -100,9 +100,13 @@ def dome(
         raise typer.BadParameter("--bending must be on or off")
     sizes = {"--radius-mm": radius_mm, "--thickness-mm": thickness_mm, "--mu-pa": mu_pa, "--volume-ratio": volume_ratio}
     sizes |= {"--depth-mm": depth_mm, "--step-mm": step_mm, "--refine-radius-mm": refine_radius_mm}
-    _guarded(lambda: _check_finite(sizes))
-    if depth_mm < 0 or step_mm <= 0 or refine_radius_mm <= 0:
-        raise typer.BadParameter("--depth-mm must be >= 0, --step-mm and --refine-radius-mm > 0")
+    optional = {"--indenter-radius-mm": indenter_radius_mm, "--mesh-mm": mesh_mm}
+    given = {name: v for name, v in optional.items() if v is not None}
+    _guarded(lambda: _check_finite(sizes | given))
+    if depth_mm < 0 or step_mm <= 0 or refine_radius_mm <= 0 or min(given.values(), default=1.0) <= 0:
+        raise typer.BadParameter(
+            "--depth-mm must be >= 0; --step-mm, --refine-radius-mm, --indenter-radius-mm and --mesh-mm > 0"
+        )
     depths = np.arange(0, int(round(depth_mm / step_mm)) + 1) * step_mm * 1e-3
     result = _guarded(
         lambda: run_dome(
