@@ -20,14 +20,6 @@ from twin.cli.common import parse_floats as _floats
 from twin.cli.common import progress_bar as _progress
 from twin.cli.fe_batch import batch
 
-RefineLevels = Annotated[
-    int,
-    typer.Option(
-        min=0, max=3, help="Halve the mesh's edges this many times about the press point (contact patch; docs/fe.md)."
-    ),
-]
-RefineRadiusMm = Annotated[float, typer.Option(help="Reach of the finest --refine-levels level from the point (mm).")]
-
 fe_app = typer.Typer(help="Finite-element skin model: physics checks and indentations.", no_args_is_help=True)
 fe_app.command("batch")(batch)
 
@@ -89,21 +81,28 @@ def dome(
     depth_mm: Annotated[float, typer.Option(help="Depth past first touch (mm).")] = 0.0,
     step_mm: Annotated[float, typer.Option(help="Depth increment (mm).")] = 0.25,
     mesh_mm: Annotated[float | None, typer.Option(help="Maximum edge length (mm); default R/12.")] = None,
-    refine_levels: RefineLevels = 0,
-    refine_radius_mm: RefineRadiusMm = 1.5,
+    refine_levels: Annotated[
+        int | None,
+        typer.Option(min=0, max=3, help="Halve the edges this many times at the apex (default: fe.dome's rule)."),
+    ] = None,
+    refine_radius_mm: Annotated[
+        float | None, typer.Option(help="Reach of the finest level from the apex (mm; default: three edges).")
+    ] = None,
     as_json: Annotated[bool, typer.Option("--json", help="Print JSON.")] = False,
 ) -> None:
-    """Hemispherical membrane pinned to a flat base, fluid-filled, inflated, then indented at the apex."""
+    """Hemispherical membrane pinned to a flat base, fluid-filled, inflated, then indented at the apex; with an
+    indenter the mesh is refined under it by default (`fe.dome.contact_refinement`, docs/fe.md)."""
     from fe.dome import run_dome
 
     if bending not in ("on", "off"):
         raise typer.BadParameter("--bending must be on or off")
     sizes = {"--radius-mm": radius_mm, "--thickness-mm": thickness_mm, "--mu-pa": mu_pa, "--volume-ratio": volume_ratio}
-    sizes |= {"--depth-mm": depth_mm, "--step-mm": step_mm, "--refine-radius-mm": refine_radius_mm}
+    sizes |= {"--depth-mm": depth_mm, "--step-mm": step_mm}
     optional = {"--indenter-radius-mm": indenter_radius_mm, "--mesh-mm": mesh_mm}
+    optional["--refine-radius-mm"] = refine_radius_mm
     given = {name: v for name, v in optional.items() if v is not None}
     _guarded(lambda: _check_finite(sizes | given))
-    if depth_mm < 0 or step_mm <= 0 or refine_radius_mm <= 0 or min(given.values(), default=1.0) <= 0:
+    if depth_mm < 0 or step_mm <= 0 or min(given.values(), default=1.0) <= 0:
         raise typer.BadParameter(
             "--depth-mm must be >= 0; --step-mm, --refine-radius-mm, --indenter-radius-mm and --mesh-mm > 0"
         )
@@ -119,8 +118,12 @@ def dome(
             depths if indenter_radius_mm is not None else None,
             None if mesh_mm is None else mesh_mm * 1e-3,
             refine_levels=refine_levels,
-            refine_radius=refine_radius_mm * 1e-3,
+            refine_radius=None if refine_radius_mm is None else refine_radius_mm * 1e-3,
         )
+    )
+    _err.print(
+        f"dome mesh: {result.vertices} vertices, edges halved {result.refine_levels} time(s) within "
+        f"{result.refine_radius * 1e3:.3g} mm of the apex"
     )
     records = [
         {
@@ -172,8 +175,12 @@ def indent(
         float, typer.Option(help="Indentation speed (mm/s) timing the increments; only a relaxing skin feels it.")
     ] = 1.0,
     mesh_mm: Annotated[float | None, typer.Option(help=FE_MESH_HELP)] = None,
-    refine_levels: RefineLevels = 0,
-    refine_radius_mm: RefineRadiusMm = 1.5,
+    refine_levels: Annotated[
+        int, typer.Option(min=0, max=3, help="Halve the skin's edges this many times about the point (docs/fe.md).")
+    ] = 0,
+    refine_radius_mm: Annotated[
+        float, typer.Option(help="Reach of the finest --refine-levels level from the press point (mm).")
+    ] = 1.5,
     model_json: Annotated[Path | None, typer.Option("--model", help=FE_MODEL_HELP)] = None,
     device: Annotated[str, typer.Option(help="Warp device of the indentation: cpu, cuda, cuda:0, ...")] = "cpu",
     as_json: Annotated[bool, typer.Option("--json", help="Print JSON records.")] = False,
