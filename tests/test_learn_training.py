@@ -48,12 +48,14 @@ def test_mlp_learns_every_target_and_beats_the_mean(sensors: tuple[Path, Path], 
 
 
 def test_pointnet_learns_contact_location(sensors: tuple[Path, Path]) -> None:
-    """Ten epochs on ~30 trajectories: the fit is clear on the training rows; on unseen trajectories it
-    still beats the mean (over seeds 0-4 the test error was 0.5-0.9 of the mean predictor's)."""
+    """Twenty epochs on ~30 trajectories: the fit is clear on the training rows; on unseen trajectories it
+    still beats the mean. Over seeds 0-4 (2026-11-29, this 2-core box) the training error was 0.32-0.62 and the test
+    error 0.45-0.85 of the mean predictor's; ten epochs were too few on this machine's arithmetic (seed 0: 0.87 and
+    1.05)."""
     data = load(sensors[0])
     train_rows, test_rows = split(data, "contiguous", 0.2, seed=0)
     training, test = data.subset(train_rows), data.subset(test_rows)
-    config = TrainConfig(targets=("contact_loc",), max_epochs=10, batch_size=32, learning_rate=2e-3, threads=1)
+    config = TrainConfig(targets=("contact_loc",), max_epochs=20, batch_size=32, learning_rate=2e-3, threads=1)
     estimator = NeuralEstimator(config).fit(training)
     assert estimator.history[-1].train_loss < 0.5 * estimator.history[0].train_loss
     mean = training.contact_loc.mean(axis=0)
