@@ -370,14 +370,19 @@ def _unit(v: np.ndarray) -> np.ndarray:
     return v / np.linalg.norm(v, axis=-1, keepdims=True)
 
 
+def _from_skin_axis(points: np.ndarray, d: BioTacDimensions) -> np.ndarray:
+    """(N, 3) m: each point (N, 3) m less its nearest point of the skin's axis up to the cap centre (on the axis for
+    x <= tip_center_x, the cap centre beyond): the skin's outward direction there, its length the radius."""
+    q = points - np.array([d.tip_center_x, 0.0, d.axis_z])
+    q[:, 0] = np.maximum(q[:, 0], 0.0)
+    return q
+
+
 def _orient_outward(vertices: np.ndarray, triangles: np.ndarray, d: BioTacDimensions) -> np.ndarray:
     """Reorder triangles so that right-hand normals point away from the skin axis / cap centre."""
     p = vertices[triangles]
     normal = np.cross(p[:, 1] - p[:, 0], p[:, 2] - p[:, 0])
-    centroid = p.mean(axis=1)
-    outward = centroid - np.array([d.tip_center_x, 0.0, d.axis_z])
-    outward[:, 0] = np.maximum(outward[:, 0], 0.0)
-    flip = np.einsum("ij,ij->i", normal, outward) < 0.0
+    flip = np.einsum("ij,ij->i", normal, _from_skin_axis(p.mean(axis=1), d)) < 0.0
     out = triangles.copy()
     out[flip] = out[flip][:, ::-1]
     return out
@@ -513,9 +518,7 @@ def make_core(max_edge: float, d: BioTacDimensions) -> CoreMesh:
 
 def inside_skin_inner(points: np.ndarray, d: BioTacDimensions) -> np.ndarray:
     """(N,) bool: points (m) inside the inner skin surface of the full (unclipped) parametric skin."""
-    q = points - np.array([d.tip_center_x, 0.0, d.axis_z])
-    q[:, 0] = np.maximum(q[:, 0], 0.0)
-    return np.linalg.norm(q, axis=1) < d.skin_inner_radius
+    return np.linalg.norm(_from_skin_axis(points, d), axis=1) < d.skin_inner_radius
 
 
 def cavity_volume(d: BioTacDimensions, spacing: float = 0.1 * MM) -> float:
@@ -570,9 +573,8 @@ def project_to_skin(points: np.ndarray, d: BioTacDimensions) -> np.ndarray:
     """(N, 3) m: the closest points to `points` (N, 3) m, biotac frame, of the capsule the unpressurised skin
     mid-surface lies on (its cylinder for x <= tip_center_x, its tip sphere beyond; not cut where the mesh ends).
     A point on the skin's axis has no closest point (NaN)."""
-    centre = np.array([d.tip_center_x, 0.0, d.axis_z])
-    on_axis = centre + np.outer(np.minimum(points[:, 0] - centre[0], 0.0), [1.0, 0.0, 0.0])
-    return on_axis + d.skin_mid_radius * _unit(points - on_axis)
+    radial = _from_skin_axis(points, d)
+    return points - radial + d.skin_mid_radius * _unit(radial)
 
 
 def refine_skin(skin: SkinMesh, refinement: Refinement, d: BioTacDimensions) -> SkinMesh:

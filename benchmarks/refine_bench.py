@@ -41,7 +41,7 @@ def _dome(ratio: float, radius: float, levels: int, refine_radius: float) -> tup
     if not all(inc.converged for inc in result.increments):
         raise RuntimeError(f"dome V/V0 {ratio}, r {radius}: an increment did not converge")
     cpu = time.process_time() - start
-    return np.array([-inc.force[2] for inc in result.increments])[1:], cpu, len(result.increments[0].displacement)
+    return np.array([-inc.force[2] for inc in result.increments])[1:], cpu, result.vertices
 
 
 def dome_table(console: Console, refine_radius: float) -> None:
